@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import jax
+import jax.extend
 import numpy as np
 import pytest
 
@@ -20,7 +21,7 @@ def _count_eqns(jaxpr) -> int:
   total = 0
   for eqn in jaxpr.eqns:
     total += 1
-    for sub in jax.core.jaxprs_in_params(eqn.params):
+    for sub in jax.extend.core.jaxprs_in_params(eqn.params):
       total += _count_eqns(sub)
   return total
 
@@ -29,7 +30,7 @@ def _shapes(jaxpr) -> set[tuple[int, ...]]:
   found = set()
   for eqn in jaxpr.eqns:
     found |= {tuple(v.aval.shape) for v in eqn.outvars if hasattr(v.aval, "shape")}
-    for sub in jax.core.jaxprs_in_params(eqn.params):
+    for sub in jax.extend.core.jaxprs_in_params(eqn.params):
       found |= _shapes(sub)
   return found
 
@@ -38,7 +39,7 @@ def _primitives(jaxpr) -> list[str]:
   names = []
   for eqn in jaxpr.eqns:
     names.append(eqn.primitive.name)
-    for sub in jax.core.jaxprs_in_params(eqn.params):
+    for sub in jax.extend.core.jaxprs_in_params(eqn.params):
       names += _primitives(sub)
   return names
 

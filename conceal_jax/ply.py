@@ -1,0 +1,141 @@
+"""Reading and writing the standard 3D-GS `.ply` point cloud (REFERENCE section 6).
+
+The file has one `vertex` element with float32 properties
+  x y z nx ny nz f_dc_0..2 f_rest_0..(3 * ((D+1)^2 - 1) - 1) opacity scale_0..2 rot_0..3
+holding the raw (pre-activation) parameters: opacity as a logit, scale as a log, rotation as
+(w, x, y, z).
+f_rest is channel-major: all higher-order coefficients of R, then those of G, then those of B. The
+normals are unused by 3D-GS and written as zeros.
+"""
+from __future__ import annotations
+
+import os
+import re
+
+import jax.numpy as jnp
+import numpy as np
+import plyfile
+
+from conceal_jax.fileio import atomic_path
+from conceal_jax.gaussians import Gaussians
+
+_POSITION = ("x", "y", "z")
+_NORMAL = ("nx", "ny", "nz")
+_DC = ("f_dc_0", "f_dc_1", "f_dc_2")
+_OPACITY = ("opacity",)
+_SCALE = ("scale_0", "scale_1", "scale_2")
+_ROTATION = ("rot_0", "rot_1", "rot_2", "rot_3")
+_REQUIRED = _POSITION + _DC + _OPACITY + _SCALE + _ROTATION
+_REST_PATTERN = re.compile(r"f_rest_(\d+)")
+
+
+class PlyError(ValueError):
+  """A file that is not a readable 3D-GS point cloud."""
+
+
+def rest_names(sh_degree: int) -> list[str]:
+  """Names of the f_rest properties for SH degree D: 3 * ((D+1)^2 - 1) of them."""
+  return [f"f_rest_{i}" for i in range(3 * ((sh_degree + 1)**2 - 1))]
+
+
+def property_names(sh_degree: int) -> list[str]:
+  """All vertex property names, in the order 3D-GS writes them."""
+  return [*_POSITION, *_NORMAL, *_DC, *rest_names(sh_degree), *_OPACITY, *_SCALE, *_ROTATION]
+
+
+def gaussians_to_vertices(gaussians: Gaussians) -> np.ndarray:
+  """[N] structured float32 array with the fields of `property_names(gaussians.sh_degree)`."""
+  n = gaussians.num
+  sh = np.asarray(gaussians.sh, np.float32)
+  # [N, K-1, 3] -> [N, 3, K-1] -> [N, 3 (K-1)]: channel-major, as 3D-GS stores f_rest.
+  rest = np.transpose(sh[:, 1:, :], (0, 2, 1)).reshape(n, 3 * (sh.shape[1] - 1))
+  columns = np.concatenate([
+      np.asarray(gaussians.means, np.float32),
+      np.zeros((n, 3), np.float32),
+      sh[:, 0, :],
+      rest,
+      np.asarray(gaussians.opacity_logits, np.float32).reshape(n, 1),
+      np.asarray(gaussians.log_scales, np.float32),
+      np.asarray(gaussians.quats, np.float32),
+  ], axis=1)
+  names = property_names(gaussians.sh_degree)
+  vertices = np.empty(n, dtype=[(name, "<f4") for name in names])
+  for i, name in enumerate(names):
+    vertices[name] = columns[:, i]
+  return vertices
+
+
+def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
+  """Writes `gaussians` as a binary little-endian 3D-GS ply; atomic: a crash never leaves half a file."""
+  element = plyfile.PlyElement.describe(gaussians_to_vertices(gaussians), "vertex")
+  data = plyfile.PlyData([element], text=False, byte_order="<")
+  with atomic_path(path) as tmp, open(tmp, "wb") as f:
+    data.write(f)
+
+
+def load_ply(path: str | os.PathLike) -> Gaussians:
+  """Reads any standard 3D-GS ply (SH degree inferred from the f_rest count) into float32 Gaussians.
+
+  Raises PlyError, naming the file, when it is missing, is not a well-formed ply, lacks a required
+  property, has an f_rest count that is no SH degree, or holds a non-finite value.
+  """
+  path = os.fspath(path)
+  vertices = _read_vertices(path)
+  names = vertices.dtype.names or ()
+  missing = [name for name in _REQUIRED if name not in names]
+  if missing:
+    raise PlyError(f"{path}: missing vertex properties {', '.join(missing)}")
+  sh_degree = _sh_degree_from_rest(path, names)
+  n = len(vertices)
+
+  def columns(fields) -> np.ndarray:
+    out = np.empty((n, len(fields)), np.float32)
+    # Doubles beyond the float32 range become inf here on purpose: the finiteness check rejects them.
+    with np.errstate(over="ignore"):
+      for i, name in enumerate(fields):
+        out[:, i] = vertices[name]
+    return out
+
+  dc = columns(_DC)
+  rest = columns(rest_names(sh_degree)).reshape(n, 3, (sh_degree + 1)**2 - 1)
+  sh = np.concatenate([dc[:, None, :], np.transpose(rest, (0, 2, 1))], axis=1)
+  arrays = dict(means=columns(_POSITION), log_scales=columns(_SCALE), quats=columns(_ROTATION),
+                opacity_logits=columns(_OPACITY)[:, 0], sh=sh)
+  bad = [name for name, value in arrays.items() if not np.all(np.isfinite(value))]
+  if bad:
+    raise PlyError(f"{path}: non-finite values in {', '.join(bad)}")
+  return Gaussians(**{name: jnp.asarray(value) for name, value in arrays.items()})
+
+
+def _read_vertices(path: str) -> np.ndarray:
+  """[N] structured array of the `vertex` element, or PlyError for an unreadable file."""
+  if not os.path.isfile(path):
+    raise PlyError(f"{path}: no such file")
+  try:
+    with open(path, "rb") as f:
+      # mmap=False reads everything now, so that a truncated body fails here rather than on first use.
+      data = plyfile.PlyData.read(f, mmap=False)
+  except (plyfile.PlyParseError, ValueError, EOFError, IndexError, KeyError, TypeError) as e:
+    raise PlyError(f"{path}: not a valid PLY file ({type(e).__name__}: {e})") from e
+  except OSError as e:
+    raise PlyError(f"{path}: cannot read ({e})") from e
+  if "vertex" not in data:
+    raise PlyError(f"{path}: no 'vertex' element")
+  vertices = data["vertex"].data
+  names = vertices.dtype.names or ()
+  non_numeric = [name for name in names if vertices.dtype[name].kind not in "fiu"]
+  if non_numeric:
+    raise PlyError(f"{path}: vertex properties {', '.join(non_numeric)} are not scalars")
+  return vertices
+
+
+def _sh_degree_from_rest(path: str, names: tuple[str, ...]) -> int:
+  """SH degree D from the f_rest properties: they must be exactly f_rest_0 .. f_rest_{3((D+1)^2-1)-1}."""
+  indices = sorted(int(m.group(1)) for m in map(_REST_PATTERN.fullmatch, names) if m)
+  count = len(indices)
+  if indices != list(range(count)):
+    raise PlyError(f"{path}: f_rest properties are not numbered 0..{count - 1} without gaps")
+  degree = int(round((count / 3 + 1)**0.5)) - 1
+  if count != 3 * ((degree + 1)**2 - 1):
+    raise PlyError(f"{path}: {count} f_rest properties match no SH degree (expected 0, 9, 24, 45, ...)")
+  return degree

@@ -1,0 +1,199 @@
+"""Tests of the 3D-GS .ply export and import."""
+import os
+
+import jax
+import numpy as np
+import plyfile
+import pytest
+
+from conceal_jax import ply
+from conceal_jax.gaussians import Gaussians
+
+
+def random_gaussians(n: int, sh_degree: int, seed: int = 0) -> Gaussians:
+  rng = np.random.default_rng(seed)
+  normal = lambda *shape: rng.normal(size=shape).astype(np.float32)
+  return Gaussians(means=normal(n, 3), log_scales=normal(n, 3), quats=normal(n, 4),
+                   opacity_logits=normal(n), sh=normal(n, (sh_degree + 1)**2, 3))
+
+
+def assert_gaussians_equal(a: Gaussians, b: Gaussians) -> None:
+  for name, x, y in zip(("means", "log_scales", "quats", "opacity_logits", "sh"), jax.tree.leaves(a),
+                        jax.tree.leaves(b)):
+    assert x.shape == y.shape, name
+    assert y.dtype == np.float32, name
+    np.testing.assert_array_equal(np.asarray(x), np.asarray(y), err_msg=name)
+
+
+def write_raw_ply(path, columns: dict, dtype="<f4", text=False) -> None:
+  """Writes a vertex element with these columns straight through plyfile (independent of save_ply)."""
+  n = len(next(iter(columns.values())))
+  vertices = np.empty(n, dtype=[(name, dtype) for name in columns])
+  for name, value in columns.items():
+    vertices[name] = value
+  plyfile.PlyData([plyfile.PlyElement.describe(vertices, "vertex")], text=text).write(str(path))
+
+
+def standard_columns(n: int, n_rest: int, normals: bool = True) -> dict:
+  """Columns of a valid file in 3D-GS's property order; f_rest_i = i + 1 and f_dc_c = -(c + 1)."""
+  cols = {"x": np.arange(n), "y": np.ones(n), "z": np.zeros(n)}
+  if normals:
+    cols.update(nx=np.zeros(n), ny=np.zeros(n), nz=np.zeros(n))
+  cols.update({f"f_dc_{c}": np.full(n, -(c + 1.0)) for c in range(3)})
+  cols.update({f"f_rest_{i}": np.full(n, i + 1.0) for i in range(n_rest)})
+  cols.update(opacity=np.full(n, 0.5), scale_0=np.full(n, -1.0), scale_1=np.full(n, -2.0),
+              scale_2=np.full(n, -3.0), rot_0=np.ones(n), rot_1=np.zeros(n), rot_2=np.zeros(n),
+              rot_3=np.zeros(n))
+  return cols
+
+
+@pytest.mark.parametrize("sh_degree", [0, 3])
+def test_round_trip_is_exact(tmp_path, sh_degree):
+  g = random_gaussians(17, sh_degree)
+  path = tmp_path / "point_cloud.ply"
+  ply.save_ply(path, g)
+  assert_gaussians_equal(g, ply.load_ply(path))
+
+
+def test_round_trip_of_empty_set(tmp_path):
+  g = Gaussians.empty(sh_degree=2)
+  ply.save_ply(tmp_path / "empty.ply", g)
+  assert_gaussians_equal(g, ply.load_ply(tmp_path / "empty.ply"))
+
+
+def test_saved_file_has_3dgs_layout(tmp_path):
+  g = random_gaussians(4, 3)
+  ply.save_ply(tmp_path / "a.ply", g)
+  data = plyfile.PlyData.read(str(tmp_path / "a.ply"))
+  assert not data.text and data.byte_order == "<"
+  vertex = data["vertex"]
+  expected = (["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] +
+              [f"f_rest_{i}" for i in range(45)] +
+              ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
+  assert [p.name for p in vertex.properties] == expected
+  assert all(vertex.data.dtype[name] == np.dtype("<f4") for name in expected)
+  sh = np.asarray(g.sh)
+  # Channel-major: f_rest_{c * 15 + (k - 1)} holds coefficient k of channel c.
+  for c in range(3):
+    np.testing.assert_array_equal(vertex[f"f_dc_{c}"], sh[:, 0, c])
+    for k in range(1, 16):
+      np.testing.assert_array_equal(vertex[f"f_rest_{c * 15 + k - 1}"], sh[:, k, c])
+  np.testing.assert_array_equal(vertex["nx"], 0.0)
+  np.testing.assert_array_equal(vertex["opacity"], np.asarray(g.opacity_logits))
+  np.testing.assert_array_equal(vertex["rot_0"], np.asarray(g.quats)[:, 0])  # w first
+  np.testing.assert_array_equal(vertex["scale_2"], np.asarray(g.log_scales)[:, 2])
+
+
+@pytest.mark.parametrize("sh_degree", [1, 2])
+def test_loads_hand_written_file_channel_major(tmp_path, sh_degree):
+  n_coeffs = (sh_degree + 1)**2
+  path = tmp_path / "hand.ply"
+  write_raw_ply(path, standard_columns(3, 3 * (n_coeffs - 1)))
+  g = ply.load_ply(path)
+  assert g.sh.shape == (3, n_coeffs, 3)
+  sh = np.asarray(g.sh)
+  for c in range(3):
+    np.testing.assert_array_equal(sh[:, 0, c], -(c + 1.0))
+    for k in range(1, n_coeffs):
+      np.testing.assert_array_equal(sh[:, k, c], c * (n_coeffs - 1) + (k - 1) + 1.0)
+  np.testing.assert_array_equal(np.asarray(g.means)[:, 0], [0, 1, 2])
+  np.testing.assert_array_equal(np.asarray(g.log_scales)[0], [-1, -2, -3])
+  np.testing.assert_array_equal(np.asarray(g.quats)[0], [1, 0, 0, 0])
+  np.testing.assert_array_equal(np.asarray(g.opacity_logits), 0.5)
+
+
+def test_loads_file_without_normals_in_double_precision(tmp_path):
+  path = tmp_path / "no_normals.ply"
+  write_raw_ply(path, standard_columns(2, 0, normals=False), dtype="<f8")
+  g = ply.load_ply(path)
+  assert g.sh.shape == (2, 1, 3) and g.means.dtype == np.float32
+
+
+def test_loads_ascii_file(tmp_path):
+  path = tmp_path / "ascii.ply"
+  write_raw_ply(path, standard_columns(2, 9), text=True)
+  assert ply.load_ply(path).sh_degree == 1
+
+
+def expect_ply_error(path, fragment: str) -> None:
+  with pytest.raises(ply.PlyError) as info:
+    ply.load_ply(path)
+  message = str(info.value)
+  assert str(path) in message and fragment in message
+  assert isinstance(info.value, ValueError)
+
+
+def test_missing_file(tmp_path):
+  expect_ply_error(tmp_path / "absent.ply", "no such file")
+
+
+@pytest.mark.parametrize("content", [b"", b"hello world\n", bytes(range(256)),
+                                     b"ply\nformat binary_little_endian 1.0\n"])
+def test_not_a_ply(tmp_path, content):
+  path = tmp_path / "bad.ply"
+  path.write_bytes(content)
+  expect_ply_error(path, "not a valid PLY file")
+
+
+def test_truncated_body(tmp_path):
+  path = tmp_path / "truncated.ply"
+  ply.save_ply(path, random_gaussians(5, 1))
+  path.write_bytes(path.read_bytes()[:-9])
+  expect_ply_error(path, "not a valid PLY file")
+
+
+def test_no_vertex_element(tmp_path):
+  path = tmp_path / "faces.ply"
+  face = np.zeros(1, dtype=[("a", "<f4")])
+  plyfile.PlyData([plyfile.PlyElement.describe(face, "face")]).write(str(path))
+  expect_ply_error(path, "no 'vertex' element")
+
+
+@pytest.mark.parametrize("dropped", ["opacity", "rot_3", "f_dc_1", "x"])
+def test_missing_property(tmp_path, dropped):
+  cols = standard_columns(2, 9)
+  del cols[dropped]
+  path = tmp_path / "missing.ply"
+  write_raw_ply(path, cols)
+  expect_ply_error(path, f"missing vertex properties {dropped}")
+
+
+def test_f_rest_count_matching_no_degree(tmp_path):
+  path = tmp_path / "rest10.ply"
+  write_raw_ply(path, standard_columns(2, 10))
+  expect_ply_error(path, "10 f_rest properties match no SH degree")
+
+
+def test_f_rest_numbering_gap(tmp_path):
+  cols = standard_columns(2, 9)
+  cols["f_rest_9"] = cols.pop("f_rest_4")
+  path = tmp_path / "gap.ply"
+  write_raw_ply(path, cols)
+  expect_ply_error(path, "not numbered")
+
+
+@pytest.mark.parametrize("name, value", [("x", np.nan), ("f_rest_3", np.inf), ("opacity", -np.inf),
+                                         ("scale_1", 1e300)])
+def test_non_finite_value(tmp_path, name, value):
+  cols = standard_columns(3, 9)
+  cols[name] = np.array([0.0, value, 0.0])
+  path = tmp_path / "nonfinite.ply"
+  write_raw_ply(path, cols, dtype="<f8")  # 1e300 is finite in float64 but overflows float32
+  expect_ply_error(path, "non-finite values")
+
+
+def test_interrupted_write_keeps_previous_file(tmp_path, monkeypatch):
+  path = tmp_path / "point_cloud.ply"
+  old = random_gaussians(6, 1, seed=1)
+  ply.save_ply(path, old)
+
+  def failing_write(self, stream):
+    stream.write(b"ply\nformat binary_little_endian 1.0\n")
+    raise RuntimeError("disk full")
+
+  monkeypatch.setattr(plyfile.PlyData, "write", failing_write)
+  with pytest.raises(RuntimeError, match="disk full"):
+    ply.save_ply(path, random_gaussians(9, 3, seed=2))
+  monkeypatch.undo()
+  assert_gaussians_equal(old, ply.load_ply(path))
+  assert sorted(os.listdir(tmp_path)) == ["point_cloud.ply"]  # the temporary file is gone
