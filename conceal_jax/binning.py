@@ -58,12 +58,29 @@ def tile_lists(means2d: jax.Array, depths: jax.Array, radii: jax.Array, tile_siz
   tiles_x, tiles_y = grid
   tile_xy = jnp.stack(jnp.meshgrid(jnp.arange(tiles_x), jnp.arange(tiles_y), indexing="xy"), -1)
   tile_xy = tile_xy.reshape(-1, 2).astype(jnp.int32)
+  ranks = jnp.arange(1, length + 1, dtype=jnp.float32)
+  sorted_with_sentinel = jnp.concatenate([order.astype(jnp.int32), jnp.array([n], jnp.int32)])
 
   def one_tile(xy):
     touches = jnp.all((rect_min <= xy) & (xy < rect_max), axis=-1)  # [N] in depth order
-    (first,) = jnp.nonzero(touches, size=length, fill_value=n)
-    ranked = jnp.where(first < n, order[jnp.minimum(first, n - 1)], n)
-    return ranked.astype(jnp.int32), jnp.sum(touches, dtype=jnp.int32)
+    seen = prefix_count(touches)
+    # The k-th touching splat sits where the running count first reaches k (N when there is none).
+    position = jnp.searchsorted(seen, ranks, side="left", method="scan_unrolled")
+    return sorted_with_sentinel[position], seen[-1].astype(jnp.int32)
 
   batch = max(1, min(tile_xy.shape[0], _MAX_MASK_ENTRIES // max(n, 1)))
   return jax.lax.map(one_tile, tile_xy, batch_size=batch)
+
+
+def prefix_count(mask: jax.Array, block: int = 128) -> jax.Array:
+  """[N] bool -> [N] float32 running count of True (inclusive); exact for N < 2^24.
+
+  A blocked prefix sum: a small triangular matmul inside blocks of `block` and a short cumsum across
+  blocks. On CPU this is several times faster than jnp.cumsum, which XLA lowers to a reduce_window.
+  """
+  n = mask.shape[0]
+  padded = -(-n // block) * block
+  x = jnp.pad(mask.astype(jnp.float32), (0, padded - n)).reshape(-1, block)
+  within = x @ jnp.triu(jnp.ones((block, block), jnp.float32))
+  totals = within[:, -1]
+  return (within + (jnp.cumsum(totals) - totals)[:, None]).reshape(-1)[:n]

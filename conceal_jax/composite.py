@@ -59,10 +59,9 @@ def composite_chunk(acc: Accumulator, alpha: jax.Array, values: jax.Array) -> Ac
   """
   log_1m = jnp.log1p(-alpha)
   seen = acc.log_t_seen[:, None] + jnp.cumsum(log_1m, axis=-1)
-  # T only decreases, so "not stopped yet" is the prefix where T after this splat stays >= 1e-4.
-  keep = (seen >= LOG_T_MIN).astype(alpha.dtype)
-  log_1m_kept = log_1m * keep
-  log_t_before = acc.log_t[:, None] + jnp.cumsum(log_1m_kept, axis=-1) - log_1m_kept
-  weights = alpha * keep * jnp.exp(log_t_before)
-  return Accumulator(log_t_seen=seen[:, -1], log_t=acc.log_t + jnp.sum(log_1m_kept, axis=-1),
+  # T only decreases, so "not stopped yet" is the prefix where T after this splat stays >= 1e-4. Every
+  # splat before a kept one was kept too, so its transmittance is the seen one: one prefix sum suffices.
+  keep = seen >= LOG_T_MIN
+  weights = jnp.where(keep, alpha * jnp.exp(seen - log_1m), 0.0)
+  return Accumulator(log_t_seen=seen[:, -1], log_t=acc.log_t + jnp.sum(jnp.where(keep, log_1m, 0.0), -1),
                      values=acc.values + weights @ values)

@@ -1,0 +1,43 @@
+"""Initial Gaussians from a point cloud, as 3D-GS initialises from SfM or random points (REFERENCE s.5)."""
+from __future__ import annotations
+
+import numpy as np
+import jax.numpy as jnp
+from scipy.spatial import cKDTree
+
+from conceal_jax import sh as sh_lib
+from conceal_jax.gaussians import Gaussians
+
+INIT_OPACITY = 0.1
+# 3D-GS floors the mean squared neighbour distance so coincident points still get a positive scale.
+_MIN_SQ_DIST = 1e-7
+
+
+def nearest_neighbour_scale(points: np.ndarray, k: int = 3) -> np.ndarray:
+  """[M, 3] -> [M] sqrt of the mean squared distance to the k nearest other points (3D-GS init)."""
+  if points.shape[0] <= 1:
+    return np.ones(points.shape[0])
+  k = min(k, points.shape[0] - 1)
+  dist, _ = cKDTree(points).query(points, k=k + 1)  # the nearest hit is the point itself
+  return np.sqrt(np.maximum(np.mean(dist[:, 1:] ** 2, axis=1), _MIN_SQ_DIST))
+
+
+def gaussians_from_points(points: np.ndarray, colors: np.ndarray, sh_degree: int = 3,
+                          opacity: float = INIT_OPACITY, dtype=jnp.float32) -> Gaussians:
+  """Isotropic Gaussians at `points` [M, 3] with colours `colors` [M, 3] in [0, 1] as the DC term."""
+  points = np.asarray(points, np.float64)
+  sh = np.zeros((points.shape[0], sh_lib.num_coefficients(sh_degree), 3))
+  sh[:, 0] = np.asarray(sh_lib.rgb_to_sh_dc(np.asarray(colors, np.float64)))
+  log_scale = np.log(nearest_neighbour_scale(points))
+  quats = np.zeros((points.shape[0], 4))
+  quats[:, 0] = 1.0
+  as_array = lambda x: jnp.asarray(x, dtype)
+  return Gaussians(means=as_array(points), log_scales=as_array(np.repeat(log_scale[:, None], 3, 1)),
+                   quats=as_array(quats),
+                   opacity_logits=as_array(np.full(points.shape[0], np.log(opacity / (1 - opacity)))),
+                   sh=as_array(sh))
+
+
+def random_box_points(rng: np.random.Generator, num: int, half_extent: float) -> tuple[np.ndarray, np.ndarray]:
+  """Uniform random points in the cube [-half_extent, half_extent]^3 with random colours (synthetic scenes)."""
+  return rng.uniform(-half_extent, half_extent, (num, 3)), rng.uniform(0.0, 1.0, (num, 3))
