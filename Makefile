@@ -26,7 +26,7 @@ test-slow: $(STAMP)
 	$(PY) -m pytest -q -m slow
 
 bench-render: $(STAMP)
-	$(PY) -m experiments.bench_render --out=experiments/results
+	$(PY) -m experiments.bench_render --out=experiments/results $(BENCH_ARGS)
 
 clean:
 	rm -rf workdirs .pytest_cache

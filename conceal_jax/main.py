@@ -1,0 +1,46 @@
+"""Command line entry: `python -m conceal_jax.main --config=conceal_jax/configs/default.py --workdir=DIR`.
+
+Only wires flags; the jobs live in their own modules. Config values are overridden with
+`--config.key=value`; the final config is saved to DIR/config.json.
+"""
+from __future__ import annotations
+
+import os
+import sys
+
+from absl import app, flags
+from ml_collections import config_flags
+
+from conceal_jax import fileio
+from conceal_jax import render_views
+
+MODES = {"render": render_views.render_and_save}
+
+FLAGS = flags.FLAGS
+flags.DEFINE_string("workdir", None, "Directory for outputs, checkpoints and the saved config.")
+config_flags.DEFINE_config_file("config", None, "Path to a config file (a get_config() module).",
+                                lock_config=True)
+flags.mark_flags_as_required(["config", "workdir"])
+
+
+def run(config, workdir: str):
+  """Validates the mode, saves the config into workdir and runs the job."""
+  if config.mode not in MODES:
+    raise ValueError(f"config.mode must be one of {sorted(MODES)}, got {config.mode!r}")
+  os.makedirs(workdir, exist_ok=True)
+  fileio.write_json(os.path.join(workdir, "config.json"), config.to_dict())
+  return MODES[config.mode](config, workdir)
+
+
+def main(argv):
+  if len(argv) > 1:
+    raise app.UsageError(f"unexpected arguments: {argv[1:]}")
+  try:
+    run(FLAGS.config, FLAGS.workdir)
+  except (ValueError, OSError) as error:  # bad input: one clear line, no traceback
+    print(f"conceal_jax: error: {error}", file=sys.stderr)
+    sys.exit(1)
+
+
+if __name__ == "__main__":
+  app.run(main)
