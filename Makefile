@@ -23,7 +23,7 @@ test: $(STAMP)
 	$(PY) -m pytest -n $(JOBS) -q
 
 test-slow: $(STAMP)
-	$(PY) -m pytest -q -m slow
+	$(PY) -m pytest -q -p no:xdist -m slow
 
 bench-render: $(STAMP)
 	$(PY) -m experiments.bench_render --out=experiments/results $(BENCH_ARGS)
