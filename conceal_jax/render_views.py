@@ -44,7 +44,7 @@ def load_scene(config: ml_collections.ConfigDict):
 
 
 def render_and_save(config: ml_collections.ConfigDict, workdir: str) -> dict:
-  """Renders every orbit view; writes view_XXX.png and render.json (overflow per view) to workdir."""
+  """Renders every orbit view; writes view_000.png, view_001.png, ... and render.json (overflow per view) to workdir."""
   options = render_options(config)
   cameras = orbit_cameras(config)
   gaussians = load_scene(config)
