@@ -71,22 +71,32 @@ class RenderOptions:
 @struct.dataclass
 class RenderOutput:
   """rgb: [H, W, 3]; alpha: [H, W] or None; depth: [H, W] or None (expected z of the visible splats);
-  num_overflow_tiles: int32, tiles touched by more than max_per_tile splats (0 in exact mode)."""
+  num_overflow_tiles: int32, tiles touched by more than max_per_tile splats (0 in exact mode);
+  radii: [N] int32 screen radius of every Gaussian in pixels, 0 where culled (for densification)."""
   rgb: jax.Array
   alpha: jax.Array | None
   depth: jax.Array | None
   num_overflow_tiles: jax.Array
+  radii: jax.Array
 
 
 @functools.partial(jax.jit, static_argnames=("options",))
-def render(gaussians: Gaussians, camera: Camera, options: RenderOptions = RenderOptions()) -> RenderOutput:
-  """Renders `gaussians` from `camera`; differentiable with respect to both (except binning)."""
+def render(gaussians: Gaussians, camera: Camera, options: RenderOptions = RenderOptions(),
+           means2d_offset: jax.Array | None = None) -> RenderOutput:
+  """Renders `gaussians` from `camera`; differentiable with respect to both (except binning).
+
+  means2d_offset: optional [N, 2] pixel offsets added to the projected means. Passing zeros and
+  differentiating with respect to them gives the loss gradient at the 2D means, which 3D-GS
+  densification accumulates (the offsets do not move the tile binning).
+  """
   degree = gaussians.sh_degree if options.sh_degree is None else options.sh_degree
   dtype = gaussians.means.dtype
   background = jnp.asarray(options.background, dtype)
   if gaussians.num == 0:
     return _background_only(camera, background, options)
   splats = project(gaussians, camera, degree, options.near, options.antialiased)
+  if means2d_offset is not None:
+    splats = splats.replace(means2d=splats.means2d + jnp.where(splats.radii[:, None] > 0, means2d_offset, 0))
   grid = binning.tile_grid(camera.width, camera.height, options.tile_size)
   length = gaussians.num if options.exact else options.max_per_tile
   lists, counts = binning.tile_lists(splats.means2d, splats.depths, splats.radii, options.tile_size,
@@ -100,7 +110,7 @@ def render(gaussians: Gaussians, camera: Camera, options: RenderOptions = Render
   overflow = jnp.zeros((), jnp.int32) if options.exact else jnp.sum(counts > options.max_per_tile,
                                                                      dtype=jnp.int32)
   return RenderOutput(rgb=untile(rgb), alpha=untile(alpha) if options.with_alpha else None,
-                      depth=untile(depth), num_overflow_tiles=overflow)
+                      depth=untile(depth), num_overflow_tiles=overflow, radii=splats.radii)
 
 
 def render_batch(gaussians: Gaussians, cameras: Camera,
@@ -177,4 +187,4 @@ def _background_only(camera: Camera, background: jax.Array, options: RenderOptio
   return RenderOutput(rgb=jnp.broadcast_to(background, shape + (3,)),
                       alpha=zeros if options.with_alpha else None,
                       depth=zeros if options.with_depth else None,
-                      num_overflow_tiles=jnp.zeros((), jnp.int32))
+                      num_overflow_tiles=jnp.zeros((), jnp.int32), radii=jnp.zeros((0,), jnp.int32))
