@@ -1,0 +1,138 @@
+"""Training: one short run end to end in a temp workdir, exact resume after a stop, and the pieces of
+the step (learning rates, densification statistic, optimizer bookkeeping)."""
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conceal_jax import demo_scene, densify, optimizer, ply, train
+from conceal_jax.configs import demo
+from conceal_jax.render import RenderOptions, render
+from tests.conftest import make_camera, random_gaussians
+
+
+@pytest.fixture(scope="module")
+def tiny_scene(tmp_path_factory):
+  return demo_scene.generate_demo_scene(tmp_path_factory.mktemp("scene") / "demo", num_train=6, num_test=2,
+                                        size=48)
+
+
+def tiny_config(scene_path, iterations=8):
+  config = demo.get_config()
+  config.data.path = str(scene_path)
+  config.init.num_random_points = 1500
+  config.train.iterations = iterations
+  config.train.sh_increase_every = 3
+  config.train.densify.start = 2
+  config.train.densify.every = 3
+  config.train.densify.until = iterations
+  config.train.densify.opacity_reset_every = 5
+  config.train.densify.grad_threshold = 2e-5  # low, so the short run does clone and split
+  config.train.checkpoint_every = 4
+  config.train.log_every = 1
+  config.train.progress_bar = False
+  config.eval.max_views = 1
+  return config
+
+
+def test_train_writes_scene_metrics_and_resumes_exactly(tiny_scene, tmp_path):
+  config = tiny_config(tiny_scene)
+  straight = train.train_and_evaluate(config, str(tmp_path / "a"))
+  assert train.train_and_evaluate(config, str(tmp_path / "b"), max_steps=4) == dict(stopped_at=4)
+  resumed = train.train_and_evaluate(config, str(tmp_path / "b"))
+  assert resumed["resumed_from"] == 4
+  a, b = ply.load_ply(tmp_path / "a" / "point_cloud.ply"), ply.load_ply(tmp_path / "b" / "point_cloud.ply")
+  assert a.num == b.num != 1500, "densification must have changed the count"
+  jax.tree.map(np.testing.assert_array_equal, a, b)
+  assert [h["loss"] for h in straight["history"] if "loss" in h] == \
+      [h["loss"] for h in resumed["history"] if "loss" in h]
+
+  metrics = json.loads((tmp_path / "a" / "metrics.json").read_text())
+  assert "VGG16" in metrics["lpips_net"] and metrics["num_views"] == 1
+  assert 0 < metrics["mean"]["ssim"] <= 1 and np.isfinite(metrics["mean"]["psnr"])
+  assert len(list((tmp_path / "a" / "test_renders").glob("*.png"))) == 1
+  summary = json.loads((tmp_path / "a" / "train.json").read_text())
+  assert summary["iterations"] == 8 and summary["median_step_s"] > 0
+
+
+@pytest.mark.parametrize("field,value,message", [
+    ("train.iterations", 0, "iterations"), ("train.sh_degree", 4, "sh_degree"),
+    ("data.background", "pink", "data.background"), ("init.kind", "sfm", "init.kind")])
+def test_bad_config_values_are_named(tiny_scene, tmp_path, field, value, message):
+  config = tiny_config(tiny_scene)
+  section, key = field.split(".")
+  config[section][key] = value
+  with pytest.raises(ValueError, match=message):
+    train.train_and_evaluate(config, str(tmp_path))
+
+
+def test_sh_degree_schedule():
+  config = demo.get_config()
+  config.train.sh_increase_every, config.train.sh_degree = 1000, 3
+  assert [train.sh_degree_at(config, i) for i in (1, 1000, 1001, 2001, 3001, 9000)] == [0, 0, 1, 2, 3, 3]
+
+
+def test_position_learning_rate_is_log_linear():
+  schedule = optimizer.log_linear_schedule(1e-2, 1e-4, 100)
+  np.testing.assert_allclose([schedule(0), schedule(50), schedule(100), schedule(500)],
+                             [1e-2, 1e-3, 1e-4, 1e-4], rtol=1e-5)
+
+
+def test_learning_rates_per_field():
+  """After one Adam step from zero moments each update is -lr * sign(grad) (up to eps)."""
+  config = demo.get_config()
+  lr = config.train.lr
+  g = random_gaussians(0, 4, degree=1)
+  tx = optimizer.gaussian_optimizer(lr, extent=2.0)
+  grads = jax.tree.map(lambda x: jnp.full_like(x, -0.3), g)
+  updates, _ = tx.update(grads, tx.init(g), g)
+  np.testing.assert_allclose(updates.means, lr.means_init * 2.0, rtol=1e-5)
+  np.testing.assert_allclose(updates.sh[:, 0], lr.sh_dc, rtol=1e-5)
+  np.testing.assert_allclose(updates.sh[:, 1:], lr.sh_rest, rtol=1e-5)
+  np.testing.assert_allclose(updates.opacity_logits, lr.opacity, rtol=1e-5)
+  np.testing.assert_allclose(updates.log_scales, lr.scales, rtol=1e-5)
+  np.testing.assert_allclose(updates.quats, lr.quats, rtol=1e-5)
+
+
+def test_means2d_offset_gradient_is_the_screen_space_gradient(x64):
+  """The densification statistic differentiates the loss at the projected means: compare with float64
+  central differences in the offsets (a smooth loss, so the differences converge)."""
+  g, camera = random_gaussians(1, 6, degree=0, dtype=jnp.float64), make_camera(24, 20, dtype=jnp.float64)
+  target = jnp.full((20, 24, 3), 0.3)
+  options = RenderOptions(max_per_tile=None)
+
+  def loss(offsets):
+    return jnp.mean((render(g, camera, options, means2d_offset=offsets).rgb - target) ** 2)
+  offsets = jnp.zeros((6, 2))
+  grad = jax.grad(loss)(offsets)
+  visible = np.flatnonzero(np.asarray(render(g, camera, options).radii) > 0)
+  assert visible.size >= 3
+  for i in visible[:3]:
+    for axis in range(2):
+      delta = jnp.zeros((6, 2)).at[i, axis].set(1e-6)
+      numeric = (loss(delta) - loss(-delta)) / 2e-6
+      np.testing.assert_allclose(grad[i, axis], numeric, rtol=1e-4, atol=1e-10)
+
+
+def test_densify_state_keeps_moments_with_their_gaussians():
+  config = demo.get_config()
+  tx = optimizer.gaussian_optimizer(config.train.lr, 1.0)
+  g = random_gaussians(2, 5, degree=0, log_scale=(-6, -5))
+  live = jax.tree.map(np.asarray, g)
+  state = train.create_train_state(live, tx)
+  moments = optimizer.adam_moments(state["opt_state"])
+  marked = jax.tree.map(lambda x: x.at[:5].set(jnp.arange(1.0, 6.0).reshape((5,) + (1,) * (x.ndim - 1))),
+                        moments.mu)
+  state["opt_state"] = optimizer.with_adam_moments(state["opt_state"], moments._replace(mu=marked))
+  state["grad_accum"] = state["grad_accum"].at[1].set(1.0)  # row 1 is cloned
+  state["grad_count"] = state["grad_count"].at[1].set(1)
+  out = train.densify_state(state, 1.0, densify.DensifyParams(), False, np.random.default_rng(0))
+  assert int(out["alive"].sum()) == 6 and out["alive"].shape[0] == state["alive"].shape[0]
+  mu = optimizer.adam_moments(out["opt_state"]).mu
+  np.testing.assert_array_equal(mu.means[:6, 0], [1, 2, 3, 4, 5, 0])  # the clone starts from zero
+  np.testing.assert_array_equal(out["gaussians"].means[5], g.means[1])
+  assert float(out["grad_accum"].sum()) == 0
