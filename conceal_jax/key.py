@@ -1,0 +1,84 @@
+"""The secret check view P_c: the key that, with the decoder, reveals the hidden image.
+
+Either a training camera by index (the released ConcealGS code uses the second to last) or a secret
+pose sampled from a seed on the orbit of the training cameras (a view nobody trains or tests on).
+Saved as key.json: the camera and what the reveal needs to know (hidden size, decoder width).
+"""
+from __future__ import annotations
+
+import json
+import math
+from typing import Sequence
+
+import numpy as np
+
+from conceal_jax import fileio
+from conceal_jax.camera import Camera, look_at
+
+KEY_KINDS = ("train_index", "orbit")
+
+
+def camera_centers(cameras: Sequence[Camera]) -> np.ndarray:
+  """[V, 3] world positions of the cameras."""
+  w2c = np.stack([np.asarray(c.world_to_camera, np.float64) for c in cameras])
+  return -np.einsum("vji,vj->vi", w2c[:, :3, :3], w2c[:, :3, 3])
+
+
+def orbit_target(cameras: Sequence[Camera]) -> np.ndarray:
+  """[3] the point closest (least squares) to every camera's optical axis: what the orbit looks at."""
+  centers = camera_centers(cameras)
+  forward = np.stack([np.asarray(c.world_to_camera, np.float64)[2, :3] for c in cameras])
+  projectors = np.eye(3) - forward[:, :, None] * forward[:, None, :]  # onto each axis' normal plane
+  return np.linalg.lstsq(projectors.sum(0), np.einsum("vij,vj->i", projectors, centers), rcond=None)[0]
+
+
+def orbit_camera(cameras: Sequence[Camera], seed: int) -> Camera:
+  """A secret camera on the training orbit: same intrinsics as cameras[0], at the median distance from
+  the orbit target, elevation drawn within the cameras' elevation range and azimuth uniformly."""
+  target = orbit_target(cameras)
+  offsets = camera_centers(cameras) - target
+  up = -np.mean([np.asarray(c.world_to_camera, np.float64)[1, :3] for c in cameras], axis=0)  # -y is up
+  up /= np.linalg.norm(up)
+  radius = float(np.median(np.linalg.norm(offsets, axis=1)))
+  elevations = np.arcsin(np.clip(offsets @ up / np.linalg.norm(offsets, axis=1), -1, 1))
+  rng = np.random.default_rng(seed)
+  elevation = rng.uniform(elevations.min(), elevations.max())
+  azimuth = rng.uniform(0.0, 2 * math.pi)
+  east = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
+  east /= np.linalg.norm(east)
+  north = np.cross(up, east)
+  eye = target + radius * (math.cos(elevation) * (math.cos(azimuth) * east + math.sin(azimuth) * north)
+                           + math.sin(elevation) * up)
+  c = cameras[0]
+  return Camera.from_intrinsics(look_at(eye, target, up), float(c.fx), float(c.fy), float(c.cx), float(c.cy),
+                                c.width, c.height)
+
+
+def check_camera(cameras: Sequence[Camera], kind: str, index: int, seed: int) -> tuple[Camera, dict]:
+  """The check view and a description of how it was chosen."""
+  if kind == "train_index":
+    if not -len(cameras) <= index < len(cameras):
+      raise ValueError(f"conceal.key_index {index} is out of range for {len(cameras)} training cameras")
+    return cameras[index], dict(kind=kind, index=index % len(cameras))
+  if kind == "orbit":
+    return orbit_camera(cameras, seed), dict(kind=kind, seed=seed)
+  raise ValueError(f"conceal.key_kind must be one of {KEY_KINDS}, got {kind!r}")
+
+
+def save_key(path: str, camera: Camera, info: dict) -> None:
+  fileio.write_json(path, dict(info, camera=dict(
+      world_to_camera=np.asarray(camera.world_to_camera, np.float64).tolist(), fx=float(camera.fx),
+      fy=float(camera.fy), cx=float(camera.cx), cy=float(camera.cy), width=camera.width, height=camera.height)))
+
+
+def load_key(path: str) -> tuple[Camera, dict]:
+  """(check camera, the rest of key.json); ValueError naming the file if it is missing or malformed."""
+  try:
+    with open(path) as f:
+      info = json.load(f)
+    c = info.pop("camera")
+    camera = Camera.from_intrinsics(np.asarray(c["world_to_camera"], np.float64).reshape(4, 4), c["fx"], c["fy"],
+                                    c["cx"], c["cy"], int(c["width"]), int(c["height"]))
+  except (OSError, ValueError, KeyError, TypeError) as error:
+    raise ValueError(f"cannot read key {path}: {error}") from error
+  return camera, info

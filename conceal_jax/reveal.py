@@ -1,0 +1,88 @@
+"""Revealing the hidden image: render the check view, resize it to the decoder size, decode.
+
+`--config.mode=reveal` takes any standard 3D-GS .ply, a decoder file and a key.json, writes
+revealed.png and, given a reference hidden image, its PSNR / SSIM (reveal.json). The render settings
+are read from the key, so the check view is rendered exactly as during concealment.
+"""
+from __future__ import annotations
+
+import os
+
+import flax.serialization
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from conceal_jax import fileio, hidden as hidden_lib, key as key_lib, metrics, ply, unet
+from conceal_jax.camera import Camera
+from conceal_jax.gaussians import Gaussians
+from conceal_jax.render import RenderOptions, render
+
+REVEAL_FILE = "reveal.json"
+
+
+def resize_for_decoder(image: jax.Array, size: int) -> jax.Array:
+  """[H, W, 3] render -> [size, size, 3] decoder input (antialiased bilinear, as the released code's
+  resize to 64x64)."""
+  return jax.image.resize(image, (size, size, image.shape[-1]), "linear")
+
+
+def decode(decoder_params, base_channels: int, images: jax.Array) -> jax.Array:
+  """F: [..., S, S, 3] -> [..., S, S, 3] with the U-Net decoder."""
+  batch = images[None] if images.ndim == 3 else images
+  out = unet.UNet(base_channels).apply({"params": decoder_params}, batch)
+  return out[0] if images.ndim == 3 else out
+
+
+def reveal_image(gaussians: Gaussians, camera: Camera, options: RenderOptions, decoder_params,
+                 base_channels: int, size: int) -> jax.Array:
+  """[size, size, 3] revealed image at `camera`, clipped to [0, 1]; decoder_params None: the
+  resized render itself (the "without decoder" ablation)."""
+  small = resize_for_decoder(render(gaussians, camera, options).rgb, size)
+  out = small if decoder_params is None else decode(decoder_params, base_channels, small)
+  return jnp.clip(out, 0.0, 1.0)
+
+
+def save_decoder(path: str, params) -> None:
+  fileio.write_bytes(path, flax.serialization.msgpack_serialize(
+      jax.tree.map(np.asarray, flax.serialization.to_state_dict(params))))
+
+
+def load_decoder(path: str):
+  """Decoder params from a file written by save_decoder; ValueError naming the file otherwise."""
+  try:
+    with open(path, "rb") as f:
+      params = flax.serialization.msgpack_restore(f.read())
+  except (OSError, ValueError, TypeError) as error:
+    raise ValueError(f"cannot read decoder {path}: {error}") from error
+  if not isinstance(params, dict) or "out" not in params:
+    raise ValueError(f"{path} does not hold U-Net decoder parameters")
+  return jax.tree.map(jnp.asarray, params)
+
+
+def options_from_key(info: dict) -> RenderOptions:
+  return RenderOptions(**info["render_options"])
+
+
+def reveal(config: ml_collections.ConfigDict, workdir: str) -> dict:
+  """The reveal job: writes revealed.png and reveal.json (similarity to config.reveal.hidden if set)."""
+  r = config.reveal
+  for name in ("ply", "key"):
+    if not r[name]:
+      raise ValueError(f"reveal.{name} is required")
+  camera, info = key_lib.load_key(r.key)
+  if info.get("uses_decoder", True) and not r.decoder:
+    raise ValueError("reveal.decoder is required: this key was made with a decoder")
+  decoder = load_decoder(r.decoder) if info.get("uses_decoder", True) else None
+  gaussians = ply.load_ply(r.ply)
+  size = int(info["hidden_size"])
+  revealed = np.asarray(reveal_image(gaussians, camera, options_from_key(info), decoder,
+                                     int(info.get("decoder_width", 0)), size))
+  fileio.write_image(os.path.join(workdir, "revealed.png"), revealed)
+  result = dict(ply=r.ply, key=r.key, decoder=r.decoder)
+  if r.hidden:
+    reference = hidden_lib.load_hidden_image(r.hidden, size)
+    result.update(psnr=float(metrics.psnr(revealed, reference)), ssim=float(metrics.ssim(revealed, reference)))
+  fileio.write_json(os.path.join(workdir, REVEAL_FILE), result)
+  return result

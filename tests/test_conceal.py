@@ -1,0 +1,135 @@
+"""ConcealGS: the losses, the check-view key, and the conceal -> reveal pipeline end to end on a tiny
+generated scene (resume, ablation switches, clear errors)."""
+from __future__ import annotations
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conceal_jax import conceal, demo_scene, init, key, losses, ply, reveal
+from conceal_jax import main as main_lib
+from conceal_jax.camera import Camera, look_at
+from conceal_jax.configs import demo
+
+
+@pytest.fixture(scope="module")
+def tiny(tmp_path_factory):
+  """A 32x32 demo scene and a teacher made of random points (concealment only needs a scene)."""
+  folder = tmp_path_factory.mktemp("conceal")
+  scene_path = demo_scene.generate_demo_scene(folder / "scene", num_train=6, num_test=2, size=32)
+  points, colors = init.random_box_points(np.random.default_rng(0), 1200, 1.0)
+  teacher = init.gaussians_from_points(points, colors, sh_degree=1, opacity=0.5)
+  ply.save_ply(folder / "teacher.ply", teacher)
+  return scene_path, folder / "teacher.ply"
+
+
+def tiny_config(tiny, iterations=40, **conceal_overrides):
+  scene_path, teacher = tiny
+  config = demo.get_config()
+  config.mode = "conceal"
+  config.data.path = str(scene_path)
+  config.render.tile_size = 8
+  config.eval.max_views = 1
+  c = config.conceal
+  c.teacher, c.iterations, c.hidden_size, c.decoder_width = str(teacher), iterations, 16, 4
+  c.decoder_vgg_init, c.decoder_lr, c.checkpoint_every, c.log_every, c.progress_bar = False, 1e-3, 20, 5, False
+  for name, value in conceal_overrides.items():
+    c[name] = value
+  return config
+
+
+def test_losses_are_mean_absolute_errors():
+  a, b = jnp.zeros((4, 4, 3)), jnp.full((4, 4, 3), 0.25).at[0, 0, 0].set(1.25)
+  expected = (0.25 * 47 + 1.25) / 48
+  for loss in (losses.distillation_loss, losses.decoder_identity_loss, losses.hidden_image_loss):
+    np.testing.assert_allclose(loss(a, b), expected, rtol=1e-6)
+
+
+def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
+  config = tiny_config(tiny)
+  straight = conceal.conceal_and_evaluate(config, str(tmp_path / "a"))
+  assert conceal.conceal_and_evaluate(config, str(tmp_path / "b"), max_steps=20) == dict(stopped_at=20)
+  conceal.conceal_and_evaluate(config, str(tmp_path / "b"))
+  for name in ("decoder.msgpack", "student.ply"):
+    assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
+
+  a = tmp_path / "a"
+  for name in ("key.json", "hidden.png", "revealed.png", "teacher_revealed.png", "metrics.json"):
+    assert (a / name).is_file(), name
+  metrics = json.loads((a / "metrics.json").read_text())
+  assert set(metrics["leakage"]) == {"max_ssim_student_test_views", "ssim_teacher_check_view"}
+  assert np.isfinite(metrics["hidden"]["psnr"]) and "VGG16" in metrics["lpips_net"]
+  assert all(np.isfinite(h["loss"]) and 0 < h["mean_guidance_weight"] < 1 for h in straight["history"])
+  assert ply.load_ply(a / "student.ply").num == 1200
+
+  # the reveal job reproduces the concealment's revealed image from the shared files alone
+  reveal_config = demo.get_config()
+  reveal_config.mode = "reveal"
+  reveal_config.reveal.ply, reveal_config.reveal.key = str(a / "student.ply"), str(a / "key.json")
+  reveal_config.reveal.decoder, reveal_config.reveal.hidden = str(a / "decoder.msgpack"), "astronaut"
+  result = main_lib.run(reveal_config, str(tmp_path / "reveal"))
+  np.testing.assert_allclose(result["psnr"], metrics["hidden"]["psnr"], rtol=1e-4)
+  assert (tmp_path / "reveal" / "revealed.png").read_bytes() == (a / "revealed.png").read_bytes()
+
+
+@pytest.mark.parametrize("overrides", [dict(use_decoder=False), dict(consistency=False, guidance=False),
+                                       dict(variant="released", granularity="tensor", key_kind="orbit")])
+def test_ablations_and_variants_run(tiny, tmp_path, overrides):
+  result = conceal.conceal_and_evaluate(tiny_config(tiny, iterations=3, **overrides), str(tmp_path))
+  assert np.isfinite(result["metrics"]["hidden"]["psnr"])
+  saved_key = json.loads((tmp_path / "key.json").read_text())
+  assert saved_key["uses_decoder"] == overrides.get("use_decoder", True)
+  assert (tmp_path / "decoder.msgpack").exists() == overrides.get("use_decoder", True)
+
+
+@pytest.mark.parametrize("overrides,message", [
+    (dict(teacher=""), "conceal.teacher"), (dict(teacher="/no/such.ply"), "no such file"),
+    (dict(variant="mine"), "conceal.variant"), (dict(hidden="no_such_sample"), "no_such_sample"),
+    (dict(key_index=99), "key_index"), (dict(key_kind="random"), "key_kind"),
+    (dict(granularity="model"), "granularity"), (dict(hidden_size=20), "hidden_size")])
+def test_bad_conceal_config_is_named(tiny, tmp_path, overrides, message):
+  with pytest.raises((ValueError, OSError), match=message):
+    conceal.conceal_and_evaluate(tiny_config(tiny, **overrides), str(tmp_path))
+
+
+def test_reveal_rejects_missing_and_malformed_files(tmp_path):
+  (tmp_path / "bad.json").write_text("{not json")
+  (tmp_path / "bad.msgpack").write_bytes(b"\x00garbage")
+  with pytest.raises(ValueError, match="bad.json"):
+    key.load_key(str(tmp_path / "bad.json"))
+  with pytest.raises(ValueError, match="bad.msgpack"):
+    reveal.load_decoder(str(tmp_path / "bad.msgpack"))
+  with pytest.raises(ValueError, match="missing.json"):
+    key.load_key(str(tmp_path / "missing.json"))
+
+
+def test_orbit_key_is_on_the_camera_orbit():
+  target = np.array([0.3, -0.2, 0.5])
+  cameras = []
+  for azimuth, elevation in [(0.1, 0.3), (1.5, 0.5), (3.0, 0.4), (4.4, 0.6)]:
+    eye = target + 3.0 * np.array([np.cos(elevation) * np.cos(azimuth), np.cos(elevation) * np.sin(azimuth),
+                                   np.sin(elevation)])
+    cameras.append(Camera.from_intrinsics(look_at(eye, target), 50.0, 50.0, 16.0, 16.0, 32, 32))
+  np.testing.assert_allclose(key.orbit_target(cameras), target, atol=1e-9)
+  secret = key.orbit_camera(cameras, seed=7)
+  center = key.camera_centers([secret])[0]
+  np.testing.assert_allclose(np.linalg.norm(center - target), 3.0, rtol=1e-6)
+  elevation = np.arcsin((center - target)[2] / 3.0)
+  assert 0.3 - 1e-6 <= elevation <= 0.6 + 1e-6
+  forward = np.asarray(secret.world_to_camera)[2, :3]
+  np.testing.assert_allclose(forward, (target - center) / 3.0, atol=1e-6)
+  again = key.orbit_camera(cameras, seed=7)
+  np.testing.assert_array_equal(np.asarray(again.world_to_camera), np.asarray(secret.world_to_camera))
+  assert not np.allclose(np.asarray(key.orbit_camera(cameras, seed=8).world_to_camera),
+                         np.asarray(secret.world_to_camera))
+
+
+def test_key_round_trip(tmp_path):
+  camera = Camera.from_intrinsics(look_at([1.0, 2.0, 3.0], [0.0, 0.0, 0.0]), 40.0, 41.0, 15.5, 16.5, 31, 33)
+  key.save_key(str(tmp_path / "key.json"), camera, dict(kind="orbit", seed=3))
+  loaded, info = key.load_key(str(tmp_path / "key.json"))
+  assert info == dict(kind="orbit", seed=3) and (loaded.width, loaded.height) == (31, 33)
+  jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6), loaded, camera)
