@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 WORKDIR ?= workdirs/demo
 JOBS ?= 2
 
-.PHONY: venv demo test test-slow bench-render clean
+.PHONY: venv demo test test-slow bench-render bench-train bench-conceal clean
 
 venv: $(STAMP)
 
@@ -16,8 +16,17 @@ $(STAMP): setup.cfg pyproject.toml
 	$(PY) -m pip install --quiet -e ".[test]"
 	touch $(STAMP)
 
+MAIN := $(PY) -m conceal_jax.main --config=conceal_jax/configs/demo.py
+KEYS = --config.reveal.key=$(WORKDIR)/conceal/key.json --config.reveal.decoder=$(WORKDIR)/conceal/decoder.msgpack \
+       --config.reveal.hidden=astronaut
+
+# train the teacher, hide the image, reveal it from the student and (it must fail) from the clean teacher
 demo: $(STAMP)
-	$(PY) -m conceal_jax.main --config=conceal_jax/configs/default.py --workdir=$(WORKDIR)
+	$(MAIN) --workdir=$(WORKDIR)/teacher
+	$(MAIN) --workdir=$(WORKDIR)/conceal --config.mode=conceal --config.conceal.teacher=$(WORKDIR)/teacher/point_cloud.ply
+	$(MAIN) --workdir=$(WORKDIR)/reveal --config.mode=reveal --config.reveal.ply=$(WORKDIR)/conceal/student.ply $(KEYS)
+	$(MAIN) --workdir=$(WORKDIR)/reveal_clean --config.mode=reveal --config.reveal.ply=$(WORKDIR)/teacher/point_cloud.ply $(KEYS)
+	$(PY) -m experiments.demo_summary $(WORKDIR)
 
 test: $(STAMP)
 	$(PY) -m pytest -n $(JOBS) -q
@@ -27,6 +36,12 @@ test-slow: $(STAMP)
 
 bench-render: $(STAMP)
 	$(PY) -m experiments.bench_render --out=experiments/results $(BENCH_ARGS)
+
+bench-train: $(STAMP)
+	$(PY) -m experiments.bench_train --out=experiments/results --workdir=workdirs/bench $(BENCH_ARGS)
+
+bench-conceal: $(STAMP)
+	$(PY) -m experiments.bench_conceal --out=experiments/results --workdir=workdirs/bench $(BENCH_ARGS)
 
 clean:
 	rm -rf workdirs .pytest_cache

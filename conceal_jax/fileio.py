@@ -60,3 +60,10 @@ def _json_default(value: Any) -> Any:
   if isinstance(value, (np.generic, np.ndarray)) or hasattr(value, "__array__"):
     return np.asarray(value).tolist()
   raise TypeError(f"cannot write {type(value).__name__} to JSON")
+
+
+def save_figure(fig: Any, path: str | os.PathLike, dpi: int = 120) -> None:
+  """Saves a matplotlib figure atomically (a reader never sees a half-written plot)."""
+  fig.tight_layout()
+  with atomic_path(path) as tmp:
+    fig.savefig(tmp, dpi=dpi)

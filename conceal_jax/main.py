@@ -11,10 +11,10 @@ import sys
 from absl import app, flags
 from ml_collections import config_flags
 
-from conceal_jax import fileio
-from conceal_jax import render_views
+from conceal_jax import conceal, evaluate, fileio, render_views, reveal, train
 
-MODES = {"render": render_views.render_and_save}
+MODES = {"render": render_views.render_and_save, "train": train.train_and_evaluate,
+         "eval": evaluate.evaluate, "conceal": conceal.conceal_and_evaluate, "reveal": reveal.reveal}
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("workdir", None, "Directory for outputs, checkpoints and the saved config.")

@@ -134,9 +134,7 @@ def plot(rows, path: pathlib.Path):
     ax.grid(alpha=0.3)
     if ax.get_legend_handles_labels()[0]:
       ax.legend(fontsize=7)
-  fig.tight_layout()
-  with fileio.atomic_path(path) as tmp:
-    fig.savefig(tmp, dpi=120)
+  fileio.save_figure(fig, path)
 
 
 def main(argv=None):

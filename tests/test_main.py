@@ -57,6 +57,9 @@ def _cli(tmp_path, *overrides):
     ("--config.render.tile_size=0", "tile_size must be positive"),
     ("--config.scene.ply=/does/not/exist.ply", "no such file"),
     ("--config.render.fov_deg=0", "fov_deg"),
+    ("--config.mode=conceal", "conceal.teacher"),
+    ("--config.mode=reveal", "reveal.ply is required"),
+    ("--config.mode=eval", "point_cloud.ply: no such file"),
 ])
 def test_bad_input_gives_one_clear_error_and_nonzero_exit(tmp_path, override, message):
   result = _cli(tmp_path, override)

@@ -1,8 +1,12 @@
-"""Default config: render a generated Gaussian scene from an orbit of cameras and write PNGs.
+"""Default config: every option of every mode, with the Inria 3D-GS training defaults.
 
-  python -m conceal_jax.main --config=conceal_jax/configs/default.py --workdir=workdirs/demo
+The default mode renders a generated Gaussian scene from an orbit of cameras and writes PNGs:
+
+  python -m conceal_jax.main --config=conceal_jax/configs/default.py --workdir=workdirs/render
   python -m conceal_jax.main --config=conceal_jax/configs/default.py --workdir=workdirs/ply \
       --config.scene.ply=path/to/point_cloud.ply --config.render.sh_degree=3
+
+The dataset configs (demo.py, nerf_synthetic.py, colmap.py) start from this one.
 """
 import ml_collections
 
@@ -12,11 +16,13 @@ def get_config() -> ml_collections.ConfigDict:
   config.mode = "render"  # the job to run; see conceal_jax.main.MODES
   config.seed = 0
 
+  # render mode: the scene to show
   config.scene = ml_collections.ConfigDict()
   config.scene.ply = ""          # a standard 3D-GS .ply; empty: the generated scene below
   config.scene.num_points = 3000  # size of the generated scene
   config.scene.sh_degree = 3
 
+  # rendering; render mode also uses the orbit fields, training and evaluation the rasteriser fields
   config.render = ml_collections.ConfigDict()
   config.render.width = 128
   config.render.height = 128
@@ -30,4 +36,88 @@ def get_config() -> ml_collections.ConfigDict:
   config.render.max_per_tile = 256   # K nearest splats per tile
   config.render.exact = False        # True: never truncate (slower)
   config.render.antialiased = False
+
+  # train / eval / conceal modes: the dataset
+  config.data = ml_collections.ConfigDict()
+  config.data.path = "demo"          # 'demo' (generated, cached) or a Blender / COLMAP / transforms.json folder
+  config.data.downscale = 1.0        # image resolution divisor
+  config.data.background = "default"  # 'white', 'black' or 'default' (white for Blender, black otherwise)
+
+  config.init = ml_collections.ConfigDict()
+  config.init.kind = "auto"          # 'auto', 'points' (SfM / point file) or 'random' (box)
+  config.init.num_random_points = 100_000
+  config.init.box_half_extent = 1.3
+
+  config.train = ml_collections.ConfigDict()
+  config.train.iterations = 30_000
+  config.train.sh_degree = 3
+  config.train.sh_increase_every = 1000
+  config.train.ssim_weight = 0.2
+  config.train.lr = ml_collections.ConfigDict()
+  config.train.lr.means_init = 1.6e-4   # times the scene extent
+  config.train.lr.means_final = 1.6e-6  # times the scene extent
+  config.train.lr.means_steps = 30_000
+  config.train.lr.sh_dc = 2.5e-3
+  config.train.lr.sh_rest = 2.5e-3 / 20
+  config.train.lr.opacity = 0.05
+  config.train.lr.scales = 5e-3
+  config.train.lr.quats = 1e-3
+  config.train.densify = ml_collections.ConfigDict()
+  config.train.densify.start = 500
+  config.train.densify.until = 15_000
+  config.train.densify.every = 100
+  config.train.densify.opacity_reset_every = 3000
+  config.train.densify.grad_threshold = 2e-4
+  config.train.densify.percent_dense = 0.01
+  config.train.densify.split_factor = 1.6
+  config.train.densify.min_opacity = 0.005
+  config.train.densify.max_screen_radius = 20.0
+  config.train.densify.max_world_scale = 0.1
+  config.train.log_every = 10
+  config.train.eval_every = 0        # quick test PSNR every this many steps; 0: only at the end
+  config.train.eval_views = 4
+  config.train.checkpoint_every = 1000  # 0: no checkpoints
+  config.train.progress_bar = True
+
+  config.eval = ml_collections.ConfigDict()
+  config.eval.ply = ""               # scene to score; empty: <workdir>/point_cloud.ply
+  config.eval.exact = True           # never truncate the per-tile lists when scoring
+  config.eval.max_views = 0          # 0: the whole test split
+  config.eval.lpips_net = "vgg"
+
+  # conceal mode: ConcealGS on a trained teacher (see conceal_jax/conceal.py for the switches)
+  config.conceal = ml_collections.ConfigDict()
+  config.conceal.teacher = ""          # the teacher's .ply (required)
+  config.conceal.iterations = 10_000
+  config.conceal.variant = "paper"     # 'paper' or 'released'
+  config.conceal.hidden = "astronaut"  # an image path or a scikit-image sample name
+  config.conceal.hidden_size = 64
+  config.conceal.key_kind = "train_index"  # 'train_index' or 'orbit' (a secret pose from key_seed)
+  config.conceal.key_index = -2        # second to last training camera, as released
+  config.conceal.key_seed = 1
+  config.conceal.decoder_width = 64    # U-Net base channels (64 = the released decoder)
+  config.conceal.decoder_vgg_init = True  # ImageNet VGG16 conv1_2..conv4_3 (width 64 only)
+  config.conceal.decoder_lr = 1e-4
+  config.conceal.use_decoder = True    # ablation switches
+  config.conceal.consistency = True
+  config.conceal.guidance = True
+  config.conceal.granularity = "layer"  # 'layer' (paper) or 'tensor' (released code)
+  config.conceal.weight_kd = 1.0
+  config.conceal.weight_plus = 1.0
+  config.conceal.weight_minus = 1.0
+  config.conceal.weight_check = 1.0    # released variant's check-view L1
+  # student learning rates: the 3D-GS schedule continued from step 10k of 30k, as the released run does
+  config.conceal.lr = ml_collections.ConfigDict(config.train.lr.to_dict())
+  config.conceal.lr.means_init = 3.45e-5
+  config.conceal.lr.means_steps = 20_000
+  config.conceal.log_every = 10
+  config.conceal.checkpoint_every = 1000
+  config.conceal.progress_bar = True
+
+  # reveal mode
+  config.reveal = ml_collections.ConfigDict()
+  config.reveal.ply = ""      # any standard 3D-GS .ply
+  config.reveal.decoder = ""  # decoder.msgpack written by conceal
+  config.reveal.key = ""      # key.json written by conceal
+  config.reveal.hidden = ""   # optional reference hidden image (path or sample name) to score against
   return config
