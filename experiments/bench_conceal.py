@@ -2,7 +2,7 @@
 at 64x64: the full method and the paper's three ablations, at one or more decoder widths.
 
   make bench-conceal                                   # 10k iterations, widths 64 and 16
-  make bench-conceal BENCH_ARGS="--iterations=1000 --widths=16 --rows=full"
+  make bench-conceal BENCH_ARGS="--iterations=1000 --widths=16 --rows=full --eval-views=20"
 
 Each run goes to <workdir>/lego/conceal_<row>_w<width> (resumable). Writes conceal_bench.json (render
 PSNR/SSIM/LPIPS vs ground truth and vs teacher, hidden PSNR/SSIM, leakage, wall time, median step
@@ -24,7 +24,8 @@ ROWS = {"full": {}, "no_decoder": dict(use_decoder=False), "no_consistency": dic
         "no_guidance": dict(guidance=False)}
 
 
-def run(rows, widths, iterations, workdir: pathlib.Path) -> list[dict]:
+def run(rows, widths, iterations, eval_views, workdir: pathlib.Path, out: pathlib.Path) -> list[dict]:
+  """Runs every (width, row); rewrites the JSON and plot after each, so a stopped bench keeps its rows."""
   teacher = workdir / "lego" / "teacher" / "point_cloud.ply"
   if not teacher.is_file():
     print(f"skipping: no teacher at {teacher}; run `make bench-train` first")
@@ -36,20 +37,24 @@ def run(rows, widths, iterations, workdir: pathlib.Path) -> list[dict]:
         continue  # no decoder: the width does not matter
       config = nerf_synthetic.get_config()
       config.mode = "conceal"
-      config.data.path = str(SCENES["lego"][1])
+      _, path, downscale = SCENES["lego"]
+      config.data.path, config.data.downscale = str(path), downscale
       c = config.conceal
       c.teacher, c.hidden, c.decoder_width, c.decoder_vgg_init = str(teacher), "astronaut", width, width == 64
       if iterations:
         c.iterations = iterations
+      config.eval.max_views = eval_views
       for name, value in ROWS[row].items():
         c[name] = value
-      out = workdir / "lego" / f"conceal_{row}_w{width}"
-      out.mkdir(parents=True, exist_ok=True)
-      result = conceal.conceal_and_evaluate(config, str(out))
+      run_dir = workdir / "lego" / f"conceal_{row}_w{width}"
+      run_dir.mkdir(parents=True, exist_ok=True)
+      result = conceal.conceal_and_evaluate(config, str(run_dir))
       results.append(dict(row=row, decoder_width=width, iterations=result["iterations"],
                           wall_time_s=result["wall_time_s"], median_step_s=result["median_step_s"],
                           **result["metrics"]))
       print(json.dumps(results[-1]))
+      fileio.write_json(out / "conceal_bench.json", dict(device=str(jax.devices()[0]), rows=results))
+      plot(results, out / "conceal_bench.png")
   return results
 
 
@@ -79,15 +84,13 @@ def main():
   parser.add_argument("--rows", default=",".join(ROWS))
   parser.add_argument("--widths", default="64,16")
   parser.add_argument("--iterations", type=int, default=0, help="0: the config's 10k")
+  parser.add_argument("--eval-views", type=int, default=0, help="test views scored per run; 0: all 200")
   args = parser.parse_args()
   rows = [r for r in args.rows.split(",") if r]
   if set(rows) - set(ROWS):
     parser.error(f"unknown rows {sorted(set(rows) - set(ROWS))}; choose from {sorted(ROWS)}")
-  results = run(rows, [int(w) for w in args.widths.split(",")], args.iterations, pathlib.Path(args.workdir))
-  if results:
-    out = pathlib.Path(args.out)
-    fileio.write_json(out / "conceal_bench.json", dict(device=str(jax.devices()[0]), rows=results))
-    plot(results, out / "conceal_bench.png")
+  run(rows, [int(w) for w in args.widths.split(",")], args.iterations, args.eval_views, pathlib.Path(args.workdir),
+      pathlib.Path(args.out))
 
 
 if __name__ == "__main__":

@@ -133,3 +133,14 @@ def test_key_round_trip(tmp_path):
   loaded, info = key.load_key(str(tmp_path / "key.json"))
   assert info == dict(kind="orbit", seed=3) and (loaded.width, loaded.height) == (31, 33)
   jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-6), loaded, camera)
+
+
+@pytest.mark.slow
+def test_concealed_image_is_revealed_only_by_the_student(tiny, tmp_path):
+  """A few hundred steps hide a 16x16 image well enough to tell: the student's check view reveals it,
+  the clean teacher's check view and the student's test views do not."""
+  config = tiny_config(tiny, iterations=400, checkpoint_every=0, decoder_width=16)
+  metrics = conceal.conceal_and_evaluate(config, str(tmp_path))["metrics"]
+  assert metrics["hidden"]["ssim"] > 0.8
+  assert metrics["leakage"]["ssim_teacher_check_view"] < 0.4
+  assert metrics["leakage"]["max_ssim_student_test_views"] < 0.4
