@@ -184,7 +184,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   start = int(state["step"])
   end = t.iterations if max_steps is None else min(t.iterations, max_steps)
   params = densify_params(config)
-  step_times = []
+  step_times, variants = [], set()
   bar = tqdm(total=t.iterations, initial=start, desc="train", dynamic_ncols=True, disable=not t.progress_bar)
   for step in range(start, end):
     iteration = step + 1  # 1-based, as the reference schedule is written
@@ -194,6 +194,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
     view = view_order(config.seed, step // len(scene.train_images), len(scene.train_images))[
         step % len(scene.train_images)]
     started = time.perf_counter()
+    variants.add((degree, int(state["alive"].shape[0])))  # each (SH degree, capacity) compiles once
     state, stats = steps[degree](state, images, cameras, view)
     state = _density_control(config, state, iteration, extent, params, scene.background)
     if iteration % t.log_every == 0 or iteration == end:
@@ -221,7 +222,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   ply.save_ply(os.path.join(workdir, evaluate.SCENE_FILE), gaussians)
   summary = dict(iterations=t.iterations, resumed_from=start, num_gaussians=int(gaussians.num),
                  wall_time_s=float(np.sum(step_times)),
-                 median_step_s=float(np.median(step_times)) if step_times else None, history=history)
+                 median_step_s=float(np.median(step_times)) if step_times else None,
+                 compiled_step_variants=sorted(variants), history=history)
   fileio.write_json(os.path.join(workdir, TRAIN_FILE), summary)
   result = evaluate.evaluate_scene(jax.tree.map(jnp.asarray, gaussians), scene,
                                    evaluate.eval_options(config, scene.background), workdir,

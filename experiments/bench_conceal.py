@@ -18,7 +18,7 @@ import jax
 
 from conceal_jax import conceal, fileio
 from conceal_jax.configs import nerf_synthetic
-from experiments.bench_train import SCENES
+from experiments.bench_train import SCENES, TILE_SIZE
 
 ROWS = {"full": {}, "no_decoder": dict(use_decoder=False), "no_consistency": dict(consistency=False),
         "no_guidance": dict(guidance=False)}
@@ -39,6 +39,7 @@ def run(rows, widths, iterations, eval_views, workdir: pathlib.Path, out: pathli
       config.mode = "conceal"
       _, path, downscale = SCENES["lego"]
       config.data.path, config.data.downscale = str(path), downscale
+      config.render.tile_size = TILE_SIZE  # as the teacher was trained
       c = config.conceal
       c.teacher, c.hidden, c.decoder_width, c.decoder_vgg_init = str(teacher), "astronaut", width, width == 64
       if iterations:

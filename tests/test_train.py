@@ -57,6 +57,8 @@ def test_train_writes_scene_metrics_and_resumes_exactly(tiny_scene, tmp_path):
   assert len(list((tmp_path / "a" / "test_renders").glob("*.png"))) == 1
   summary = json.loads((tmp_path / "a" / "train.json").read_text())
   assert summary["iterations"] == 8 and summary["median_step_s"] > 0
+  # three SH degrees in 8 steps; densification ran twice without changing the compiled buffer size
+  assert sorted(d for d, _ in summary["compiled_step_variants"]) == [0, 1, 2]
 
 
 @pytest.mark.parametrize("field,value,message", [
