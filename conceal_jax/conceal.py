@@ -202,17 +202,17 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   student = jax.tree.map(lambda x: jnp.array(x, copy=True), teacher)  # the step donates the student's buffers
   state = create_conceal_state(student, initial_decoder(config, settings), student_tx, decoder_tx)
   ckpt_dir = os.path.join(workdir, "checkpoints")
-  history = []
+  history, step_times = [], []  # a resumed run keeps both, so it reports the time of all its steps
   if checkpoint.list_steps(ckpt_dir):
     path = checkpoint.checkpoint_path(ckpt_dir, checkpoint.list_steps(ckpt_dir)[-1])
     meta, leaves = checkpoint.load(path)
-    state, history = jax.tree.map(jnp.asarray, checkpoint.restore(state, leaves, path)), meta["history"]
+    state = jax.tree.map(jnp.asarray, checkpoint.restore(state, leaves, path))
+    history, step_times = meta["history"], meta.get("step_times", [])
     logging.info("resuming from %s", path)
   step_fn = make_conceal_step(settings, options, student_tx, decoder_tx)
   start = int(state["step"])
   end = c.iterations if max_steps is None else min(c.iterations, max_steps)
   num_views = len(scene.train_cameras)
-  step_times = []
   bar = tqdm(total=c.iterations, initial=start, desc="conceal", dynamic_ncols=True, disable=not c.progress_bar)
   for step in range(start, end):
     iteration = step + 1
@@ -230,7 +230,7 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
     step_times.append(time.perf_counter() - started)
     bar.update(1)
     if c.checkpoint_every and (iteration % c.checkpoint_every == 0 or iteration == end):
-      checkpoint.save(ckpt_dir, iteration, state, dict(history=history))
+      checkpoint.save(ckpt_dir, iteration, state, dict(history=history, step_times=step_times))
   bar.close()
   if end < c.iterations:
     return dict(stopped_at=end)
@@ -244,7 +244,8 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   key_lib.save_key(os.path.join(workdir, KEY_FILE), check_camera, key_info)
   fileio.write_image(os.path.join(workdir, "hidden.png"), hidden)
   summary = dict(iterations=c.iterations, resumed_from=start, settings=dataclasses.asdict(settings),
-                 num_gaussians=int(teacher.num), wall_time_s=float(np.sum(step_times)),
+                 num_gaussians=int(teacher.num), timed_steps=len(step_times),
+                 wall_time_s=float(np.sum(step_times)),
                  median_step_s=float(np.median(step_times)) if step_times else None, history=history)
   fileio.write_json(os.path.join(workdir, SUMMARY_FILE), summary)
   result = evaluate_concealment(config, workdir, scene, teacher, state["student"], decoder, settings,

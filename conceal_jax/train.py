@@ -180,11 +180,11 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   steps = {}  # one compiled step per SH degree
 
   ckpt_dir = os.path.join(workdir, "checkpoints")
-  state, history = _restore_or_create(config, scene, tx, ckpt_dir)
+  state, history, step_times = _restore_or_create(config, scene, tx, ckpt_dir)
   start = int(state["step"])
   end = t.iterations if max_steps is None else min(t.iterations, max_steps)
   params = densify_params(config)
-  step_times, variants = [], set()
+  variants = set()
   bar = tqdm(total=t.iterations, initial=start, desc="train", dynamic_ncols=True, disable=not t.progress_bar)
   for step in range(start, end):
     iteration = step + 1  # 1-based, as the reference schedule is written
@@ -213,7 +213,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
       history.append(dict(step=iteration, test_psnr=test_psnr))
       logging.info("step %d: test PSNR %.2f on %d views", iteration, test_psnr, t.eval_views)
     if t.checkpoint_every and (iteration % t.checkpoint_every == 0 or iteration == end):
-      checkpoint.save(ckpt_dir, iteration, state, dict(capacity=int(state["alive"].shape[0]), history=history))
+      checkpoint.save(ckpt_dir, iteration, state, dict(capacity=int(state["alive"].shape[0]), history=history,
+                                                       step_times=step_times))
   bar.close()
   if end < t.iterations:
     return dict(stopped_at=end)
@@ -221,7 +222,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   gaussians = live_gaussians(state)
   ply.save_ply(os.path.join(workdir, evaluate.SCENE_FILE), gaussians)
   summary = dict(iterations=t.iterations, resumed_from=start, num_gaussians=int(gaussians.num),
-                 wall_time_s=float(np.sum(step_times)),
+                 timed_steps=len(step_times), wall_time_s=float(np.sum(step_times)),
                  median_step_s=float(np.median(step_times)) if step_times else None,
                  compiled_step_variants=sorted(variants), history=history)
   fileio.write_json(os.path.join(workdir, TRAIN_FILE), summary)
@@ -252,13 +253,15 @@ def _quick_test_psnr(state, scene, options, max_views) -> float:
   return float(np.mean([metrics.psnr(np.clip(r, 0, 1), t) for r, t in zip(rendered, scene.test_images)]))
 
 
-def _restore_or_create(config, scene, tx, ckpt_dir) -> tuple[dict, list]:
+def _restore_or_create(config, scene, tx, ckpt_dir) -> tuple[dict, list, list]:
+  """(state, history, step times so far): a resumed run reports the time of all its steps."""
   saved = checkpoint.list_steps(ckpt_dir)
   if not saved:
     live = initial_gaussians(config, scene, np.random.default_rng(config.seed))
-    return create_train_state(live, tx), []
+    return create_train_state(live, tx), [], []
   path = checkpoint.checkpoint_path(ckpt_dir, saved[-1])
   meta, leaves = checkpoint.load(path)
   template = create_train_state(Gaussians.empty(config.train.sh_degree), tx, meta["capacity"])
   logging.info("resuming from %s", path)
-  return jax.tree.map(jnp.asarray, checkpoint.restore(template, leaves, path)), meta["history"]
+  state = jax.tree.map(jnp.asarray, checkpoint.restore(template, leaves, path))
+  return state, meta["history"], meta.get("step_times", [])

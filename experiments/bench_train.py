@@ -1,7 +1,7 @@
 """Teacher training benchmark: lego at 200x200 (the paper's 1/4) and the real COLMAP capture at 1/4.
 
   make bench-train                                  # 10k iterations each, the paper's pre-training
-  make bench-train BENCH_ARGS="--iterations=2000 --scenes=lego"
+  make bench-train BENCH_ARGS="--iterations=2000 --scenes=lego --eval-views=25"
 
 Trains with conceal_jax/configs/nerf_synthetic.py and colmap.py into <workdir>/<scene>/teacher (a killed
 run resumes from its checkpoint), then writes train_bench.json (iterations, wall time, median step
@@ -35,22 +35,23 @@ RANDOM_INIT_POINTS = 5000
 TILE_SIZE = 8
 
 
-def scene_config(name: str, iterations: int | None):
+def scene_config(name: str, iterations: int | None, eval_views: int = 0):
   module, path, downscale = SCENES[name]
   config = module.get_config()
   config.data.path, config.data.downscale = str(path), downscale
   config.init.num_random_points = RANDOM_INIT_POINTS
   config.render.tile_size = TILE_SIZE
+  config.eval.max_views = eval_views
   config.train.progress_bar = True
   if iterations:
     config.train.iterations = iterations
   return config
 
 
-def run(names, iterations, workdir: pathlib.Path) -> list[dict]:
+def run(names, iterations, eval_views, workdir: pathlib.Path) -> list[dict]:
   rows = []
   for name in names:
-    config = scene_config(name, iterations)
+    config = scene_config(name, iterations, eval_views)
     if not pathlib.Path(config.data.path).is_dir():
       print(f"skipping {name}: {config.data.path} not found")
       continue
@@ -60,7 +61,8 @@ def run(names, iterations, workdir: pathlib.Path) -> list[dict]:
     rows.append(dict(scene=name, downscale=config.data.downscale, iterations=result["iterations"],
                      resumed_from=result["resumed_from"], wall_time_s=result["wall_time_s"],
                      median_step_s=result["median_step_s"], num_gaussians=result["num_gaussians"],
-                     test=result["test"], curve=[(h["step"], h["psnr"]) for h in result["history"] if "psnr" in h]))
+                     test=result["test"], test_views=eval_views or "all",
+                     curve=[(h["step"], h["psnr"]) for h in result["history"] if "psnr" in h]))
     print(json.dumps({k: v for k, v in rows[-1].items() if k != "curve"}))
   return rows
 
@@ -86,12 +88,13 @@ def main():
   parser.add_argument("--workdir", default="workdirs/bench")
   parser.add_argument("--scenes", default="lego,beer")
   parser.add_argument("--iterations", type=int, default=0, help="0: the configs' 10k")
+  parser.add_argument("--eval-views", type=int, default=0, help="test views scored (exact mode); 0: all")
   args = parser.parse_args()
   names = [n for n in args.scenes.split(",") if n]
   unknown = set(names) - set(SCENES)
   if unknown:
     parser.error(f"unknown scenes {sorted(unknown)}; choose from {sorted(SCENES)}")
-  rows = run(names, args.iterations, pathlib.Path(args.workdir))
+  rows = run(names, args.iterations, args.eval_views, pathlib.Path(args.workdir))
   if not rows:
     return
   out = pathlib.Path(args.out)

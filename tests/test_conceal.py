@@ -52,7 +52,8 @@ def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
   config = tiny_config(tiny)
   straight = conceal.conceal_and_evaluate(config, str(tmp_path / "a"))
   assert conceal.conceal_and_evaluate(config, str(tmp_path / "b"), max_steps=20) == dict(stopped_at=20)
-  conceal.conceal_and_evaluate(config, str(tmp_path / "b"))
+  resumed = conceal.conceal_and_evaluate(config, str(tmp_path / "b"))
+  assert resumed["timed_steps"] == straight["timed_steps"] == 40
   for name in ("decoder.msgpack", "student.ply"):
     assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
 

@@ -44,7 +44,7 @@ def test_train_writes_scene_metrics_and_resumes_exactly(tiny_scene, tmp_path):
   straight = train.train_and_evaluate(config, str(tmp_path / "a"))
   assert train.train_and_evaluate(config, str(tmp_path / "b"), max_steps=4) == dict(stopped_at=4)
   resumed = train.train_and_evaluate(config, str(tmp_path / "b"))
-  assert resumed["resumed_from"] == 4
+  assert resumed["resumed_from"] == 4 and resumed["timed_steps"] == straight["timed_steps"] == 8
   a, b = ply.load_ply(tmp_path / "a" / "point_cloud.ply"), ply.load_ply(tmp_path / "b" / "point_cloud.ply")
   assert a.num == b.num != 1500, "densification must have changed the count"
   jax.tree.map(np.testing.assert_array_equal, a, b)
