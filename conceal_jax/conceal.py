@@ -259,10 +259,7 @@ def evaluate_concealment(config, workdir, scene, teacher, student, decoder, sett
   student vs the teacher), hidden-image recovery at the check view, and leakage: the best SSIM to the
   hidden image of the decoder output over the student's test views and at the clean teacher's check view."""
   eval_opts = evaluate.eval_options(config, scene.background)
-  count = len(scene.test_cameras) if config.eval.max_views <= 0 else min(config.eval.max_views,
-                                                                         len(scene.test_cameras))
-  cameras, targets = scene.test_cameras[:count], scene.test_images[:count]
-  names = list(scene.test_names[:count]) or [f"view_{i:03d}" for i in range(count)]
+  cameras, targets, names = evaluate.held_out_views(scene, config.eval.max_views)
   student_renders = evaluate.render_images(student, cameras, eval_opts)
   teacher_renders = evaluate.render_images(teacher, cameras, eval_opts)
   evaluate.write_images(os.path.join(workdir, "test_renders"), names, student_renders)
@@ -281,6 +278,6 @@ def evaluate_concealment(config, workdir, scene, teacher, student, decoder, sett
       hidden=dict(psnr=float(metrics.psnr(revealed, hidden)), ssim=float(metrics.ssim(revealed, hidden))),
       leakage=dict(max_ssim_student_test_views=max(ssim_to_hidden),
                    ssim_teacher_check_view=float(metrics.ssim(teacher_revealed, hidden))),
-      num_test_views=count, lpips_net=metrics.LPIPS_NET_NAME[net], eval_render_options=repr(eval_opts))
+      num_test_views=len(names), lpips_net=metrics.LPIPS_NET_NAME[net], eval_render_options=repr(eval_opts))
   fileio.write_json(os.path.join(workdir, evaluate.METRICS_FILE), result)
   return result

@@ -69,15 +69,14 @@ def evaluate_scene(gaussians: Gaussians, scene: datasets.SceneData, options: Ren
                    lpips_net: str = "vgg", max_views: int = 0) -> dict:
   """Renders the test split (the first `max_views`, 0 = all), writes test_renders/*.png and
   metrics.json into workdir, and returns the metrics."""
-  count = len(scene.test_cameras) if max_views <= 0 else min(max_views, len(scene.test_cameras))
-  names = _view_names(scene.test_names, count)
-  rendered = render_images(gaussians, scene.test_cameras[:count], options)
-  result = image_metrics(rendered, scene.test_images[:count], names, lpips_net)
+  cameras, targets, names = held_out_views(scene, max_views)
+  rendered = render_images(gaussians, cameras, options)
+  result = image_metrics(rendered, targets, names, lpips_net)
   result.update(num_gaussians=int(gaussians.num), render_options=repr(options))
   write_images(os.path.join(workdir, "test_renders"), names, rendered)
   fileio.write_json(os.path.join(workdir, METRICS_FILE), result)
   logging.info("test PSNR %.2f SSIM %.4f LPIPS %.4f on %d views", result["mean"]["psnr"],
-               result["mean"]["ssim"], result["mean"]["lpips"], count)
+               result["mean"]["ssim"], result["mean"]["lpips"], len(names))
   return result
 
 
@@ -90,7 +89,10 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
                         config.eval.lpips_net, config.eval.max_views)
 
 
-def _view_names(names: list[str], count: int) -> list[str]:
-  if len(names) >= count:
-    return list(names[:count])
-  return [f"view_{i:03d}" for i in range(count)]
+def held_out_views(scene: datasets.SceneData,
+                   max_views: int = 0) -> tuple[list[Camera], list[np.ndarray], list[str]]:
+  """The first `max_views` (0 = all) test cameras, images and names (view_000, ... if unnamed)."""
+  count = len(scene.test_cameras) if max_views <= 0 else min(max_views, len(scene.test_cameras))
+  names = list(scene.test_names[:count]) if len(scene.test_names) >= count else [
+      f"view_{i:03d}" for i in range(count)]
+  return scene.test_cameras[:count], scene.test_images[:count], names

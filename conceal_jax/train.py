@@ -247,10 +247,9 @@ def _density_control(config, state, iteration, extent, params, background):
 
 
 def _quick_test_psnr(state, scene, options, max_views) -> float:
-  gaussians = masked(state["gaussians"], state["alive"])
-  count = min(max_views, len(scene.test_cameras))
-  rendered = evaluate.render_images(gaussians, scene.test_cameras[:count], options)
-  return float(np.mean([metrics.psnr(np.clip(r, 0, 1), t) for r, t in zip(rendered, scene.test_images)]))
+  cameras, targets, _ = evaluate.held_out_views(scene, max_views)
+  rendered = evaluate.render_images(masked(state["gaussians"], state["alive"]), cameras, options)
+  return float(np.mean([metrics.psnr(np.clip(r, 0, 1), t) for r, t in zip(rendered, targets)]))
 
 
 def _restore_or_create(config, scene, tx, ckpt_dir) -> tuple[dict, list, list]:

@@ -34,6 +34,7 @@ def tiny_config(scene_path, iterations=8):
   config.train.densify.grad_threshold = 2e-5  # low, so the short run does clone and split
   config.train.checkpoint_every = 4
   config.train.log_every = 1
+  config.train.eval_every = 4
   config.train.progress_bar = False
   config.eval.max_views = 1
   return config
@@ -57,6 +58,7 @@ def test_train_writes_scene_metrics_and_resumes_exactly(tiny_scene, tmp_path):
   assert len(list((tmp_path / "a" / "test_renders").glob("*.png"))) == 1
   summary = json.loads((tmp_path / "a" / "train.json").read_text())
   assert summary["iterations"] == 8 and summary["median_step_s"] > 0
+  assert [h["step"] for h in summary["history"] if "test_psnr" in h] == [4]
   # three SH degrees in 8 steps; densification ran twice without changing the compiled buffer size
   assert sorted(d for d, _ in summary["compiled_step_variants"]) == [0, 1, 2]
 
