@@ -54,6 +54,15 @@ def load(path: str) -> tuple[dict, list[np.ndarray]]:
   return meta, leaves
 
 
+def load_latest(directory: str) -> tuple[str, dict, list[np.ndarray]] | None:
+  """(path, meta, leaves) of the newest checkpoint in `directory`, or None if there is none."""
+  steps = list_steps(directory)
+  if not steps:
+    return None
+  path = checkpoint_path(directory, steps[-1])
+  return (path,) + load(path)
+
+
 def restore(template, leaves: list[np.ndarray], source: str = "checkpoint"):
   """Fills `template`'s structure with `leaves`, checking their number, shapes and dtypes."""
   expected, treedef = jax.tree.flatten(template)

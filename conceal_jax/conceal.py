@@ -203,9 +203,9 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   state = create_conceal_state(student, initial_decoder(config, settings), student_tx, decoder_tx)
   ckpt_dir = os.path.join(workdir, "checkpoints")
   history, step_times = [], []  # a resumed run keeps both, so it reports the time of all its steps
-  if checkpoint.list_steps(ckpt_dir):
-    path = checkpoint.checkpoint_path(ckpt_dir, checkpoint.list_steps(ckpt_dir)[-1])
-    meta, leaves = checkpoint.load(path)
+  latest = checkpoint.load_latest(ckpt_dir)
+  if latest:
+    path, meta, leaves = latest
     state = jax.tree.map(jnp.asarray, checkpoint.restore(state, leaves, path))
     history, step_times = meta["history"], meta.get("step_times", [])
     logging.info("resuming from %s", path)

@@ -79,8 +79,8 @@ def create_train_state(live: Gaussians, tx: optax.GradientTransformation, capaci
 
 def live_gaussians(state: dict) -> Gaussians:
   """The alive rows of the buffer as a numpy-backed Gaussians."""
-  host = jax.device_get(state)
-  return densify.take(host["gaussians"], np.asarray(host["alive"]))
+  gaussians, alive = jax.device_get((state["gaussians"], state["alive"]))  # not the optimizer state
+  return densify.take(gaussians, np.asarray(alive))
 
 
 def masked(gaussians: Gaussians, alive: jax.Array) -> Gaussians:
@@ -254,12 +254,11 @@ def _quick_test_psnr(state, scene, options, max_views) -> float:
 
 def _restore_or_create(config, scene, tx, ckpt_dir) -> tuple[dict, list, list]:
   """(state, history, step times so far): a resumed run reports the time of all its steps."""
-  saved = checkpoint.list_steps(ckpt_dir)
-  if not saved:
+  latest = checkpoint.load_latest(ckpt_dir)
+  if latest is None:
     live = initial_gaussians(config, scene, np.random.default_rng(config.seed))
     return create_train_state(live, tx), [], []
-  path = checkpoint.checkpoint_path(ckpt_dir, saved[-1])
-  meta, leaves = checkpoint.load(path)
+  path, meta, leaves = latest
   template = create_train_state(Gaussians.empty(config.train.sh_degree), tx, meta["capacity"])
   logging.info("resuming from %s", path)
   state = jax.tree.map(jnp.asarray, checkpoint.restore(template, leaves, path))
