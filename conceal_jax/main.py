@@ -11,7 +11,9 @@ import sys
 from absl import app, flags
 from ml_collections import config_flags
 
-from conceal_jax import conceal, evaluate, fileio, render_views, reveal, train
+from conceal_jax.conceal import conceal, reveal
+from conceal_jax.core import fileio
+from conceal_jax.gs import evaluate, render_views, train
 
 MODES = {"render": render_views.render_and_save, "train": train.train_and_evaluate,
          "eval": evaluate.evaluate, "conceal": conceal.conceal_and_evaluate, "reveal": reveal.reveal}

@@ -16,7 +16,8 @@ import pathlib
 
 import jax
 
-from conceal_jax import conceal, fileio
+from conceal_jax.conceal import conceal
+from conceal_jax.core import fileio
 from conceal_jax.configs import nerf_synthetic
 from experiments.bench_train import SCENES, TILE_SIZE
 

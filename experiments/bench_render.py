@@ -21,9 +21,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from conceal_jax import Camera, RenderOptions, render
-from conceal_jax import fileio
-from conceal_jax.init import gaussians_from_points
+from conceal_jax import Camera, RenderOptions
+from conceal_jax import render
+from conceal_jax.core import fileio
+from conceal_jax.gs.init import gaussians_from_points
 
 DATA = pathlib.Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "garden_points.npz"
 SIZES = {"128": (128, 128), "256": (256, 256), "native": (648, 420)}

@@ -17,7 +17,8 @@ import platform
 
 import jax
 
-from conceal_jax import fileio, train
+from conceal_jax.core import fileio
+from conceal_jax.gs import train
 from conceal_jax.configs import colmap, nerf_synthetic
 
 DATA = pathlib.Path(__file__).resolve().parents[1] / ".." / "shared" / "data"

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from conceal_jax import Camera, Gaussians, RenderOptions
-from conceal_jax.camera import look_at
+from conceal_jax.splat.camera import look_at
 from tests.reference import render_reference
 
 DATA_DIR = pathlib.Path(__file__).resolve().parents[1] / ".." / "shared" / "data"

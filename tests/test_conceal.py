@@ -9,9 +9,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conceal_jax import conceal, demo_scene, init, key, losses, ply, reveal
+from conceal_jax.conceal import conceal, key, reveal
+from conceal_jax.data import demo_scene, ply
+from conceal_jax.gs import init, losses
 from conceal_jax import main as main_lib
-from conceal_jax.camera import Camera, look_at
+from conceal_jax.splat.camera import Camera, look_at
 from conceal_jax.configs import demo
 
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from conceal_jax import datasets
-from conceal_jax.camera import look_at
-from conceal_jax.datasets import DatasetError
+from conceal_jax.data import datasets
+from conceal_jax.splat.camera import look_at
+from conceal_jax.data.datasets import DatasetError
 
 DATA = Path(__file__).parents[1] / ".." / "shared" / "data"
 LEGO = DATA / "nerf_synthetic" / "lego"

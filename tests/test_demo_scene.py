@@ -7,7 +7,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from conceal_jax import datasets, demo_scene
+from conceal_jax.data import datasets, demo_scene
 
 SMALL = dict(num_train=5, num_test=3, size=48, seed=0)
 

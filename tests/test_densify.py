@@ -4,9 +4,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conceal_jax import densify
-from conceal_jax.densify import DensifyParams
-from conceal_jax.gaussians import Gaussians
+from conceal_jax.gs import densify
+from conceal_jax.gs.densify import DensifyParams
+from conceal_jax.splat.gaussians import Gaussians
 
 EXTENT = 2.0  # clone below 0.02 max scale, prune above 0.2 world scale
 

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conceal_jax import guidance
+from conceal_jax.conceal import guidance
 
 SIG = lambda s: 1.0 / (1.0 + np.exp(-s))
 

@@ -8,8 +8,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conceal_jax import Camera, RenderOptions, camera as camera_lib, render, render_batch
-from conceal_jax import projection, sh as sh_lib
+from conceal_jax import Camera, RenderOptions, render, render_batch
+from conceal_jax.splat import camera as camera_lib
+from conceal_jax.splat import projection, sh as sh_lib
 from tests.conftest import assert_finite_tree, make_camera, make_gaussians, random_gaussians, reference
 
 EXACT = RenderOptions(max_per_tile=None, exact_chunk=8, background=(0.2, 0.4, 0.6), with_depth=True)
@@ -25,7 +26,7 @@ def one_gaussian(mean, log_scale=(-1.0, -1.0, -1.0), quat=(1.0, 0.0, 0.0, 0.0), 
 
 
 def stack(parts):
-  from conceal_jax.gaussians import concatenate
+  from conceal_jax.splat.gaussians import concatenate
   return concatenate(parts)
 
 
@@ -198,7 +199,7 @@ def test_exact_depth_ties_resolve_by_index():
 
 
 def test_no_gaussians_gives_background():
-  from conceal_jax.gaussians import Gaussians
+  from conceal_jax.splat.gaussians import Gaussians
   out = render(Gaussians.empty(), AXIS_CAMERA, EXACT)
   np.testing.assert_allclose(out.rgb, background_image(AXIS_CAMERA, EXACT), atol=1e-7)
   np.testing.assert_array_equal(out.alpha, 0)

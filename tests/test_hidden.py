@@ -3,7 +3,7 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
-from conceal_jax.hidden import SAMPLE_NAMES, HiddenImageError, load_hidden_image, to_rgb01
+from conceal_jax.conceal.hidden import SAMPLE_NAMES, HiddenImageError, load_hidden_image, to_rgb01
 
 
 def check_image(image, size=64):

@@ -10,7 +10,8 @@ import imageio.v3 as iio
 import pytest
 
 from conceal_jax import main as main_lib
-from conceal_jax import ply, scene_gen
+from conceal_jax.data import ply
+from conceal_jax.gs import scene_gen
 from conceal_jax.configs import default
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))

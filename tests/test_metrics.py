@@ -6,7 +6,7 @@ import pytest
 import scipy.ndimage
 import skimage.metrics
 
-from conceal_jax import metrics
+from conceal_jax.gs import metrics
 
 
 def smooth_image(h: int, w: int, seed: int = 0) -> np.ndarray:

@@ -6,8 +6,8 @@ import numpy as np
 import plyfile
 import pytest
 
-from conceal_jax import ply
-from conceal_jax.gaussians import Gaussians
+from conceal_jax.data import ply
+from conceal_jax.splat.gaussians import Gaussians
 
 
 def random_gaussians(n: int, sh_degree: int, seed: int = 0) -> Gaussians:

@@ -6,7 +6,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conceal_jax import RenderOptions, render
+from conceal_jax import RenderOptions
+from conceal_jax import render
 from tests.conftest import make_camera, random_gaussians, reference
 
 

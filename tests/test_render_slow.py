@@ -4,7 +4,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from conceal_jax import RenderOptions, render
+from conceal_jax import RenderOptions
+from conceal_jax import render
 from experiments.bench_render import garden_camera, garden_scene
 from tests.conftest import DATA_DIR, reference
 

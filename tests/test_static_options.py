@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from conceal_jax import RenderOptions, render
-from conceal_jax.camera import Camera
+from conceal_jax.splat.camera import Camera
 from tests.conftest import make_camera, random_gaussians
 
 N = 37  # an odd count, so that [N, k] shapes in the program are recognisable
@@ -103,6 +103,6 @@ def test_camera_constructors_agree():
 
 
 def test_prefix_count_matches_cumsum():
-  from conceal_jax.binning import prefix_count
+  from conceal_jax.splat.binning import prefix_count
   mask = np.random.default_rng(0).uniform(size=1000) < 0.3
   np.testing.assert_array_equal(prefix_count(jax.numpy.asarray(mask), block=64), np.cumsum(mask))

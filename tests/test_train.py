@@ -9,9 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conceal_jax import demo_scene, densify, optimizer, ply, train
+from conceal_jax.data import demo_scene, ply
+from conceal_jax.gs import densify, optimizer, train
 from conceal_jax.configs import demo
-from conceal_jax.render import RenderOptions, render
+from conceal_jax.splat.render import RenderOptions, render
 from tests.conftest import make_camera, random_gaussians
 
 

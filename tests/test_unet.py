@@ -4,7 +4,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conceal_jax import metrics, unet
+from conceal_jax.conceal import unet
+from conceal_jax.gs import metrics
 from tests.conftest import assert_finite_tree
 
 SMALL = 8

@@ -12,8 +12,8 @@ from typing import Sequence
 
 import numpy as np
 
-from conceal_jax import fileio
-from conceal_jax.camera import Camera, look_at
+from conceal_jax.core import fileio
+from conceal_jax.splat.camera import Camera, look_at
 
 KEY_KINDS = ("train_index", "orbit")
 

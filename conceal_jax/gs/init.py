@@ -5,8 +5,8 @@ import numpy as np
 import jax.numpy as jnp
 from scipy.spatial import cKDTree
 
-from conceal_jax import sh as sh_lib
-from conceal_jax.gaussians import Gaussians
+from conceal_jax.splat import sh as sh_lib
+from conceal_jax.splat.gaussians import Gaussians
 
 INIT_OPACITY = 0.1
 # 3D-GS floors the mean squared neighbour distance so coincident points still get a positive scale.

@@ -14,12 +14,12 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from conceal_jax import binning
-from conceal_jax import composite
-from conceal_jax import sh as sh_lib
-from conceal_jax.camera import Camera
-from conceal_jax.gaussians import Gaussians
-from conceal_jax.projection import Splats2D, project
+from conceal_jax.splat import binning
+from conceal_jax.splat import composite
+from conceal_jax.splat import sh as sh_lib
+from conceal_jax.splat.camera import Camera
+from conceal_jax.splat.gaussians import Gaussians
+from conceal_jax.splat.projection import Splats2D, project
 
 # Pixels whose coverage is below this get depth 0 instead of a division by ~0.
 _DEPTH_ALPHA_FLOOR = 1e-10

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import ml_collections
 import optax
 
-from conceal_jax.gaussians import Gaussians
+from conceal_jax.splat.gaussians import Gaussians
 
 ADAM_EPS = 1e-15
 

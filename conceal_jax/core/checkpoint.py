@@ -13,7 +13,7 @@ import re
 import jax
 import numpy as np
 
-from conceal_jax import fileio
+from conceal_jax.core import fileio
 
 _NAME = re.compile(r"^ckpt_(\d+)\.npz$")
 

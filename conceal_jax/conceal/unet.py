@@ -85,7 +85,7 @@ def load_vgg16_encoder(params: dict[str, Any]) -> dict[str, Any]:
   `metrics.vgg16_conv_params`, already in Flax [kh, kw, Cin, Cout] layout. Decoder modules are unchanged.
   Raises ValueError unless params are of a base_channels == 64 UNet.
   """
-  from conceal_jax.metrics import vgg16_conv_params
+  from conceal_jax.gs.metrics import vgg16_conv_params
   width = params["enc1_1"]["kernel"].shape[-1]
   if width != PAPER_WIDTH:
     raise ValueError(f"VGG16 weights need a UNet with base_channels={PAPER_WIDTH}, got {width}")

@@ -20,11 +20,13 @@ import optax
 from absl import logging
 from tqdm import tqdm
 
-from conceal_jax import camera as camera_lib
-from conceal_jax import checkpoint, densify, evaluate, fileio, init, losses, metrics, optimizer, ply
-from conceal_jax import render_views
-from conceal_jax.gaussians import Gaussians
-from conceal_jax.render import RenderOptions, render
+from conceal_jax.splat import camera as camera_lib
+from conceal_jax.core import checkpoint, fileio
+from conceal_jax.data import ply
+from conceal_jax.gs import densify, evaluate, init, losses, metrics, optimizer
+from conceal_jax.gs import render_views
+from conceal_jax.splat.gaussians import Gaussians
+from conceal_jax.splat.render import RenderOptions, render
 
 TRAIN_FILE = "train.json"
 

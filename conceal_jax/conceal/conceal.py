@@ -33,10 +33,14 @@ import optax
 from absl import logging
 from tqdm import tqdm
 
-from conceal_jax import camera as camera_lib
-from conceal_jax import checkpoint, evaluate, fileio, guidance, hidden as hidden_lib, key as key_lib
-from conceal_jax import losses, metrics, optimizer, ply, render_views, reveal, unet
-from conceal_jax.render import RenderOptions, render
+from conceal_jax.splat import camera as camera_lib
+from conceal_jax.conceal import guidance, hidden as hidden_lib, key as key_lib
+from conceal_jax.core import checkpoint, fileio
+from conceal_jax.gs import evaluate
+from conceal_jax.conceal import reveal, unet
+from conceal_jax.data import ply
+from conceal_jax.gs import losses, metrics, optimizer, render_views
+from conceal_jax.splat.render import RenderOptions, render
 
 VARIANTS = ("paper", "released")
 STUDENT_FILE = "student.ply"

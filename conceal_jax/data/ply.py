@@ -16,8 +16,8 @@ import jax.numpy as jnp
 import numpy as np
 import plyfile
 
-from conceal_jax.fileio import atomic_path
-from conceal_jax.gaussians import Gaussians
+from conceal_jax.core.fileio import atomic_path
+from conceal_jax.splat.gaussians import Gaussians
 
 _POSITION = ("x", "y", "z")
 _NORMAL = ("nx", "ny", "nz")

@@ -11,9 +11,9 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from conceal_jax import gaussians as gs
-from conceal_jax import sh as sh_lib
-from conceal_jax.camera import Camera, camera_center
+from conceal_jax.splat import gaussians as gs
+from conceal_jax.splat import sh as sh_lib
+from conceal_jax.splat.camera import Camera, camera_center
 
 # Low-pass filter added to the 2D covariance so every splat covers at least about a pixel (3D-GS).
 DILATION = 0.3

@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from conceal_jax.gaussians import Gaussians
-from conceal_jax.init import gaussians_from_points
+from conceal_jax.splat.gaussians import Gaussians
+from conceal_jax.gs.init import gaussians_from_points
 
 
 def sphere_and_ground(num_points: int, sh_degree: int = 3, seed: int = 0) -> Gaussians:

@@ -7,7 +7,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from conceal_jax import metrics
+from conceal_jax.gs import metrics
 
 
 def l1(a: jax.Array, b: jax.Array) -> jax.Array:

@@ -16,8 +16,8 @@ import math
 import jax
 import numpy as np
 
-from conceal_jax import gaussians as gs
-from conceal_jax.gaussians import Gaussians
+from conceal_jax.splat import gaussians as gs
+from conceal_jax.splat.gaussians import Gaussians
 
 FRESH = -1
 CAPACITY_QUANTUM = 1024

@@ -14,10 +14,13 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from conceal_jax import fileio, hidden as hidden_lib, key as key_lib, metrics, ply, unet
-from conceal_jax.camera import Camera
-from conceal_jax.gaussians import Gaussians
-from conceal_jax.render import RenderOptions, render
+from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, unet
+from conceal_jax.core import fileio
+from conceal_jax.data import ply
+from conceal_jax.gs import metrics
+from conceal_jax.splat.camera import Camera
+from conceal_jax.splat.gaussians import Gaussians
+from conceal_jax.splat.render import RenderOptions, render
 
 REVEAL_FILE = "reveal.json"
 

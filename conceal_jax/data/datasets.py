@@ -18,7 +18,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from conceal_jax.camera import Camera, fov_to_focal
+from conceal_jax.splat.camera import Camera, fov_to_focal
 
 PathLike = str | os.PathLike
 Color = tuple[float, float, float]
@@ -585,7 +585,7 @@ def load_scene(kind_or_path: PathLike, downscale: float = 1, background: Sequenc
   for Blender and the demo, black otherwise); kwargs go to the loader."""
   kind = os.fspath(kind_or_path)
   if kind == "demo":
-    from conceal_jax import demo_scene
+    from conceal_jax.data import demo_scene
     kind, root = "blender", demo_scene.generate_demo_scene(root or demo_scene.demo_scene_path())
   elif kind in LOADERS:
     if root is None:

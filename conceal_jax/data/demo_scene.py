@@ -19,8 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
-from conceal_jax import fileio
-from conceal_jax.camera import look_at
+from conceal_jax.core import fileio
+from conceal_jax.splat.camera import look_at
 
 # Bumped whenever the generated images change, so that stale caches are regenerated.
 FORMAT_VERSION = 1

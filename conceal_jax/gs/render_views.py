@@ -9,9 +9,11 @@ import ml_collections
 import numpy as np
 from absl import logging
 
-from conceal_jax import fileio, ply, scene_gen
-from conceal_jax.camera import Camera, look_at
-from conceal_jax.render import RenderOptions, render
+from conceal_jax.core import fileio
+from conceal_jax.data import ply
+from conceal_jax.gs import scene_gen
+from conceal_jax.splat.camera import Camera, look_at
+from conceal_jax.splat.render import RenderOptions, render
 
 
 def render_options(config: ml_collections.ConfigDict) -> RenderOptions:

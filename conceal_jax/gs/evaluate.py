@@ -13,10 +13,12 @@ import ml_collections
 import numpy as np
 from absl import logging
 
-from conceal_jax import datasets, fileio, metrics, ply, render_views
-from conceal_jax.camera import Camera
-from conceal_jax.gaussians import Gaussians
-from conceal_jax.render import RenderOptions, render
+from conceal_jax.core import fileio
+from conceal_jax.data import datasets, ply
+from conceal_jax.gs import metrics, render_views
+from conceal_jax.splat.camera import Camera
+from conceal_jax.splat.gaussians import Gaussians
+from conceal_jax.splat.render import RenderOptions, render
 
 BACKGROUNDS = {"white": datasets.WHITE, "black": datasets.BLACK, "default": None}
 SCENE_FILE = "point_cloud.ply"
