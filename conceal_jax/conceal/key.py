@@ -13,15 +13,9 @@ from typing import Sequence
 import numpy as np
 
 from conceal_jax.core import fileio
-from conceal_jax.splat.camera import Camera, look_at
+from conceal_jax.splat.camera import Camera, camera_centers, look_at, orbit_eye
 
 KEY_KINDS = ("train_index", "orbit")
-
-
-def camera_centers(cameras: Sequence[Camera]) -> np.ndarray:
-  """[V, 3] world positions of the cameras."""
-  w2c = np.stack([np.asarray(c.world_to_camera, np.float64) for c in cameras])
-  return -np.einsum("vji,vj->vi", w2c[:, :3, :3], w2c[:, :3, 3])
 
 
 def orbit_target(cameras: Sequence[Camera]) -> np.ndarray:
@@ -39,16 +33,12 @@ def orbit_camera(cameras: Sequence[Camera], seed: int) -> Camera:
   offsets = camera_centers(cameras) - target
   up = -np.mean([np.asarray(c.world_to_camera, np.float64)[1, :3] for c in cameras], axis=0)  # -y is up
   up /= np.linalg.norm(up)
-  radius = float(np.median(np.linalg.norm(offsets, axis=1)))
-  elevations = np.arcsin(np.clip(offsets @ up / np.linalg.norm(offsets, axis=1), -1, 1))
+  distances = np.linalg.norm(offsets, axis=1)
+  elevations = np.arcsin(np.clip(offsets @ up / distances, -1, 1))
   rng = np.random.default_rng(seed)
   elevation = rng.uniform(elevations.min(), elevations.max())
   azimuth = rng.uniform(0.0, 2 * math.pi)
-  east = np.cross(up, [1.0, 0.0, 0.0] if abs(up[0]) < 0.9 else [0.0, 1.0, 0.0])
-  east /= np.linalg.norm(east)
-  north = np.cross(up, east)
-  eye = target + radius * (math.cos(elevation) * (math.cos(azimuth) * east + math.sin(azimuth) * north)
-                           + math.sin(elevation) * up)
+  eye = orbit_eye(target, float(np.median(distances)), azimuth, elevation, up)
   c = cameras[0]
   return Camera.from_intrinsics(look_at(eye, target, up), float(c.fx), float(c.fy), float(c.cx), float(c.cy),
                                 c.width, c.height)

@@ -18,7 +18,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from conceal_jax.splat.camera import Camera, fov_to_focal
+from conceal_jax.splat.camera import Camera, camera_centers, fov_to_focal
 
 PathLike = str | os.PathLike
 Color = tuple[float, float, float]
@@ -85,13 +85,8 @@ def camera_extent(cameras: Sequence[Camera]) -> float:
   """1.1 x max distance of a camera centre from the mean centre (0 for fewer than two cameras)."""
   if not cameras:
     return 0.0
-  centers = np.stack([_camera_center(c) for c in cameras])
+  centers = camera_centers(cameras)
   return float(1.1 * np.linalg.norm(centers - centers.mean(0), axis=1).max())
-
-
-def _camera_center(camera: Camera) -> np.ndarray:
-  w2c = np.asarray(camera.world_to_camera, np.float64)
-  return -w2c[:3, :3].T @ w2c[:3, 3]
 
 
 # ---------------------------------------------------------------------------------------------------

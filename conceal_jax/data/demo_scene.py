@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from conceal_jax.core import fileio
-from conceal_jax.splat.camera import look_at
+from conceal_jax.splat.camera import look_at, opengl_camera_to_world, orbit_eye
 
 # Bumped whenever the generated images change, so that stale caches are regenerated.
 FORMAT_VERSION = 1
@@ -122,13 +122,7 @@ def orbit_positions(rng: np.random.Generator, count: int) -> np.ndarray:
   azimuth = rng.uniform(0.0, 2.0 * math.pi, count)
   low, high = (math.sin(e) for e in ELEVATION_RANGE)
   elevation = np.arcsin(rng.uniform(low, high, count))
-  return CAMERA_DISTANCE * np.stack([np.cos(elevation) * np.cos(azimuth),
-                                     np.cos(elevation) * np.sin(azimuth), np.sin(elevation)], -1)
-
-
-def opengl_camera_to_world(world_to_camera: np.ndarray) -> np.ndarray:
-  """[4, 4] Blender/OpenGL camera-to-world of an OpenCV world-to-camera (y and z axes flipped)."""
-  return np.linalg.inv(world_to_camera) @ np.diag([1.0, -1.0, -1.0, 1.0])
+  return orbit_eye((0.0, 0.0, 0.0), CAMERA_DISTANCE, azimuth, elevation)
 
 
 def _textures() -> dict[str, np.ndarray]:

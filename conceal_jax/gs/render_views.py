@@ -12,7 +12,7 @@ from absl import logging
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
 from conceal_jax.gs import scene_gen
-from conceal_jax.splat.camera import Camera, look_at
+from conceal_jax.splat.camera import Camera, look_at, orbit_eye
 from conceal_jax.splat.render import RenderOptions, render
 
 
@@ -29,13 +29,10 @@ def orbit_cameras(config: ml_collections.ConfigDict) -> list[Camera]:
   c = config.render
   if c.num_views < 1 or c.width < 1 or c.height < 1 or not 0 < c.fov_deg < 180 or not c.distance > 0:
     raise ValueError("render.num_views, width, height and distance must be positive and fov_deg in (0, 180)")
-  elevation = math.radians(c.elevation_deg)
-  cameras = []
-  for k in range(c.num_views):
-    azimuth = 2 * math.pi * k / c.num_views
-    eye = c.distance * np.array([math.cos(elevation) * math.cos(azimuth),
-                                 math.cos(elevation) * math.sin(azimuth), math.sin(elevation)])
-    cameras.append(Camera.from_fov(look_at(eye, (0.0, 0.0, 0.0)), math.radians(c.fov_deg), c.width, c.height))
+  azimuths = 2 * math.pi * np.arange(c.num_views) / c.num_views
+  eyes = orbit_eye((0.0, 0.0, 0.0), c.distance, azimuths, math.radians(c.elevation_deg))
+  cameras = [Camera.from_fov(look_at(eye, (0.0, 0.0, 0.0)), math.radians(c.fov_deg), c.width, c.height)
+             for eye in eyes]
   return cameras
 
 

@@ -68,10 +68,39 @@ def fov_to_focal(fov: float, pixels: int) -> float:
   return 0.5 * pixels / math.tan(0.5 * fov)
 
 
+def center_of(world_to_camera):
+  """[..., 4, 4] world-to-camera -> [..., 3] camera positions -R^T t (numpy in, numpy out; jax likewise)."""
+  rotation, translation = world_to_camera[..., :3, :3], world_to_camera[..., :3, 3]
+  return -(rotation.swapaxes(-1, -2) @ translation[..., None])[..., 0]
+
+
 def camera_center(camera: Camera) -> jax.Array:
-  """[3] world-space position of the camera: -R^T t."""
-  rotation, translation = camera.world_to_camera[:3, :3], camera.world_to_camera[:3, 3]
-  return -rotation.T @ translation
+  """[3] world-space position of the camera."""
+  return center_of(camera.world_to_camera)
+
+
+def camera_centers(cameras) -> np.ndarray:
+  """[V, 3] float64 world positions of a list of cameras."""
+  return center_of(np.stack([np.asarray(c.world_to_camera, np.float64) for c in cameras]))
+
+
+def opengl_camera_to_world(world_to_camera) -> np.ndarray:
+  """[4, 4] OpenGL/Blender camera-to-world of an OpenCV world-to-camera (the inverse of what
+  `Camera.from_opengl_camera_to_world` reads)."""
+  return np.linalg.inv(np.asarray(world_to_camera, np.float64)) @ _OPENGL_TO_OPENCV
+
+
+def orbit_eye(target, radius: float, azimuth, elevation, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+  """[..., 3] points at `radius` from `target`, at `elevation` above the plane normal to `up` and
+  `azimuth` around it (radians), azimuth 0 lying towards world x (or y when `up` is along x)."""
+  up = np.asarray(up, np.float64) / np.linalg.norm(up)
+  reference = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+  east = reference - (reference @ up) * up
+  east /= np.linalg.norm(east)
+  north = np.cross(up, east)
+  azimuth, elevation = np.asarray(azimuth, np.float64)[..., None], np.asarray(elevation, np.float64)[..., None]
+  direction = np.cos(elevation) * (np.cos(azimuth) * east + np.sin(azimuth) * north) + np.sin(elevation) * up
+  return np.asarray(target, np.float64) + radius * direction
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
