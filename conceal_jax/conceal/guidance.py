@@ -1,4 +1,4 @@
-"""Gradient-guided decoder update of ConcealGS (paper Sec. II-C, Eqs. 6 and 7) on gradient pytrees.
+"""Gradient-guided decoder update of ConcealGS (arXiv:2501.03605, Sec. 2.3, eqs. 6 and 7) on gradient pytrees.
 
 For every decoder layer i, s_i is the cosine between that layer's gradients of L_d^+ (Eq. 5, reveal the
 hidden image on the check view) and L_d^- (Eq. 4, identity on normal views); w_i = sigmoid(s_i), in
@@ -8,7 +8,8 @@ are updated almost fully, layers where they conflict are damped.
 What counts as a layer is the `granularity`:
   "layer": the paper's f_i, one Flax module; its leaves (a conv's kernel and bias) share one weight,
     computed from the cosine of their concatenated gradients.
-  "tensor": the released code's choice (REFERENCE s.2), every parameter tensor weighted on its own.
+  "tensor": the choice of the authors' released code (github.com/zxk1212/ConcealGS): every parameter tensor
+    weighted on its own.
 All functions are jittable with `granularity` static; grouping depends only on the tree structure.
 """
 from __future__ import annotations

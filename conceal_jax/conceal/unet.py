@@ -1,9 +1,9 @@
 """The ConcealGS decoder F: a VGG16-style U-Net from a render [B, H, W, 3] to an image [B, H, W, 3].
 
-Shaped like the released ConcealGS decoder (REFERENCE s.2): a VGG16 encoder cut after conv4_3 (stages of
-base * (1, 2, 4, 8) channels with 2, 2, 3, 3 conv3x3+ReLU, 2x2 max pools between stages), three decoder
-blocks (stride-2 transposed conv, concatenate the skip, two conv3x3+ReLU) and a 1x1 conv to 3 channels.
-The output has no activation, so the identity on normal views (L_d^-) is not squashed near 0 and 1.
+Shaped like the decoder of the authors' released ConcealGS code (github.com/zxk1212/ConcealGS): a VGG16
+encoder cut after conv4_3 (stages of base * (1, 2, 4, 8) channels with 2, 2, 3, 3 conv3x3+ReLU, 2x2 max
+pools between stages), three decoder blocks (stride-2 transposed conv, concatenate the skip, two
+conv3x3+ReLU) and a 1x1 conv to 3 channels. The output has no activation, so the identity on normal views (L_d^-) is not squashed near 0 and 1.
 base_channels = 64 is the paper width, the only one ImageNet VGG16 weights fit.
 """
 from __future__ import annotations
@@ -81,7 +81,8 @@ def init_decoder(rng: jax.Array, base_channels: int = PAPER_WIDTH, image_size: i
 def load_vgg16_encoder(params: dict[str, Any]) -> dict[str, Any]:
   """A copy of paper-width `params` with ImageNet VGG16 conv1_2 .. conv4_3 in enc1_2 .. enc4_3.
 
-  enc1_1 keeps its fresh weights, as in the released ConcealGS code (REFERENCE s.2). The weights come from
+  enc1_1 keeps its fresh weights, as in the authors' released code (github.com/zxk1212/ConcealGS). The
+  weights come from
   `metrics.vgg16_conv_params`, already in Flax [kh, kw, Cin, Cout] layout. Decoder modules are unchanged.
   Raises ValueError unless params are of a base_channels == 64 UNet.
   """

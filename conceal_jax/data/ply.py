@@ -1,4 +1,5 @@
-"""Reading and writing the standard 3D-GS `.ply` point cloud (REFERENCE section 6).
+"""Reading and writing the standard 3D-GS `.ply` point cloud (as the 3D-GS reference implementation,
+graphdeco-inria/gaussian-splatting, writes it).
 
 The file has one `vertex` element with float32 properties
   x y z nx ny nz f_dc_0..2 f_rest_0..(3 * ((D+1)^2 - 1) - 1) opacity scale_0..2 rot_0..3

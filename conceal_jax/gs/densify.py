@@ -1,4 +1,4 @@
-"""3D-GS adaptive density control on a fixed-capacity buffer (REFERENCE s.5).
+"""3D-GS adaptive density control on a fixed-capacity buffer (3D-GS, Kerbl et al. 2023, arXiv:2308.04079, Sec. 5.2).
 
 The train step is compiled for a buffer of `capacity` Gaussians with an `alive` mask, so clone, split
 and prune only rewrite the buffer's contents; the capacity (and so the compiled step) changes only

@@ -1,4 +1,5 @@
-"""Initial Gaussians from a point cloud, as 3D-GS initialises from SfM or random points (REFERENCE s.5)."""
+"""Initial Gaussians from a point cloud, as 3D-GS initialises from SfM or random points (Kerbl et al. 2023,
+arXiv:2308.04079, Sec. 5.1 and 7.1)."""
 from __future__ import annotations
 
 import numpy as np

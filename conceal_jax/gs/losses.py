@@ -1,4 +1,4 @@
-"""Image losses: the 3D-GS photometric loss and the ConcealGS losses (paper eqs. 3-5, REFERENCE s.1).
+"""Image losses: the 3D-GS photometric loss and the ConcealGS losses (arXiv:2501.03605, Sec. 2.2, eqs. 3-5).
 
 Every loss is a scalar mean over pixels, so gradients do not grow with image size.
 """
@@ -16,7 +16,8 @@ def l1(a: jax.Array, b: jax.Array) -> jax.Array:
 
 
 def photometric_loss(rendered: jax.Array, target: jax.Array, ssim_weight: float = 0.2) -> jax.Array:
-  """3D-GS training loss (1 - lambda) L1 + lambda (1 - SSIM), lambda = 0.2 (REFERENCE s.5).
+  """3D-GS training loss (1 - lambda) L1 + lambda (1 - SSIM), lambda = 0.2 (Kerbl et al. 2023,
+  arXiv:2308.04079, Sec. 5.1, eq. 7).
 
   rendered, target: [H, W, 3].
   """

@@ -1,4 +1,5 @@
-"""Per-parameter Adam of 3D-GS (REFERENCE s.5): one Adam (eps 1e-15), one learning rate per field.
+"""Per-parameter Adam of 3D-GS (Kerbl et al. 2023, arXiv:2308.04079, Sec. 5.1 and 7.1): one Adam (eps 1e-15),
+one learning rate per field.
 
 Adam is element-wise, so a single `scale_by_adam` over the whole `Gaussians` pytree followed by a
 per-field learning rate equals the per-parameter-group Adam of the reference implementation.

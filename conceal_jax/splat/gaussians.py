@@ -1,8 +1,8 @@
 """The 3D Gaussian scene as a pytree, and the activations that turn its raw parameters into geometry.
 
 Raw parameters are stored unconstrained (log scales, opacity logits, unnormalised quaternions), as in
-3D-GS, so that an optimiser can move them freely; the functions here are the activations of REFERENCE
-section 4 ("scale = exp, opacity = sigmoid, rotation = normalised quaternion").
+3D-GS (Kerbl et al. 2023, arXiv:2308.04079, Sec. 4 and 5.1), so that an optimiser can move them freely;
+the functions here are its activations: scale = exp, opacity = sigmoid, rotation = normalised quaternion.
 """
 from __future__ import annotations
 

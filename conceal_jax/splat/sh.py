@@ -1,4 +1,5 @@
-"""Real spherical harmonics up to degree 3: view-dependent colour of a Gaussian (3D-GS, REFERENCE s.4)."""
+"""Real spherical harmonics up to degree 3: view-dependent colour of a Gaussian (3D-GS, Kerbl et al. 2023,
+arXiv:2308.04079, Sec. 4)."""
 from __future__ import annotations
 
 import jax
