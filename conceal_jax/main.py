@@ -15,8 +15,12 @@ from conceal_jax.conceal import conceal, reveal
 from conceal_jax.core import fileio
 from conceal_jax.gs import evaluate, render_views, train
 
-MODES = {"render": render_views.render_and_save, "train": train.train_and_evaluate,
-         "eval": evaluate.evaluate, "conceal": conceal.conceal_and_evaluate, "reveal": reveal.reveal}
+# mode -> (validate, job): validate checks every value the job reads before anything is written.
+MODES = {"render": (render_views.validate, render_views.render_and_save),
+         "train": (train.validate, train.train_and_evaluate),
+         "eval": (evaluate.validate, evaluate.evaluate),
+         "conceal": (conceal.validate, conceal.conceal_and_evaluate),
+         "reveal": (reveal.validate, reveal.reveal)}
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("workdir", None, "Directory for outputs, checkpoints and the saved config.")
@@ -26,12 +30,14 @@ flags.mark_flags_as_required(["config", "workdir"])
 
 
 def run(config, workdir: str):
-  """Validates the mode, saves the config into workdir and runs the job."""
+  """Validates the config for its mode, saves it into workdir and runs the job."""
   if config.mode not in MODES:
     raise ValueError(f"config.mode must be one of {sorted(MODES)}, got {config.mode!r}")
+  validate, job = MODES[config.mode]
+  validate(config)
   os.makedirs(workdir, exist_ok=True)
   fileio.write_json(os.path.join(workdir, "config.json"), config.to_dict())
-  return MODES[config.mode](config, workdir)
+  return job(config, workdir)
 
 
 def main(argv):

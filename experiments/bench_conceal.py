@@ -18,8 +18,7 @@ import jax
 
 from conceal_jax.conceal import conceal
 from conceal_jax.core import fileio
-from conceal_jax.configs import nerf_synthetic
-from experiments.bench_train import SCENES, TILE_SIZE
+from experiments.bench_train import scene_config
 
 ROWS = {"full": {}, "no_decoder": dict(use_decoder=False), "no_consistency": dict(consistency=False),
         "no_guidance": dict(guidance=False)}
@@ -36,11 +35,8 @@ def run(rows, widths, iterations, eval_views, workdir: pathlib.Path, out: pathli
     for row in rows:
       if row == "no_decoder" and width != widths[0]:
         continue  # no decoder: the width does not matter
-      config = nerf_synthetic.get_config()
+      config = scene_config("lego", None)  # the teacher's data and render settings
       config.mode = "conceal"
-      _, path, downscale = SCENES["lego"]
-      config.data.path, config.data.downscale = str(path), downscale
-      config.render.tile_size = TILE_SIZE  # as the teacher was trained
       c = config.conceal
       c.teacher, c.hidden, c.decoder_width, c.decoder_vgg_init = str(teacher), "astronaut", width, width == 64
       if iterations:

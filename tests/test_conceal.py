@@ -9,10 +9,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conceal_jax.conceal import conceal, key, reveal
+from conceal_jax.conceal import conceal, key, objective, reveal, unet
 from conceal_jax.data import demo_scene, ply
 from conceal_jax.gs import init, losses
 from conceal_jax import main as main_lib
+from conceal_jax import RenderOptions, render
+from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat.camera import Camera, camera_centers, look_at
 from conceal_jax.configs import demo
 
@@ -50,12 +52,66 @@ def test_losses_are_mean_absolute_errors():
     np.testing.assert_allclose(loss(a, b), expected, rtol=1e-6)
 
 
+def _objective_inputs(size=16, width=4, views=3, hw=(20, 24)):
+  """A random student, decoder and `data` dict of the shapes conceal.build_data makes."""
+  rng = np.random.default_rng(0)
+  student = init.gaussians_from_points(rng.uniform(-0.5, 0.5, (60, 3)), rng.uniform(0, 1, (60, 3)), sh_degree=0,
+                                       opacity=0.6)
+  cameras = [Camera.from_fov(look_at([3 * np.cos(a), 3 * np.sin(a), 1.0], [0, 0, 0]), 0.8, hw[1], hw[0])
+             for a in np.linspace(0, 2, views)]
+  images = jnp.asarray(rng.uniform(0, 1, (views,) + hw + (3,)), jnp.float32)
+  teacher = jnp.asarray(rng.uniform(0, 1, (views,) + hw + (3,)), jnp.float32)
+  data = dict(images=images, teacher=teacher, teacher_small=reveal.resize_for_decoder(teacher, size),
+              cameras=camera_lib.stack(cameras), check_camera=cameras[-1], check_image=images[-1],
+              teacher_check_small=reveal.resize_for_decoder(teacher[-1], size),
+              hidden=jnp.asarray(rng.uniform(0, 1, (size, size, 3)), jnp.float32))
+  decoder = unet.init_decoder(jax.random.key(0), width, size)
+  return student, decoder, data
+
+
+@pytest.mark.parametrize("variant", ["paper", "released"])
+def test_student_objective_is_the_sum_of_the_papers_terms(variant):
+  """L_kd (eq. 3) + lambda+ L_d^+ (eq. 5), assembled by hand from renders and the decoder output."""
+  student, decoder, data = _objective_inputs()
+  s = objective.ConcealSettings(variant=variant, decoder_width=4, hidden_size=16, weight_kd=0.7, weight_plus=2.0,
+                                weight_check=0.5)
+  options = RenderOptions(max_per_tile=None)
+  total, aux = objective.student_objective(student, decoder, data, 1, s, options)
+  camera = jax.tree.map(lambda x: x[1], data["cameras"])
+  rgb = render(student, camera, options).rgb
+  check = render(student, data["check_camera"], options).rgb
+  revealed = reveal.decode(decoder, 4, reveal.resize_for_decoder(check, 16))
+  plus = float(jnp.mean(jnp.abs(revealed - data["hidden"])))
+  if variant == "paper":
+    expected = 0.7 * float(jnp.mean(jnp.abs(rgb - data["teacher"][1]))) + 2.0 * plus
+  else:
+    expected = (float(losses.photometric_loss(rgb, data["images"][1])) + 2.0 * plus
+                + 0.5 * float(jnp.mean(jnp.abs(check - data["check_image"]))))
+  np.testing.assert_allclose(float(total), expected, rtol=1e-5)
+  np.testing.assert_allclose(float(aux["plus"]), plus, rtol=1e-5)
+
+
+def test_decoder_identity_objective_reads_only_the_decoder():
+  """lambda- L_d^- (eq. 4) on the teacher's render of the normal view; the paper variant uses that view, the
+  released one the teacher's check render, and the student never enters it."""
+  _, decoder, data = _objective_inputs()
+  for variant, teacher in (("paper", data["teacher_small"][2]), ("released", data["teacher_check_small"])):
+    s = objective.ConcealSettings(variant=variant, decoder_width=4, hidden_size=16, weight_minus=3.0)
+    value = objective.decoder_identity_objective(decoder, data, 2, s)
+    expected = 3.0 * jnp.mean(jnp.abs(reveal.decode(decoder, 4, teacher) - teacher))
+    np.testing.assert_allclose(float(value), float(expected), rtol=1e-6)
+  grads = jax.grad(objective.decoder_identity_objective)(decoder, data, 2, s)
+  assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(grads))
+  assert any(float(jnp.abs(g).sum()) > 0 for g in jax.tree.leaves(grads))
+
+
 def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
   config = tiny_config(tiny)
   straight = conceal.conceal_and_evaluate(config, str(tmp_path / "a"))
   assert conceal.conceal_and_evaluate(config, str(tmp_path / "b"), max_steps=20) == dict(stopped_at=20)
   resumed = conceal.conceal_and_evaluate(config, str(tmp_path / "b"))
   assert resumed["timed_steps"] == straight["timed_steps"] == 40
+  assert straight["traces"] == dict(conceal_step=1) and resumed["traces"] == dict(conceal_step=1)
   for name in ("decoder.msgpack", "student.ply"):
     assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
 

@@ -20,14 +20,14 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 def small_config():
   config = default.get_config()
   config.scene.num_points = 300
-  config.render.width, config.render.height, config.render.num_views = 40, 30, 2
+  config.scene.width, config.scene.height, config.scene.num_views = 40, 30, 2
   return config
 
 
 def test_render_job_writes_views_and_config(tmp_path):
   main_lib.run(small_config(), str(tmp_path))
   saved = json.loads((tmp_path / "config.json").read_text())
-  assert saved["mode"] == "render" and saved["render"]["width"] == 40
+  assert saved["mode"] == "render" and saved["scene"]["width"] == 40
   views = sorted(p.name for p in tmp_path.glob("view_*.png"))
   assert views == ["view_000.png", "view_001.png"]
   image = iio.imread(tmp_path / "view_000.png")
@@ -41,15 +41,15 @@ def test_render_job_reads_a_ply(tmp_path):
   ply.save_ply(path, scene_gen.sphere_and_ground(200, sh_degree=1))
   config = small_config()
   config.scene.ply = str(path)
-  config.render.exact = True
+  config.render.max_per_tile = None  # exact
   summary = main_lib.run(config, str(tmp_path / "out"))
   assert summary["num_gaussians"] == 200 and summary["views"][0]["overflow_tiles"] == 0
 
 
 def _cli(tmp_path, *overrides):
   return subprocess.run([sys.executable, "-m", "conceal_jax.main", "--config=conceal_jax/configs/default.py",
-                         f"--workdir={tmp_path}", "--config.scene.num_points=100", "--config.render.num_views=1",
-                         "--config.render.width=16", "--config.render.height=16", *overrides],
+                         f"--workdir={tmp_path}", "--config.scene.num_points=100", "--config.scene.num_views=1",
+                         "--config.scene.width=16", "--config.scene.height=16", *overrides],
                         cwd=ROOT, capture_output=True, text=True, timeout=300)
 
 
@@ -57,7 +57,7 @@ def _cli(tmp_path, *overrides):
     ("--config.mode=nope", "config.mode must be one of"),
     ("--config.render.tile_size=0", "tile_size must be positive"),
     ("--config.scene.ply=/does/not/exist.ply", "no such file"),
-    ("--config.render.fov_deg=0", "fov_deg"),
+    ("--config.scene.fov_deg=0", "fov_deg"),
     ("--config.mode=conceal", "conceal.teacher"),
     ("--config.mode=reveal", "reveal.ply is required"),
     ("--config.mode=eval", "point_cloud.ply: no such file"),
@@ -67,3 +67,22 @@ def test_bad_input_gives_one_clear_error_and_nonzero_exit(tmp_path, override, me
   assert result.returncode != 0
   assert message in result.stderr
   assert "Traceback" not in result.stderr
+
+
+@pytest.mark.parametrize("mode,field,value,message", [
+    ("train", "train.sh_degree", 5, "train.sh_degree"), ("train", "train.densify.every", 0, "densify"),
+    ("train", "render.tile_size", 0, "tile_size"), ("eval", "eval.lpips_net", "squeeze", "squeeze"),
+    ("conceal", "conceal.variant", "mine", "conceal.variant"), ("conceal", "conceal.key_kind", "x", "key_kind"),
+    ("render", "scene.num_views", 0, "num_views"), ("reveal", "reveal.key", "", "reveal.ply")])
+def test_each_mode_validates_before_writing_anything(tmp_path, mode, field, value, message):
+  """main.run checks the whole config for the mode first: a bad value leaves the workdir untouched."""
+  config = default.get_config()
+  config.mode = mode
+  *sections, key = field.split(".")
+  section = config
+  for name in sections:
+    section = section[name]
+  section[key] = value
+  with pytest.raises(ValueError, match=message):
+    main_lib.run(config, str(tmp_path / "out"))
+  assert not (tmp_path / "out").exists()

@@ -62,6 +62,8 @@ def test_train_writes_scene_metrics_and_resumes_exactly(tiny_scene, tmp_path):
   assert [h["step"] for h in summary["history"] if "test_psnr" in h] == [4]
   # three SH degrees in 8 steps; densification ran twice without changing the compiled buffer size
   assert sorted(d for d, _ in summary["compiled_step_variants"]) == [0, 1, 2]
+  # one trace per compiled variant, none silently repeated
+  assert summary["traces"] == dict(train_step=len(summary["compiled_step_variants"]))
 
 
 @pytest.mark.parametrize("field,value,message", [
@@ -76,9 +78,8 @@ def test_bad_config_values_are_named(tiny_scene, tmp_path, field, value, message
 
 
 def test_sh_degree_schedule():
-  config = demo.get_config()
-  config.train.sh_increase_every, config.train.sh_degree = 1000, 3
-  assert [train.sh_degree_at(config, i) for i in (1, 1000, 1001, 2001, 3001, 9000)] == [0, 0, 1, 2, 3, 3]
+  schedule = train.TrainSettings(sh_degree=3, sh_increase_every=1000)
+  assert [schedule.sh_degree_at(i) for i in (1, 1000, 1001, 2001, 3001, 9000)] == [0, 0, 1, 2, 3, 3]
 
 
 def test_position_learning_rate_is_log_linear():
@@ -129,15 +130,15 @@ def test_densify_state_keeps_moments_with_their_gaussians():
   g = random_gaussians(2, 5, degree=0, log_scale=(-6, -5))
   live = jax.tree.map(np.asarray, g)
   state = train.create_train_state(live, tx)
-  moments = optimizer.adam_moments(state["opt_state"])
+  moments = optimizer.adam_moments(state.opt_state)
   marked = jax.tree.map(lambda x: x.at[:5].set(jnp.arange(1.0, 6.0).reshape((5,) + (1,) * (x.ndim - 1))),
                         moments.mu)
-  state["opt_state"] = optimizer.with_adam_moments(state["opt_state"], moments._replace(mu=marked))
-  state["grad_accum"] = state["grad_accum"].at[1].set(1.0)  # row 1 is cloned
-  state["grad_count"] = state["grad_count"].at[1].set(1)
+  state = state.replace(opt_state=optimizer.with_adam_moments(state.opt_state, moments._replace(mu=marked)),
+                        grad_accum=state.grad_accum.at[1].set(1.0),  # row 1 is cloned
+                        grad_count=state.grad_count.at[1].set(1))
   out = train.densify_state(state, 1.0, densify.DensifyParams(), False, np.random.default_rng(0))
-  assert int(out["alive"].sum()) == 6 and out["alive"].shape[0] == state["alive"].shape[0]
-  mu = optimizer.adam_moments(out["opt_state"]).mu
+  assert int(out.alive.sum()) == 6 and out.alive.shape[0] == state.alive.shape[0]
+  mu = optimizer.adam_moments(out.opt_state).mu
   np.testing.assert_array_equal(mu.means[:6, 0], [1, 2, 3, 4, 5, 0])  # the clone starts from zero
-  np.testing.assert_array_equal(out["gaussians"].means[5], g.means[1])
-  assert float(out["grad_accum"].sum()) == 0
+  np.testing.assert_array_equal(out.gaussians.means[5], g.means[1])
+  assert float(out.grad_accum.sum()) == 0

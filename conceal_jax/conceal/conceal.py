@@ -1,4 +1,5 @@
-"""ConcealGS (paper Sec. 2.2-2.3): hide an image in a 3D-GS scene. `--config.mode=conceal`.
+"""ConcealGS (Yang et al. 2025, arXiv:2501.03605, Sec. 2.2-2.3): hide an image in a 3D-GS scene.
+`--config.mode=conceal`.
 
 A student scene G_w (initialised from the teacher G_o, `conceal.teacher`) and a U-Net decoder F are
 trained together so that F reveals the hidden image I from the student's render at the secret check
@@ -12,132 +13,97 @@ conceal.variant, side by side:
   check view, extra     -                                    L1(student check render, its image)
   guidance granularity  conceal.granularity ('layer' as in the paper; the released code uses 'tensor')
 
-Ablations (the paper's Table): conceal.use_decoder=False (the resized check render itself must show
+Ablations (the paper's Table 3): conceal.use_decoder=False (the resized check render itself must show
 I), conceal.consistency=False (no consistency strategy of Sec. 2.2: no L_kd, the student is supervised
 by ground truth, and no L_d^-), conceal.guidance=False (plain summed decoder gradient).
 
-The number of Gaussians is fixed (no densification): the student is the teacher's set, refined.
+The number of Gaussians is fixed (no densification): the student is the teacher's set, refined. The
+objective is in objective.py, the guidance in guidance.py; this module builds the step and runs the job
+through the shared loop (core.loop).
 """
 from __future__ import annotations
 
 import dataclasses
-import functools
 import os
-import time
+from typing import Any
 
 import jax
 import jax.numpy as jnp
 import ml_collections
 import numpy as np
 import optax
-from absl import logging
-from tqdm import tqdm
+from flax import struct
 
-from conceal_jax.splat import camera as camera_lib
-from conceal_jax.conceal import guidance, hidden as hidden_lib, key as key_lib
-from conceal_jax.core import checkpoint, fileio
-from conceal_jax.gs import evaluate
-from conceal_jax.conceal import reveal, unet
+from conceal_jax.conceal import guidance, hidden as hidden_lib, key as key_lib, reveal, unet
+from conceal_jax.conceal.objective import ConcealSettings, decoder_identity_objective, student_objective
+from conceal_jax.core import fileio, loop, settings as settings_lib
 from conceal_jax.data import ply
-from conceal_jax.gs import losses, metrics, optimizer, render_views
+from conceal_jax.gs import evaluate, metrics, optimizer
+from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat.render import RenderOptions, render
 
-VARIANTS = ("paper", "released")
 STUDENT_FILE = "student.ply"
 DECODER_FILE = "decoder.msgpack"
 KEY_FILE = "key.json"
 SUMMARY_FILE = "conceal.json"
 
 
-@dataclasses.dataclass(frozen=True)
-class ConcealSettings:
-  """The static choices of one concealment run (hashable: they shape the traced step)."""
-  variant: str = "paper"
-  use_decoder: bool = True
-  consistency: bool = True
-  guidance: bool = True
-  granularity: str = "layer"
-  decoder_width: int = unet.PAPER_WIDTH
-  hidden_size: int = 64
-  weight_kd: float = 1.0
-  weight_plus: float = 1.0
-  weight_minus: float = 1.0
-  weight_check: float = 1.0
-
-  def __post_init__(self):
-    if self.variant not in VARIANTS:
-      raise ValueError(f"conceal.variant must be one of {VARIANTS}, got {self.variant!r}")
-    if self.granularity not in guidance.GRANULARITIES:
-      raise ValueError(f"conceal.granularity must be one of {guidance.GRANULARITIES}, got {self.granularity!r}")
-    if self.decoder_width < 1 or self.hidden_size < 8 or self.hidden_size % unet.DOWNSAMPLE:
-      raise ValueError("conceal.decoder_width must be positive and conceal.hidden_size a multiple of "
-                       f"{unet.DOWNSAMPLE} (at least 8)")
-    if min(self.weight_kd, self.weight_plus, self.weight_minus, self.weight_check) < 0 or not self.weight_plus > 0:
-      raise ValueError("conceal weights must be non-negative and weight_plus positive")
-
-  @property
-  def distill(self) -> bool:
-    """Normal views supervised by the teacher (L_kd) rather than by ground truth."""
-    return self.variant == "paper" and self.consistency
-
-  @property
-  def identity_loss(self) -> bool:
-    """Whether L_d^- trains the decoder."""
-    return self.use_decoder and self.consistency
+@struct.dataclass
+class ConcealState:
+  """step: int32; student: Gaussians [N]; decoder: U-Net params ({} without a decoder); their Adam states."""
+  step: jax.Array
+  student: Any
+  decoder: Any
+  student_opt: Any
+  decoder_opt: Any
 
 
 def settings_from_config(config: ml_collections.ConfigDict) -> ConcealSettings:
+  return settings_lib.from_section(ConcealSettings, config.conceal)
+
+
+def loop_settings(config: ml_collections.ConfigDict) -> loop.LoopSettings:
+  return settings_lib.from_section(loop.LoopSettings, config.conceal)
+
+
+def validate(config: ml_collections.ConfigDict) -> None:
+  """Every value the conceal job reads, checked before anything runs (ValueError naming the key)."""
   c = config.conceal
-  return ConcealSettings(variant=c.variant, use_decoder=c.use_decoder, consistency=c.consistency,
-                         guidance=c.guidance, granularity=c.granularity, decoder_width=c.decoder_width,
-                         hidden_size=c.hidden_size, weight_kd=c.weight_kd, weight_plus=c.weight_plus,
-                         weight_minus=c.weight_minus, weight_check=c.weight_check)
+  settings_from_config(config)
+  loop_settings(config)
+  evaluate.validate(config)
+  if c.key_kind not in key_lib.KEY_KINDS:
+    raise ValueError(f"conceal.key_kind must be one of {key_lib.KEY_KINDS}, got {c.key_kind!r}")
+  if not (c.lr.means_init > 0 and c.decoder_lr > 0):
+    raise ValueError("conceal.lr.means_init and conceal.decoder_lr must be positive")
+  if not c.teacher:
+    raise ValueError("conceal.teacher (the teacher's .ply) is required")
+  if not os.path.isfile(c.teacher):
+    raise ValueError(f"conceal.teacher: no such file {c.teacher}")
 
 
-def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student_tx, decoder_tx):
+def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student_tx, decoder_tx,
+                      traces: loop.TraceCounter | None = None):
   """Builds step(state, data, view, normal_view) -> (state, stats), jitted with the state donated.
 
-  data: train images / cached teacher renders [V, H, W, 3], teacher renders at the decoder size
-  [V, S, S, 3], stacked train cameras, the check camera, its target image, the teacher's check render at
-  the decoder size, and the hidden image [S, S, 3]. The student and the decoder share one backward pass
-  for L_kd + L_d^+ (L_kd does not read the decoder, so the decoder part is grad L_d^+); L_d^- has its own.
+  The student and the decoder share one backward pass of `student_objective` (its decoder half is
+  lambda+ grad L_d^+); `decoder_identity_objective` has its own. The decoder update is the guided one
+  of Sec. 2.3: per-layer cosine of the two decoder gradients, sigmoid weight, one optax update.
   """
   s = settings
-  size = s.hidden_size
 
-  def student_objective(student, decoder, data, view):
-    camera = jax.tree.map(lambda x: x[view], data["cameras"])
-    rgb = render(student, camera, options).rgb
-    if s.distill:
-      normal = s.weight_kd * losses.distillation_loss(rgb, data["teacher"][view])
-    else:
-      normal = losses.photometric_loss(rgb, data["images"][view])
-    check_rgb = render(student, data["check_camera"], options).rgb
-    small = reveal.resize_for_decoder(check_rgb, size)
-    revealed = reveal.decode(decoder, s.decoder_width, small) if s.use_decoder else small
-    plus = losses.hidden_image_loss(revealed, data["hidden"])
-    total = normal + s.weight_plus * plus
-    if s.variant == "released":
-      total = total + s.weight_check * losses.l1(check_rgb, data["check_image"])
-    return total, dict(normal=normal, plus=plus, rgb=rgb)
-
-  def identity_objective(decoder, data, normal_view):
-    teacher = data["teacher_small"][normal_view] if s.variant == "paper" else data["teacher_check_small"]
-    return s.weight_minus * losses.decoder_identity_loss(reveal.decode(decoder, s.decoder_width, teacher), teacher)
-
-  @functools.partial(jax.jit, donate_argnums=0)
-  def step(state, data, view, normal_view):
+  def step(state: ConcealState, data, view, normal_view):
     (total, aux), (student_grad, plus_grad) = jax.value_and_grad(student_objective, argnums=(0, 1), has_aux=True)(
-        state["student"], state["decoder"], data, view)
-    updates, student_opt = student_tx.update(student_grad, state["student_opt"], state["student"])
-    new_state = dict(state, step=state["step"] + 1, student=optax.apply_updates(state["student"], updates),
-                     student_opt=student_opt)
+        state.student, state.decoder, data, view, s, options)
+    updates, student_opt = student_tx.update(student_grad, state.student_opt, state.student)
+    new_state = state.replace(step=state.step + 1, student=optax.apply_updates(state.student, updates),
+                              student_opt=student_opt)
     stats = dict(loss=total, normal=aux["normal"], plus=aux["plus"],
                  psnr=metrics.psnr(jnp.clip(aux["rgb"], 0, 1),
                                    data["teacher"][view] if s.distill else data["images"][view]))
     if s.use_decoder:
       if s.identity_loss:
-        minus, minus_grad = jax.value_and_grad(identity_objective)(state["decoder"], data, normal_view)
+        minus, minus_grad = jax.value_and_grad(decoder_identity_objective)(state.decoder, data, normal_view, s)
       else:
         minus, minus_grad = jnp.zeros(()), jax.tree.map(jnp.zeros_like, plus_grad)
       if s.guidance:  # plus_grad and minus_grad already carry their loss weights; cosines ignore scale
@@ -145,18 +111,20 @@ def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student
         stats["mean_guidance_weight"] = jnp.mean(jnp.stack(jax.tree.leaves(weights)))
       else:
         decoder_grad = jax.tree.map(jnp.add, plus_grad, minus_grad)
-      updates, decoder_opt = decoder_tx.update(decoder_grad, state["decoder_opt"], state["decoder"])
-      new_state.update(decoder=optax.apply_updates(state["decoder"], updates), decoder_opt=decoder_opt)
+      updates, decoder_opt = decoder_tx.update(decoder_grad, state.decoder_opt, state.decoder)
+      new_state = new_state.replace(decoder=optax.apply_updates(state.decoder, updates), decoder_opt=decoder_opt)
       stats["minus"] = minus
       stats["loss"] = total + minus
     return new_state, stats
 
-  return step
+  if traces is not None:
+    step = traces.wrap("conceal_step", step)
+  return jax.jit(step, donate_argnums=0)
 
 
-def create_conceal_state(student, decoder, student_tx, decoder_tx) -> dict:
-  return dict(step=jnp.zeros((), jnp.int32), student=student, decoder=decoder,
-              student_opt=student_tx.init(student), decoder_opt=decoder_tx.init(decoder))
+def create_conceal_state(student, decoder, student_tx, decoder_tx) -> ConcealState:
+  return ConcealState(step=jnp.zeros((), jnp.int32), student=student, decoder=decoder,
+                      student_opt=student_tx.init(student), decoder_opt=decoder_tx.init(decoder))
 
 
 def initial_decoder(config: ml_collections.ConfigDict, settings: ConcealSettings):
@@ -171,90 +139,67 @@ def initial_decoder(config: ml_collections.ConfigDict, settings: ConcealSettings
 
 def build_data(scene, teacher, options: RenderOptions, check_camera, check_image, hidden: np.ndarray,
                size: int) -> dict:
-  """The device-resident inputs of the step; the teacher renders are computed here once and cached."""
-  teacher_renders = jnp.stack(evaluate.render_images(teacher, scene.train_cameras, options))
+  """The device-resident inputs of the step; the teacher renders are computed here once, on the device."""
+  teacher_renders = evaluate.render_images(teacher, scene.train_cameras, options)
   teacher_check = render(teacher, check_camera, options).rgb
-  small = jax.vmap(lambda x: reveal.resize_for_decoder(x, size))
   return dict(images=jnp.asarray(np.stack(scene.train_images)), teacher=teacher_renders,
-              teacher_small=small(teacher_renders), cameras=camera_lib.stack(scene.train_cameras),
-              check_camera=check_camera, check_image=check_image,
+              teacher_small=reveal.resize_for_decoder(teacher_renders, size),
+              cameras=camera_lib.stack(scene.train_cameras), check_camera=check_camera, check_image=check_image,
               teacher_check_small=reveal.resize_for_decoder(teacher_check, size), hidden=jnp.asarray(hidden))
 
 
 def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_steps: int | None = None) -> dict:
   """Trains student + decoder (checkpointed, resumable), then writes student.ply, decoder.msgpack,
   key.json, hidden.png, revealed.png, conceal.json and metrics.json into workdir."""
+  validate(config)
   c = config.conceal
   settings = settings_from_config(config)
-  if c.iterations < 1:
-    raise ValueError(f"conceal.iterations must be >= 1, got {c.iterations}")
-  if not c.teacher:
-    raise ValueError("conceal.teacher (the teacher's .ply) is required")
   teacher = ply.load_ply(c.teacher)
   hidden = hidden_lib.load_hidden_image(c.hidden, settings.hidden_size)
   scene = evaluate.load_scene_data(config)
   check_camera, key_info = key_lib.check_camera(scene.train_cameras, c.key_kind, c.key_index, c.key_seed)
   # With a training camera the check view has a ground-truth image; an orbit key has none, so the
   # released variant's extra L1 uses the teacher's render there.
-  options = dataclasses.replace(render_views.render_options(config), background=tuple(scene.background))
+  options = evaluate.render_options(config, scene.background)
   check_image = (jnp.asarray(scene.train_images[key_info["index"]]) if c.key_kind == "train_index"
                  else render(teacher, check_camera, options).rgb)
   data = build_data(scene, teacher, options, check_camera, check_image, hidden, settings.hidden_size)
 
   student_tx = optimizer.gaussian_optimizer(c.lr, scene.scene_extent())
   decoder_tx = optax.adam(c.decoder_lr, eps=optimizer.ADAM_EPS)
-  student = jax.tree.map(lambda x: jnp.array(x, copy=True), teacher)  # the step donates the student's buffers
-  state = create_conceal_state(student, initial_decoder(config, settings), student_tx, decoder_tx)
-  ckpt_dir = os.path.join(workdir, "checkpoints")
-  history, step_times = [], []  # a resumed run keeps both, so it reports the time of all its steps
-  latest = checkpoint.load_latest(ckpt_dir)
-  if latest:
-    path, meta, leaves = latest
-    state = jax.tree.map(jnp.asarray, checkpoint.restore(state, leaves, path))
-    history, step_times = meta["history"], meta.get("step_times", [])
-    logging.info("resuming from %s", path)
-  step_fn = make_conceal_step(settings, options, student_tx, decoder_tx)
-  start = int(state["step"])
-  end = c.iterations if max_steps is None else min(c.iterations, max_steps)
+  traces = loop.TraceCounter()
+  step_fn = make_conceal_step(settings, options, student_tx, decoder_tx, traces)
   num_views = len(scene.train_cameras)
-  bar = tqdm(total=c.iterations, initial=start, desc="conceal", dynamic_ncols=True, disable=not c.progress_bar)
-  for step in range(start, end):
-    iteration = step + 1
-    rng = np.random.default_rng([config.seed, iteration])
-    started = time.perf_counter()
-    state, stats = step_fn(state, data, rng.integers(num_views), rng.integers(num_views))
-    if iteration % c.log_every == 0 or iteration == end:
-      stats = {k: float(v) for k, v in jax.device_get(stats).items()}
-      if not np.isfinite(stats["loss"]):
-        raise FloatingPointError(f"concealment diverged at step {iteration}: {stats}")
-      history.append(dict(step=iteration, **stats))
-      bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{stats['psnr']:.2f}", hidden=f"{stats['plus']:.4f}")
-    else:
-      jax.block_until_ready(state["step"])
-    step_times.append(time.perf_counter() - started)
-    bar.update(1)
-    if c.checkpoint_every and (iteration % c.checkpoint_every == 0 or iteration == end):
-      checkpoint.save(ckpt_dir, iteration, state, dict(history=history, step_times=step_times))
-  bar.close()
-  if end < c.iterations:
-    return dict(stopped_at=end)
 
-  decoder = state["decoder"] if settings.use_decoder else None
-  ply.save_ply(os.path.join(workdir, STUDENT_FILE), jax.device_get(state["student"]))
+  def fresh():
+    student = jax.tree.map(lambda x: jnp.array(x, copy=True), teacher)  # the step donates the student's buffers
+    return create_conceal_state(student, initial_decoder(config, settings), student_tx, decoder_tx)
+
+  def step(state, iteration):
+    rng = np.random.default_rng([config.seed, iteration])
+    return step_fn(state, data, rng.integers(num_views), rng.integers(num_views))
+
+  result = loop.run("conceal", loop_settings(config), workdir, init_state=fresh, restore_template=lambda _: fresh(),
+                    step=step, postfix_keys=("plus",), max_steps=max_steps)
+  if not result.finished:
+    return dict(stopped_at=int(result.state.step))
+
+  state = result.state
+  decoder = state.decoder if settings.use_decoder else None
+  ply.save_ply(os.path.join(workdir, STUDENT_FILE), jax.device_get(state.student))
   if decoder is not None:
     reveal.save_decoder(os.path.join(workdir, DECODER_FILE), decoder)
   key_info.update(hidden_size=settings.hidden_size, uses_decoder=settings.use_decoder,
                   decoder_width=settings.decoder_width, render_options=dataclasses.asdict(options))
   key_lib.save_key(os.path.join(workdir, KEY_FILE), check_camera, key_info)
   fileio.write_image(os.path.join(workdir, "hidden.png"), hidden)
-  summary = dict(iterations=c.iterations, resumed_from=start, settings=dataclasses.asdict(settings),
-                 num_gaussians=int(teacher.num), timed_steps=len(step_times),
-                 wall_time_s=float(np.sum(step_times)),
-                 median_step_s=float(np.median(step_times)) if step_times else None, history=history)
+  summary = dict(iterations=c.iterations, resumed_from=result.start, settings=dataclasses.asdict(settings),
+                 num_gaussians=int(teacher.num), **result.timing(), traces=dict(traces.counts),
+                 history=result.history)
   fileio.write_json(os.path.join(workdir, SUMMARY_FILE), summary)
-  result = evaluate_concealment(config, workdir, scene, teacher, state["student"], decoder, settings,
+  scored = evaluate_concealment(config, workdir, scene, teacher, state.student, decoder, settings,
                                 check_camera, options, hidden)
-  return dict(summary, metrics=result)
+  return dict(summary, metrics=scored)
 
 
 def evaluate_concealment(config, workdir, scene, teacher, student, decoder, settings: ConcealSettings,
@@ -273,14 +218,16 @@ def evaluate_concealment(config, workdir, scene, teacher, student, decoder, sett
   fileio.write_image(os.path.join(workdir, "revealed.png"), revealed)
   teacher_revealed = np.asarray(reveal.reveal_image(teacher, check_camera, options, decoder, width, size))
   fileio.write_image(os.path.join(workdir, "teacher_revealed.png"), teacher_revealed)
-  decoded_tests = [np.asarray(reveal.reveal_image(student, cam, options, decoder, width, size)) for cam in cameras]
-  ssim_to_hidden = [float(metrics.ssim(x, hidden)) for x in decoded_tests]
+  # Leakage is scored on the student's own test renders, as a viewer of the shared scene would see them.
+  decoded_tests = reveal.reveal_renders(decoder, student_renders, width, size)
+  hidden_batch = jnp.broadcast_to(jnp.asarray(hidden), decoded_tests.shape)
+  ssim_to_hidden = np.asarray(metrics.batched_ssim(decoded_tests, hidden_batch))
   result = dict(
       student_vs_ground_truth=evaluate.image_metrics(student_renders, targets, names, net)["mean"],
       teacher_vs_ground_truth=evaluate.image_metrics(teacher_renders, targets, names, net)["mean"],
       student_vs_teacher=evaluate.image_metrics(student_renders, teacher_renders, names, net)["mean"],
       hidden=dict(psnr=float(metrics.psnr(revealed, hidden)), ssim=float(metrics.ssim(revealed, hidden))),
-      leakage=dict(max_ssim_student_test_views=max(ssim_to_hidden),
+      leakage=dict(max_ssim_student_test_views=float(ssim_to_hidden.max()),
                    ssim_teacher_check_view=float(metrics.ssim(teacher_revealed, hidden))),
       num_test_views=len(names), lpips_net=metrics.LPIPS_NET_NAME[net], eval_render_options=repr(eval_opts))
   fileio.write_json(os.path.join(workdir, evaluate.METRICS_FILE), result)

@@ -6,6 +6,7 @@ are read from the key, so the check view is rendered exactly as during concealme
 """
 from __future__ import annotations
 
+import functools
 import os
 
 import flax.serialization
@@ -15,7 +16,7 @@ import ml_collections
 import numpy as np
 
 from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, unet
-from conceal_jax.core import fileio
+from conceal_jax.core import fileio, settings
 from conceal_jax.data import ply
 from conceal_jax.gs import metrics
 from conceal_jax.splat.camera import Camera
@@ -26,9 +27,9 @@ REVEAL_FILE = "reveal.json"
 
 
 def resize_for_decoder(image: jax.Array, size: int) -> jax.Array:
-  """[H, W, 3] render -> [size, size, 3] decoder input (antialiased bilinear, as the released code's
-  resize to 64x64)."""
-  return jax.image.resize(image, (size, size, image.shape[-1]), "linear")
+  """[..., H, W, 3] render -> [..., size, size, 3] decoder input (antialiased bilinear, as the released
+  code's resize to 64x64)."""
+  return jax.image.resize(image, image.shape[:-3] + (size, size, image.shape[-1]), "linear")
 
 
 def decode(decoder_params, base_channels: int, images: jax.Array) -> jax.Array:
@@ -38,13 +39,19 @@ def decode(decoder_params, base_channels: int, images: jax.Array) -> jax.Array:
   return out[0] if images.ndim == 3 else out
 
 
-def reveal_image(gaussians: Gaussians, camera: Camera, options: RenderOptions, decoder_params,
-                 base_channels: int, size: int) -> jax.Array:
-  """[size, size, 3] revealed image at `camera`, clipped to [0, 1]; decoder_params None: the
-  resized render itself (the "without decoder" ablation)."""
-  small = resize_for_decoder(render(gaussians, camera, options).rgb, size)
+@functools.partial(jax.jit, static_argnames=("base_channels", "size"))
+def reveal_renders(decoder_params, renders: jax.Array, base_channels: int, size: int) -> jax.Array:
+  """[..., H, W, 3] renders -> [..., size, size, 3] revealed images clipped to [0, 1]; decoder_params
+  None: the resized render itself (the "without decoder" ablation)."""
+  small = resize_for_decoder(renders, size)
   out = small if decoder_params is None else decode(decoder_params, base_channels, small)
   return jnp.clip(out, 0.0, 1.0)
+
+
+def reveal_image(gaussians: Gaussians, camera: Camera, options: RenderOptions, decoder_params,
+                 base_channels: int, size: int) -> jax.Array:
+  """[size, size, 3] revealed image at `camera`."""
+  return reveal_renders(decoder_params, render(gaussians, camera, options).rgb, base_channels, size)
 
 
 def save_decoder(path: str, params) -> None:
@@ -65,15 +72,21 @@ def load_decoder(path: str):
 
 
 def options_from_key(info: dict) -> RenderOptions:
-  return RenderOptions(**info["render_options"])
+  """The render options saved in a key (fields this version does not know are ignored)."""
+  return settings.from_section(RenderOptions, info["render_options"])
+
+
+def validate(config: ml_collections.ConfigDict) -> None:
+  """The reveal job needs a scene and a key (the decoder is checked against the key when it is read)."""
+  for name in ("ply", "key"):
+    if not config.reveal[name]:
+      raise ValueError(f"reveal.{name} is required")
 
 
 def reveal(config: ml_collections.ConfigDict, workdir: str) -> dict:
   """The reveal job: writes revealed.png and reveal.json (similarity to config.reveal.hidden if set)."""
+  validate(config)
   r = config.reveal
-  for name in ("ply", "key"):
-    if not r[name]:
-      raise ValueError(f"reveal.{name} is required")
   camera, info = key_lib.load_key(r.key)
   if info.get("uses_decoder", True) and not r.decoder:
     raise ValueError("reveal.decoder is required: this key was made with a decoder")

@@ -16,25 +16,26 @@ def get_config() -> ml_collections.ConfigDict:
   config.mode = "render"  # the job to run; see conceal_jax.main.MODES
   config.seed = 0
 
-  # render mode: the scene to show
+  # render mode: the scene to show and the orbit of cameras it is shown from
   config.scene = ml_collections.ConfigDict()
   config.scene.ply = ""          # a standard 3D-GS .ply; empty: the generated scene below
   config.scene.num_points = 3000  # size of the generated scene
   config.scene.sh_degree = 3
+  config.scene.width = 128
+  config.scene.height = 128
+  config.scene.fov_deg = 45.0
+  config.scene.distance = 4.0       # orbit radius around the origin
+  config.scene.elevation_deg = 25.0
+  config.scene.num_views = 4
 
-  # rendering; render mode also uses the orbit fields, training and evaluation the rasteriser fields
+  # the rasteriser, for every mode (fields of conceal_jax.splat.render.RenderOptions)
   config.render = ml_collections.ConfigDict()
-  config.render.width = 128
-  config.render.height = 128
-  config.render.fov_deg = 45.0
-  config.render.distance = 4.0       # orbit radius around the origin
-  config.render.elevation_deg = 25.0
-  config.render.num_views = 4
-  config.render.sh_degree = -1       # -1: every band the scene stores
-  config.render.background = (1.0, 1.0, 1.0)
+  config.render.sh_degree = ml_collections.config_dict.placeholder(int)  # None: every band the scene stores
+  config.render.background = (1.0, 1.0, 1.0)  # train / eval / conceal use the dataset's background
   config.render.tile_size = 16
-  config.render.max_per_tile = 256   # K nearest splats per tile
-  config.render.exact = False        # True: never truncate (slower)
+  # K nearest splats per tile (an approximation); None composites every splat (exact)
+  config.render.max_per_tile = ml_collections.config_dict.placeholder(int)
+  config.render.max_per_tile = 256
   config.render.antialiased = False
 
   # train / eval / conceal modes: the dataset
@@ -81,7 +82,7 @@ def get_config() -> ml_collections.ConfigDict:
 
   config.eval = ml_collections.ConfigDict()
   config.eval.ply = ""               # scene to score; empty: <workdir>/point_cloud.ply
-  config.eval.exact = True           # never truncate the per-tile lists when scoring
+  config.eval.exact = True           # score with max_per_tile None whatever render.max_per_tile says
   config.eval.max_views = 0          # 0: the whole test split
   config.eval.lpips_net = "vgg"
 

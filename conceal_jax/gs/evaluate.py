@@ -1,7 +1,8 @@
 """Test-split evaluation: PSNR, SSIM (3D-GS window) and LPIPS per view and on average.
 
 `--config.mode=eval` scores a trained scene (`<workdir>/point_cloud.ply` or `config.eval.ply`) on the
-test split of `config.data`, writing `metrics.json` and the renders as PNGs into the workdir.
+test split of `config.data`, writing `metrics.json` and the renders as PNGs into the workdir. Views are
+rendered in batches that stay on the device, and every metric is one jitted, batched function.
 """
 from __future__ import annotations
 
@@ -9,61 +10,86 @@ import dataclasses
 import os
 
 import jax
+import jax.numpy as jnp
 import ml_collections
 import numpy as np
 from absl import logging
 
-from conceal_jax.core import fileio
+from conceal_jax.core import fileio, settings
 from conceal_jax.data import datasets, ply
-from conceal_jax.gs import metrics, render_views
+from conceal_jax.gs import metrics
+from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.gaussians import Gaussians
-from conceal_jax.splat.render import RenderOptions, render
+from conceal_jax.splat.render import RenderOptions, render_batch
 
 BACKGROUNDS = {"white": datasets.WHITE, "black": datasets.BLACK, "default": None}
 SCENE_FILE = "point_cloud.ply"
 METRICS_FILE = "metrics.json"
+# Views rendered per batch: enough to amortise dispatch, few enough to bound the batch's memory.
+RENDER_CHUNK = 4
+
+
+def validate(config: ml_collections.ConfigDict) -> None:
+  """The data, render and eval sections every job that loads a scene reads."""
+  if config.data.background not in BACKGROUNDS:
+    raise ValueError(f"data.background must be one of {sorted(BACKGROUNDS)}, got {config.data.background!r}")
+  if not (isinstance(config.data.downscale, (int, float)) and config.data.downscale > 0):
+    raise ValueError(f"data.downscale must be a positive number, got {config.data.downscale!r}")
+  render_options(config)
+  if config.eval.max_views < 0:
+    raise ValueError(f"eval.max_views must be >= 0, got {config.eval.max_views}")
+  metrics.lpips_weights_path(config.eval.lpips_net)
 
 
 def load_scene_data(config: ml_collections.ConfigDict) -> datasets.SceneData:
   """The dataset of `config.data`: path ('demo' or a folder), downscale, background name."""
-  if config.data.background not in BACKGROUNDS:
-    raise ValueError(f"data.background must be one of {sorted(BACKGROUNDS)}, got {config.data.background!r}")
   return datasets.load_scene(config.data.path, config.data.downscale, BACKGROUNDS[config.data.background])
+
+
+def render_options(config: ml_collections.ConfigDict, background=None) -> RenderOptions:
+  """RenderOptions from the config's `render` section (ValueError naming a bad value), on `background`
+  when given (a scene's own)."""
+  overrides = {} if background is None else dict(background=tuple(background))
+  return settings.from_section(RenderOptions, config.render, **overrides)
 
 
 def eval_options(config: ml_collections.ConfigDict, background) -> RenderOptions:
   """Render options for evaluation: the config's, on the scene's background, exact if `eval.exact`."""
-  options = render_views.render_options(config)
-  max_per_tile = None if config.eval.exact else options.max_per_tile
-  return dataclasses.replace(options, background=tuple(background), max_per_tile=max_per_tile)
+  options = render_options(config, background)
+  return dataclasses.replace(options, max_per_tile=None) if config.eval.exact else options
 
 
-def render_images(gaussians: Gaussians, cameras: list[Camera], options: RenderOptions) -> list[np.ndarray]:
-  """[H, W, 3] float32 numpy renders, one per camera."""
-  return [np.asarray(jax.device_get(render(gaussians, camera, options).rgb)) for camera in cameras]
+def render_images(gaussians: Gaussians, cameras: list[Camera], options: RenderOptions) -> jax.Array:
+  """[V, H, W, 3] device renders of cameras of one size, in batches of RENDER_CHUNK views."""
+  chunks = [render_batch(gaussians, camera_lib.stack(cameras[i:i + RENDER_CHUNK]), options).rgb
+            for i in range(0, len(cameras), RENDER_CHUNK)]
+  return jnp.concatenate(chunks) if chunks else jnp.zeros((0,), jnp.float32)
 
 
-def image_metrics(rendered: list[np.ndarray], targets: list[np.ndarray], names: list[str],
-                  lpips_net: str = "vgg") -> dict:
-  """Per-view and mean PSNR / SSIM / LPIPS of `rendered` against `targets` ([H, W, 3] in [0, 1])."""
-  if len(rendered) != len(targets):
-    raise ValueError(f"{len(rendered)} renders for {len(targets)} targets")
-  psnr, ssim, lpips = jax.jit(metrics.psnr), jax.jit(metrics.ssim), jax.jit(metrics.lpips_fn(lpips_net))
-  views = []
-  for name, image, target in zip(names, rendered, targets):
-    if image.shape != target.shape:
-      raise ValueError(f"render of {name} is {image.shape}, its target {target.shape}")
-    image = np.clip(image, 0.0, 1.0)  # scored as the 8-bit PNG a viewer would show, minus quantisation
-    views.append(dict(name=name, psnr=float(psnr(image, target)), ssim=float(ssim(image, target)),
-                      lpips=float(lpips(image, target))))
-  mean = {key: float(np.mean([v[key] for v in views])) for key in ("psnr", "ssim", "lpips")}
+def image_metrics(rendered: jax.Array, targets, names: list[str], lpips_net: str = "vgg") -> dict:
+  """Per-view and mean PSNR / SSIM / LPIPS of `rendered` against `targets` ([V, H, W, 3] in [0, 1])."""
+  rendered, targets = jnp.asarray(rendered), jnp.asarray(np.stack(targets) if isinstance(targets, list) else targets)
+  if rendered.shape != targets.shape:
+    raise ValueError(f"renders {rendered.shape} and targets {targets.shape} differ in shape")
+  # Scored as the 8-bit PNG a viewer would show, minus quantisation.
+  scores = metrics.batched_scores(lpips_net)(jnp.clip(rendered, 0.0, 1.0), targets)
+  scores = {k: np.asarray(v, np.float64) for k, v in jax.device_get(scores).items()}
+  views = [dict(name=name, **{k: float(v[i]) for k, v in scores.items()}) for i, name in enumerate(names)]
+  mean = {key: float(np.mean(scores[key])) for key in ("psnr", "ssim", "lpips")}
   return dict(mean=mean, views=views, num_views=len(views), lpips_net=metrics.LPIPS_NET_NAME[lpips_net])
 
 
-def write_images(folder: str, names: list[str], images: list[np.ndarray]) -> None:
+def mean_psnr(gaussians: Gaussians, scene: datasets.SceneData, options: RenderOptions, max_views: int) -> float:
+  """Mean test PSNR over the first `max_views` test views (the periodic training check)."""
+  cameras, targets, _ = held_out_views(scene, max_views)
+  rendered = jnp.clip(render_images(gaussians, cameras, options), 0, 1)
+  return float(jnp.mean(jax.vmap(metrics.psnr)(rendered, jnp.asarray(np.stack(targets)))))
+
+
+def write_images(folder: str, names: list[str], images) -> None:
   os.makedirs(folder, exist_ok=True)
-  for name, image in zip(names, images):
+  for name, image in zip(names, np.asarray(jax.device_get(images))):
     fileio.write_image(os.path.join(folder, f"{os.path.splitext(os.path.basename(name))[0]}.png"), image)
 
 

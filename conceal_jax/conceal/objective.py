@@ -1,0 +1,98 @@
+"""The ConcealGS objective as pure functions of (student, decoder, data, views).
+
+ConcealGS (Yang et al. 2025, arXiv:2501.03605) trains a student scene G_w and a decoder F on the total
+loss of Sec. 2.2: L = L_kd (eq. 3) + L_d^- (eq. 4) + L_d^+ (eq. 5), with the decoder's share of the
+gradient reweighted layer by layer (Sec. 2.3, eqs. 6-7; see guidance.py). Only L_kd and L_d^+ read the
+student, and only L_d^+ and L_d^- read the decoder, so the objective splits into two functions whose
+gradients are the two pytrees the guided step compares:
+- `student_objective`: L_kd + lambda+ L_d^+ (and the released variant's extras), differentiated with
+  respect to (student, decoder); its decoder gradient is exactly lambda+ grad L_d^+.
+- `decoder_identity_objective`: lambda- L_d^-, differentiated with respect to the decoder.
+
+`data` is the device-resident dict built once per run (conceal.build_data): train images [V, H, W, 3],
+cached teacher renders [V, H, W, 3] and at the decoder size [V, S, S, 3], stacked train cameras, the
+check camera, its target image, the teacher's check render at the decoder size, and the hidden image
+[S, S, 3].
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+
+from conceal_jax.conceal import guidance, reveal, unet
+from conceal_jax.gs import losses
+from conceal_jax.splat.render import RenderOptions, render
+
+VARIANTS = ("paper", "released")
+
+
+@dataclasses.dataclass(frozen=True)
+class ConcealSettings:
+  """The static choices of one concealment run (hashable: they shape the traced step)."""
+  variant: str = "paper"
+  use_decoder: bool = True
+  consistency: bool = True
+  guidance: bool = True
+  granularity: str = "layer"
+  decoder_width: int = unet.PAPER_WIDTH
+  hidden_size: int = 64
+  weight_kd: float = 1.0
+  weight_plus: float = 1.0
+  weight_minus: float = 1.0
+  weight_check: float = 1.0
+
+  def __post_init__(self):
+    if self.variant not in VARIANTS:
+      raise ValueError(f"conceal.variant must be one of {VARIANTS}, got {self.variant!r}")
+    if self.granularity not in guidance.GRANULARITIES:
+      raise ValueError(f"conceal.granularity must be one of {guidance.GRANULARITIES}, got {self.granularity!r}")
+    if self.decoder_width < 1 or self.hidden_size < 8 or self.hidden_size % unet.DOWNSAMPLE:
+      raise ValueError("conceal.decoder_width must be positive and conceal.hidden_size a multiple of "
+                       f"{unet.DOWNSAMPLE} (at least 8)")
+    if min(self.weight_kd, self.weight_plus, self.weight_minus, self.weight_check) < 0 or not self.weight_plus > 0:
+      raise ValueError("conceal weights must be non-negative and weight_plus positive")
+
+  @property
+  def distill(self) -> bool:
+    """Normal views supervised by the teacher (L_kd) rather than by ground truth."""
+    return self.variant == "paper" and self.consistency
+
+  @property
+  def identity_loss(self) -> bool:
+    """Whether L_d^- trains the decoder."""
+    return self.use_decoder and self.consistency
+
+
+def student_objective(student, decoder, data: dict, view, settings: ConcealSettings,
+                      options: RenderOptions) -> tuple[jax.Array, dict]:
+  """L_kd (eq. 3) at training view `view` + lambda+ L_d^+ (eq. 5) at the check view -> (total, aux).
+
+  Without consistency, or in the released variant, the normal view is supervised by its ground-truth
+  image with the 3D-GS photometric loss instead of L_kd; the released variant adds an L1 between the
+  student's check render and the check view's image. aux: normal (the normal-view term), plus (L_d^+),
+  rgb (the student's normal render [H, W, 3]).
+  """
+  s = settings
+  camera = jax.tree.map(lambda x: x[view], data["cameras"])
+  rgb = render(student, camera, options).rgb
+  if s.distill:
+    normal = s.weight_kd * losses.distillation_loss(rgb, data["teacher"][view])
+  else:
+    normal = losses.photometric_loss(rgb, data["images"][view])
+  check_rgb = render(student, data["check_camera"], options).rgb
+  small = reveal.resize_for_decoder(check_rgb, s.hidden_size)
+  revealed = reveal.decode(decoder, s.decoder_width, small) if s.use_decoder else small
+  plus = losses.hidden_image_loss(revealed, data["hidden"])
+  total = normal + s.weight_plus * plus
+  if s.variant == "released":
+    total = total + s.weight_check * losses.l1(check_rgb, data["check_image"])
+  return total, dict(normal=normal, plus=plus, rgb=rgb)
+
+
+def decoder_identity_objective(decoder, data: dict, normal_view, settings: ConcealSettings) -> jax.Array:
+  """lambda- L_d^- (eq. 4): F is the identity on the teacher's render of normal view `normal_view` (the
+  paper), or on the teacher's check-view render (the released code)."""
+  s = settings
+  teacher = data["teacher_small"][normal_view] if s.variant == "paper" else data["teacher_check_small"]
+  return s.weight_minus * losses.decoder_identity_loss(reveal.decode(decoder, s.decoder_width, teacher), teacher)

@@ -1,0 +1,130 @@
+"""The one training loop every job that steps a state runs through (3D-GS teachers, concealment, and
+later baselines and fine-tuning attacks): resume from the newest checkpoint, a tqdm bar with loss and
+PSNR, periodic logging with a finiteness check, checkpoints, `max_steps`, and step timing measured over
+each log window (the device is synchronised only where stats are read, not after every step).
+
+A job supplies what differs: a fresh state, the template a checkpoint fills, the step, and optional
+hooks. Trace counting (`TraceCounter`) lets jobs record how often each jitted step was traced.
+"""
+from __future__ import annotations
+
+import collections
+import dataclasses
+import os
+import time
+from typing import Any, Callable
+
+import jax
+import numpy as np
+from absl import logging
+from tqdm import tqdm
+
+from conceal_jax.core import checkpoint
+
+CHECKPOINT_DIR = "checkpoints"
+State = Any
+
+
+@dataclasses.dataclass(frozen=True)
+class LoopSettings:
+  """iterations: total steps of the run; log_every: steps per log window (stats read, timing taken);
+  checkpoint_every: steps between checkpoints (0: none); progress_bar: show tqdm."""
+  iterations: int
+  log_every: int = 10
+  checkpoint_every: int = 1000
+  progress_bar: bool = True
+
+  def __post_init__(self):
+    if self.iterations < 1 or self.log_every < 1 or self.checkpoint_every < 0:
+      raise ValueError(f"iterations and log_every must be >= 1 and checkpoint_every >= 0, got {self}")
+
+
+@dataclasses.dataclass
+class LoopResult:
+  """state: after the last step run; history: one dict per log window (and per hook result);
+  start: the step the run resumed from; finished: whether all iterations are done;
+  windows: [(steps, seconds)] of every log window, over resumes too."""
+  state: State
+  history: list[dict]
+  start: int
+  finished: bool
+  windows: list[tuple[int, float]]
+
+  def timing(self) -> dict:
+    """Timed steps, wall time of the steps, and the median over log windows of the mean step time."""
+    steps = sum(n for n, _ in self.windows)
+    per_step = [s / n for n, s in self.windows if n]
+    return dict(timed_steps=steps, wall_time_s=float(sum(s for _, s in self.windows)),
+                median_step_s=float(np.median(per_step)) if per_step else None)
+
+
+class TraceCounter:
+  """Counts how many times each named function is traced (its Python body runs only when jax traces)."""
+
+  def __init__(self):
+    self.counts: collections.Counter = collections.Counter()
+
+  def wrap(self, name: str, fn: Callable) -> Callable:
+    def counted(*args, **kwargs):
+      self.counts[name] += 1
+      return fn(*args, **kwargs)
+    return counted
+
+
+def run(name: str, settings: LoopSettings, workdir: str, *, init_state: Callable[[], State],
+        restore_template: Callable[[dict], State], step: Callable[[State, int], tuple[State, dict]],
+        after_window: Callable[[State, int], dict | None] | None = None,
+        checkpoint_meta: Callable[[State], dict] | None = None, postfix_keys: tuple[str, ...] = (),
+        max_steps: int | None = None) -> LoopResult:
+  """Runs steps start+1 .. min(iterations, max_steps) (1-based iterations) of `step(state, iteration)`.
+
+  init_state: the step-0 state, built only when there is no checkpoint.
+  restore_template: a state of the right structure for a checkpoint's meta (the job's own meta keys).
+  step: returns (state, stats); stats must hold scalar `loss` and `psnr`; every value is checked finite
+    at the end of each log window.
+  after_window: called after log windows (outside the timing) with (state, iteration); a returned dict
+    is added to the history (e.g. a periodic test PSNR).
+  checkpoint_meta: extra JSON meta to save with a checkpoint (e.g. the buffer capacity).
+  postfix_keys: stats besides loss and psnr to show on the bar.
+  """
+  ckpt_dir = os.path.join(workdir, CHECKPOINT_DIR)
+  latest = checkpoint.load_latest(ckpt_dir)
+  if latest is None:
+    state, history, windows = init_state(), [], []
+  else:
+    path, meta, leaves = latest
+    logging.info("%s: resuming from %s", name, path)
+    state = jax.tree.map(jax.numpy.asarray, checkpoint.restore(restore_template(meta), leaves, path))
+    history, windows = meta["history"], [tuple(w) for w in meta.get("windows", [])]
+  start = int(jax.device_get(_step_of(state)))
+  end = settings.iterations if max_steps is None else min(settings.iterations, max_steps)
+  bar = tqdm(total=settings.iterations, initial=start, desc=name, dynamic_ncols=True,
+             disable=not settings.progress_bar)
+  window_start, window_steps = time.perf_counter(), 0
+  for iteration in range(start + 1, end + 1):
+    state, stats = step(state, iteration)
+    window_steps += 1
+    bar.update(1)
+    checkpoint_now = settings.checkpoint_every and (iteration % settings.checkpoint_every == 0 or iteration == end)
+    if iteration % settings.log_every and iteration != end and not checkpoint_now:
+      continue
+    stats = {k: float(v) for k, v in jax.device_get(stats).items()}  # waits for the window's steps
+    windows.append((window_steps, time.perf_counter() - window_start))
+    if not all(np.isfinite(v) for v in stats.values()):
+      raise FloatingPointError(f"{name} diverged at step {iteration}: {stats}")
+    history.append(dict(step=iteration, **stats))
+    bar.set_postfix({k: f"{stats[k]:.4g}" for k in ("loss", "psnr") + tuple(postfix_keys) if k in stats})
+    extra = after_window(state, iteration) if after_window else None
+    if extra:
+      history.append(dict(step=iteration, **extra))
+    if checkpoint_now:
+      meta = dict(history=history, windows=windows, **(checkpoint_meta(state) if checkpoint_meta else {}))
+      checkpoint.save(ckpt_dir, iteration, state, meta)
+    window_start, window_steps = time.perf_counter(), 0
+  bar.close()
+  return LoopResult(state=state, history=history, start=start, finished=end == settings.iterations,
+                    windows=windows)
+
+
+def _step_of(state: State):
+  return state["step"] if isinstance(state, dict) else state.step
