@@ -1,4 +1,5 @@
-"""Scene loaders: NeRF-Synthetic (Blender), COLMAP and instant-ngp/nerfstudio transforms.json.
+"""Scene loaders: NeRF-Synthetic (Blender), COLMAP, instant-ngp/nerfstudio transforms.json and LLFF
+forward-facing scenes (poses_bounds.npy).
 
 Every loader returns a `SceneData` of float32 images in [0, 1] and pinhole `Camera`s in OpenCV axes.
 Images with lens distortion are resampled to the pinhole camera of the same intrinsics, images with an
@@ -15,18 +16,24 @@ from typing import Callable, Sequence
 from conceal_jax.data.blender import load_blender
 from conceal_jax.data.colmap import load_colmap
 from conceal_jax.data.frames import require_dir
+from conceal_jax.data.llff import llff_bounds_box, load_llff
 from conceal_jax.data.scene import BLACK, WHITE, DatasetError, PathLike, SceneData
 from conceal_jax.data.transforms import load_transforms
 
-__all__ = ["BLACK", "WHITE", "DatasetError", "LOADERS", "SceneData", "detect_format", "load_blender", "load_colmap",
-           "load_scene", "load_transforms"]
+__all__ = ["BLACK", "WHITE", "DatasetError", "LOADERS", "SceneData", "detect_format", "llff_bounds_box",
+           "load_blender", "load_colmap", "load_llff", "load_scene", "load_transforms"]
 
 LOADERS: dict[str, Callable[..., SceneData]] = {
-    "blender": load_blender, "colmap": load_colmap, "transforms": load_transforms}
+    "blender": load_blender, "colmap": load_colmap, "transforms": load_transforms,
+    "llff": load_llff}
 
 
 def detect_format(root: PathLike) -> str:
-  """'blender', 'colmap' or 'transforms', from the files in `root`."""
+  """'blender', 'colmap', 'transforms' or 'llff', from the files in `root`.
+
+  LLFF comes last: LLFF captures often keep the COLMAP model their poses_bounds.npy was made from,
+  and that model has the full cameras (per-image focal lengths, distortion) and the SfM points.
+  """
   root = Path(root)
   require_dir(root, "scene")
   if (root / "transforms_train.json").is_file():
@@ -35,8 +42,10 @@ def detect_format(root: PathLike) -> str:
     return "colmap"
   if (root / "transforms.json").is_file():
     return "transforms"
+  if (root / "poses_bounds.npy").is_file():
+    return "llff"
   raise DatasetError(f"cannot tell the format of {root}: expected transforms_train.json (Blender), "
-                     f"sparse/0/cameras.bin or .txt (COLMAP) or transforms.json")
+                     f"sparse/0/cameras.bin or .txt (COLMAP), transforms.json or poses_bounds.npy (LLFF)")
 
 
 def load_scene(kind_or_path: PathLike, downscale: float = 1, background: Sequence[float] | None = None,

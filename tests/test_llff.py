@@ -1,0 +1,228 @@
+"""LLFF loader: a tiny self-made forward-facing capture (poses_bounds.npy, images/, images_2/), and the
+real capture under ../shared/data when present (skipped otherwise)."""
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import pytest
+
+from conceal_jax.data import datasets
+from conceal_jax.data.datasets import DatasetError
+from conceal_jax.data.llff import llff_bounds_box, load_llff
+from conceal_jax.splat.camera import camera_centers, look_at
+
+BEER = Path(__file__).parents[1] / ".." / "shared" / "data" / "colmap" / "beer"
+WIDTH, HEIGHT, COUNT = 16, 12, 9
+TARGET = np.array([0.0, 0.0, 0.0])
+
+
+def _w2c(index):
+  """[4, 4] OpenCV world-to-camera of camera `index`: a 3x3 grid of eyes facing the target."""
+  eye = (0.5 * (index % 3 - 1), 0.4 * (index // 3 - 1), 4.0 + 0.1 * index)
+  return look_at(eye, TARGET, up=(0.0, 1.0, 0.0))
+
+
+def _focal(index):
+  return 14.0 + 0.5 * index  # per-row focal lengths catch a loader that reads only row 0
+
+
+def _bounds(index):
+  distance = np.linalg.norm(np.linalg.inv(_w2c(index))[:3, 3] - TARGET)
+  return distance - 1.0, distance + 1.5
+
+
+def _llff_row(index):
+  """[17] row as LLFF's save_poses writes it (github.com/Fyusion/LLFF, llff/poses/pose_utils.py): COLMAP's
+  camera-to-world columns reordered to [c1, c0, -c2], then hwf, then near, far."""
+  c2w = np.linalg.inv(_w2c(index))[:3]
+  pose = np.stack([c2w[:, 1], c2w[:, 0], -c2w[:, 2], c2w[:, 3], [HEIGHT, WIDTH, _focal(index)]], -1)
+  return np.concatenate([pose.ravel(), _bounds(index)])
+
+
+def _image(index, height, width):
+  rows, cols = np.mgrid[:height, :width]
+  return (0.5 + 0.4 * np.sin(rows[..., None] * 0.5 + cols[..., None] * 0.3 + index + np.arange(3))).astype(
+      np.float32)
+
+
+def _write_images(folder, height, width, count=COUNT):
+  folder.mkdir(parents=True)
+  for i in range(count):
+    iio.imwrite(folder / f"{i:03d}.png", np.round(_image(i, height, width) * 255).astype(np.uint8))
+
+
+@pytest.fixture
+def llff_root(tmp_path):
+  root = tmp_path / "llff"
+  _write_images(root / "images", HEIGHT, WIDTH)
+  np.save(root / "poses_bounds.npy", np.stack([_llff_row(i) for i in range(COUNT)]))
+  return root
+
+
+def _all_cameras(scene):
+  """(names, cameras) of both splits, in file-name order."""
+  pairs = sorted(zip(scene.train_names + scene.test_names, scene.train_cameras + scene.test_cameras),
+                 key=lambda pair: pair[0])
+  return [name for name, _ in pairs], [camera for _, camera in pairs]
+
+
+def test_cameras_round_trip_and_intrinsics(llff_root):
+  scene = load_llff(llff_root)
+  names, cameras = _all_cameras(scene)
+  assert names == [f"{i:03d}.png" for i in range(COUNT)]
+  for i, camera in enumerate(cameras):
+    np.testing.assert_allclose(np.asarray(camera.world_to_camera), _w2c(i), atol=1e-6)
+    assert (camera.width, camera.height) == (WIDTH, HEIGHT)
+    np.testing.assert_allclose([camera.fx, camera.fy, camera.cx, camera.cy],
+                               [_focal(i), _focal(i), WIDTH / 2, HEIGHT / 2], rtol=1e-6)
+  assert scene.points is None and scene.point_colors is None and scene.background == (0.0, 0.0, 0.0)
+  image = scene.test_images[0]
+  assert image.shape == (HEIGHT, WIDTH, 3)
+  np.testing.assert_allclose(image, _image(0, HEIGHT, WIDTH), atol=1 / 255)
+
+
+def test_the_target_projects_to_the_image_centre(llff_root):
+  """Checks the axis conversion end to end: every camera looks at the target."""
+  for camera in _all_cameras(load_llff(llff_root))[1]:
+    p = np.asarray(camera.world_to_camera, np.float64)[:3] @ np.r_[TARGET, 1.0]
+    assert p[2] > 0
+    np.testing.assert_allclose([float(camera.fx) * p[0] / p[2] + float(camera.cx),
+                                float(camera.fy) * p[1] / p[2] + float(camera.cy)],
+                               [WIDTH / 2, HEIGHT / 2], atol=1e-4)
+
+
+def test_downscaled_folder_and_downscale(llff_root):
+  _write_images(llff_root / "images_2", HEIGHT // 2, WIDTH // 2)
+  for downscale, size in ((1, 2), (2, 4)):
+    scene = load_llff(llff_root, downscale=downscale, images_dir="images_2")
+    for i, camera in enumerate(_all_cameras(scene)[1]):
+      assert (camera.width, camera.height) == (WIDTH // size, HEIGHT // size)
+      np.testing.assert_allclose([camera.fx, camera.fy, camera.cx, camera.cy],
+                                 [_focal(i) / size, _focal(i) / size, WIDTH / 2 / size, HEIGHT / 2 / size],
+                                 rtol=1e-6)
+      np.testing.assert_allclose(np.asarray(camera.world_to_camera), _w2c(i), atol=1e-6)
+    assert scene.train_images[0].shape == (HEIGHT // size, WIDTH // size, 3)
+
+
+def test_every_eighth_image_is_held_out(llff_root):
+  scene = load_llff(llff_root)
+  assert scene.test_names == ["000.png", "008.png"]
+  assert scene.train_names == [f"{i:03d}.png" for i in range(1, 8)]
+  assert len(scene.train_images) == len(scene.train_cameras) == 7
+  assert load_llff(llff_root, test_every=0).test_names == []
+
+
+def _frustum_points(index):
+  """[9, 3] camera centre and the image corners at the near and far bounds, unprojected through the
+  OpenCV camera that generated the row."""
+  w2c, f, (near, far) = _w2c(index), _focal(index), _bounds(index)
+  c2w = np.linalg.inv(w2c)
+  corners = [((u - WIDTH / 2) / f * d, (v - HEIGHT / 2) / f * d, d)
+             for d in (near, far) for u in (0, WIDTH) for v in (0, HEIGHT)]
+  return np.array([c2w[:3, 3]] + [c2w[:3, :3] @ p + c2w[:3, 3] for p in corners])
+
+
+def test_bounds_box_holds_the_frustum_segments_tightly(llff_root):
+  lo, hi = llff_bounds_box(llff_root)
+  points = np.concatenate([_frustum_points(i) for i in range(COUNT)])
+  assert lo.shape == hi.shape == (3,)
+  np.testing.assert_allclose(lo, points.min(0), atol=1e-9)
+  np.testing.assert_allclose(hi, points.max(0), atol=1e-9)
+  centres = camera_centers(_all_cameras(load_llff(llff_root))[1])
+  on_axis = [np.linalg.inv(_w2c(i))[:3] @ np.r_[0, 0, d, 1] for i in range(COUNT) for d in _bounds(i)]
+  for point in np.concatenate([centres, on_axis, TARGET[None]]):
+    assert (lo - 1e-6 <= point).all() and (point <= hi + 1e-6).all()
+
+
+def test_detect_format_prefers_a_colmap_model(llff_root):
+  assert datasets.detect_format(llff_root) == "llff"
+  assert datasets.load_scene(llff_root, downscale=2).train_images[0].shape == (HEIGHT // 2, WIDTH // 2, 3)
+  assert datasets.load_scene("llff", root=llff_root, test_every=0).test_images == []
+  (llff_root / "sparse" / "0").mkdir(parents=True)
+  (llff_root / "sparse" / "0" / "cameras.txt").write_text("")
+  assert datasets.detect_format(llff_root) == "colmap"
+
+
+def test_errors_name_the_file(llff_root, tmp_path):
+  poses = llff_root / "poses_bounds.npy"
+  rows = np.load(poses)
+  with pytest.raises(DatasetError, match="images_4"):
+    load_llff(llff_root, images_dir="images_4")
+  (llff_root / "images" / "008.png").unlink()
+  with pytest.raises(DatasetError, match=r"images has 8 images but .*poses_bounds.npy has 9"):
+    load_llff(llff_root)
+  np.save(poses, rows[:, :16])
+  for call in (load_llff, llff_bounds_box):
+    with pytest.raises(DatasetError, match=r"poses_bounds.npy must hold a numeric \[N, 17\] array.*\[9, 16\]"):
+      call(llff_root)
+  poses.unlink()
+  for call in (load_llff, llff_bounds_box):
+    with pytest.raises(DatasetError, match="poses_bounds.npy"):
+      call(llff_root)
+
+
+def test_bad_rows_name_the_row(llff_root):
+  poses = llff_root / "poses_bounds.npy"
+  rows = np.load(poses)
+  mirrored = rows.copy()
+  mirrored[3, [0, 5, 10]] *= -1  # flips one camera axis: a reflection
+  np.save(poses, mirrored)
+  with pytest.raises(DatasetError, match="row 3 .*not a rotation"):
+    load_llff(llff_root)
+  swapped = rows.copy()
+  swapped[2, 15:] = swapped[2, 15:][::-1]
+  np.save(poses, swapped)
+  with pytest.raises(DatasetError, match="row 2 has near bound"):
+    llff_bounds_box(llff_root)
+
+
+def test_image_of_another_aspect_ratio_names_the_image(llff_root):
+  _write_images(llff_root / "images_2", HEIGHT // 2, WIDTH // 2)
+  iio.imwrite(llff_root / "images_2" / "004.png", np.zeros((HEIGHT // 2, WIDTH // 2 + 2, 3), np.uint8))
+  with pytest.raises(DatasetError, match=r"004.png is 10x6, not a downscaled copy .* row 4"):
+    load_llff(llff_root, images_dir="images_2")
+
+
+# ---------------------------------------------------------------------------------------------------
+# Real data (../shared/data; absent on a user's machine)
+
+
+def _similarity(source, target):
+  """(scale, rotation [3, 3], translation [3]) minimising |scale R source + t - target|^2 (Umeyama, IEEE
+  TPAMI 13(4), 1991)."""
+  mu_s, mu_t = source.mean(0), target.mean(0)
+  s, t = source - mu_s, target - mu_t
+  u, sigma, vt = np.linalg.svd(t.T @ s / len(source))
+  d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+  rotation = u @ d @ vt
+  scale = float(np.trace(np.diag(sigma) @ d) / (s ** 2).sum(1).mean())
+  return scale, rotation, mu_t - scale * rotation @ mu_s
+
+
+def test_beer_llff_cameras_are_the_colmap_cameras():
+  if not BEER.is_dir():
+    pytest.skip(f"real data not available at {BEER}")
+  llff = load_llff(BEER, downscale=8)
+  colmap = datasets.load_colmap(BEER, downscale=8)
+  names = sorted(p.name for p in (BEER / "images").iterdir())
+  assert llff.test_names == colmap.test_names == names[::8] and llff.train_names == colmap.train_names
+  llff_cameras = llff.train_cameras + llff.test_cameras
+  colmap_cameras = colmap.train_cameras + colmap.test_cameras
+  assert all((c.width, c.height) == (90, 160) for c in llff_cameras)
+
+  llff_centres, colmap_centres = camera_centers(llff_cameras), camera_centers(colmap_cameras)
+  scale, rotation, translation = _similarity(colmap_centres, llff_centres)
+  fitted = scale * colmap_centres @ rotation.T + translation
+  extent = np.linalg.norm(llff_centres - llff_centres.mean(0), axis=1).max()
+  assert np.abs(fitted - llff_centres).max() < 1e-5 * extent
+  for llff_camera, colmap_camera in zip(llff_cameras, colmap_cameras):  # orientations agree as well
+    np.testing.assert_allclose(np.asarray(llff_camera.world_to_camera)[:3, :3],
+                               np.asarray(colmap_camera.world_to_camera)[:3, :3] @ rotation.T, atol=1e-5)
+    # LLFF stores one focal length (the model's first camera's) for all rows; this capture's COLMAP
+    # model has a camera per image, whose focal lengths spread by ~5%.
+    assert float(llff_camera.fx) == pytest.approx(float(colmap_camera.fx), rel=0.05)
+
+  # The bounds came from the depths of the SfM points, so the box holds those points.
+  lo, hi = llff_bounds_box(BEER)
+  points = (scale * colmap.points @ rotation.T + translation)
+  assert ((points >= lo) & (points <= hi)).all(1).mean() > 0.99
