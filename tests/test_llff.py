@@ -6,9 +6,11 @@ import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from conceal_jax.configs import default
 from conceal_jax.data import datasets
 from conceal_jax.data.datasets import DatasetError
 from conceal_jax.data.llff import llff_bounds_box, load_llff
+from conceal_jax.gs import train
 from conceal_jax.splat.camera import camera_centers, look_at
 
 BEER = Path(__file__).parents[1] / ".." / "shared" / "data" / "colmap" / "beer"
@@ -132,6 +134,18 @@ def test_bounds_box_holds_the_frustum_segments_tightly(llff_root):
   on_axis = [np.linalg.inv(_w2c(i))[:3] @ np.r_[0, 0, d, 1] for i in range(COUNT) for d in _bounds(i)]
   for point in np.concatenate([centres, on_axis, TARGET[None]]):
     assert (lo - 1e-6 <= point).all() and (point <= hi + 1e-6).all()
+
+
+def test_random_init_fills_the_bounds_box(llff_root):
+  """Without a point cloud the teacher starts from random points in the box around the frustums."""
+  config = default.get_config()
+  config.data.path, config.init.num_random_points = str(llff_root), 500
+  scene = datasets.load_scene(llff_root)
+  means = np.asarray(train.initial_gaussians(config, scene, np.random.default_rng(0)).means)
+  lo, hi = datasets.llff_bounds_box(llff_root)
+  assert means.shape == (500, 3) and np.all(means >= lo - 1e-6) and np.all(means <= hi + 1e-6)
+  np.testing.assert_allclose(means.min(0), lo, atol=0.1 * np.max(hi - lo))
+  np.testing.assert_allclose(means.max(0), hi, atol=0.1 * np.max(hi - lo))
 
 
 def test_detect_format_prefers_a_colmap_model(llff_root):

@@ -39,6 +39,12 @@ def gaussians_from_points(points: np.ndarray, colors: np.ndarray, sh_degree: int
                    sh=as_array(sh))
 
 
-def random_box_points(rng: np.random.Generator, num: int, half_extent: float) -> tuple[np.ndarray, np.ndarray]:
-  """Uniform random points in the cube [-half_extent, half_extent]^3 with random colours (synthetic scenes)."""
-  return rng.uniform(-half_extent, half_extent, (num, 3)), rng.uniform(0.0, 1.0, (num, 3))
+def random_box_points(rng: np.random.Generator, num: int, lo, hi=None) -> tuple[np.ndarray, np.ndarray]:
+  """Uniform random points in a box with random colours (3D-GS's start for synthetic scenes).
+
+  lo, hi: [3] corners; a single number `lo` with no `hi` is the half extent of the cube [-lo, lo]^3.
+  Returns points [num, 3] and colours [num, 3] in [0, 1].
+  """
+  if hi is None:
+    lo, hi = -np.full(3, float(lo)), np.full(3, float(lo))
+  return rng.uniform(lo, hi, (num, 3)), rng.uniform(0.0, 1.0, (num, 3))

@@ -21,7 +21,7 @@ from absl import logging
 from flax import struct
 
 from conceal_jax.core import fileio, loop, settings
-from conceal_jax.data import ply
+from conceal_jax.data import datasets, ply
 from conceal_jax.gs import densify, evaluate, init, losses, metrics, optimizer
 from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat.gaussians import Gaussians
@@ -98,13 +98,17 @@ def loop_settings(config: ml_collections.ConfigDict) -> loop.LoopSettings:
 
 
 def initial_gaussians(config: ml_collections.ConfigDict, scene, rng: np.random.Generator) -> Gaussians:
-  """init.kind 'points' (SfM / point file), 'random' (uniform in a box, synthetic scenes) or 'auto'
-  (points when the dataset has them)."""
+  """init.kind 'points' (SfM / point file), 'random' (uniform in a box) or 'auto' (points when the
+  dataset has them). The box is the cube of half extent init.box_half_extent (synthetic scenes), or for
+  an LLFF capture the box around its cameras' near..far frustums."""
   kind = config.init.kind
   if kind == "points" and scene.points is None:
     raise ValueError("init.kind='points' but the dataset has no point cloud")
   if kind == "random" or (kind == "auto" and scene.points is None):
-    points, colors = init.random_box_points(rng, config.init.num_random_points, config.init.box_half_extent)
+    box = (config.init.box_half_extent,)
+    if config.data.path != "demo" and datasets.detect_format(config.data.path) == "llff":
+      box = datasets.llff_bounds_box(config.data.path)
+    points, colors = init.random_box_points(rng, config.init.num_random_points, *box)
   else:
     points, colors = scene.points, scene.point_colors
     colors = np.full_like(points, 0.5) if colors is None else colors
