@@ -41,7 +41,8 @@ class LoopSettings:
 
 @dataclasses.dataclass
 class LoopResult:
-  """state: after the last step run; history: one dict per log window (and per hook result);
+  """state: after the last step run; history: one dict per log window (and per hook result), each with
+  the step and `elapsed_s`, the step time up to it;
   start: the step the run resumed from; finished: whether all iterations are done;
   windows: [(steps, seconds)] of every log window, over resumes too."""
   state: State
@@ -112,11 +113,13 @@ def run(name: str, settings: LoopSettings, workdir: str, *, init_state: Callable
     windows.append((window_steps, time.perf_counter() - window_start))
     if not all(np.isfinite(v) for v in stats.values()):
       raise FloatingPointError(f"{name} diverged at step {iteration}: {stats}")
-    history.append(dict(step=iteration, **stats))
+    # elapsed_s: step time so far (over resumes, without hooks and checkpoints), for accuracy-vs-time curves
+    elapsed = float(sum(s for _, s in windows))
+    history.append(dict(step=iteration, elapsed_s=elapsed, **stats))
     bar.set_postfix({k: f"{stats[k]:.4g}" for k in ("loss", "psnr") + tuple(postfix_keys) if k in stats})
     extra = after_window(state, iteration) if after_window else None
     if extra:
-      history.append(dict(step=iteration, **extra))
+      history.append(dict(step=iteration, elapsed_s=elapsed, **extra))
     if checkpoint_now:
       meta = dict(history=history, windows=windows, **(checkpoint_meta(state) if checkpoint_meta else {}))
       checkpoint.save(ckpt_dir, iteration, state, meta)

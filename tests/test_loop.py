@@ -1,0 +1,57 @@
+"""The shared training loop on a toy state: resume, finiteness check, log windows, trace counts."""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conceal_jax.core import loop
+
+
+def _toy(traces: loop.TraceCounter, blow_up_at: int = 0):
+  """A state {step, x} whose step adds the iteration to x; loss is x, NaN from `blow_up_at` on."""
+  def body(state, iteration):
+    x = state["x"] + iteration
+    loss = jnp.where((iteration >= blow_up_at) & (blow_up_at > 0), jnp.nan, x)
+    return dict(step=state["step"] + 1, x=x), dict(loss=loss, psnr=-x)
+  step = jax.jit(traces.wrap("toy_step", body), donate_argnums=0)
+  fresh = lambda: dict(step=jnp.zeros((), jnp.int32), x=jnp.zeros(()))
+  return step, fresh
+
+
+def _run(tmp_path, traces, max_steps=None, blow_up_at=0, iterations=10):
+  step, fresh = _toy(traces, blow_up_at)
+  settings = loop.LoopSettings(iterations=iterations, log_every=3, checkpoint_every=4, progress_bar=False)
+  return loop.run("toy", settings, str(tmp_path), init_state=fresh, restore_template=lambda meta: fresh(),
+                  step=step, max_steps=max_steps)
+
+
+def test_resumed_run_equals_an_uninterrupted_one(tmp_path):
+  straight = _run(tmp_path / "a", loop.TraceCounter())
+  stopped = _run(tmp_path / "b", loop.TraceCounter(), max_steps=5)
+  assert not stopped.finished and int(stopped.state["step"]) == 5
+  traces = loop.TraceCounter()
+  resumed = _run(tmp_path / "b", traces)  # a stop checkpoints where it stops
+  assert resumed.finished and resumed.start == 5
+  assert float(resumed.state["x"]) == float(straight.state["x"]) == sum(range(1, 11))
+  # log windows end at multiples of 3, at checkpoints (multiples of 4) and at the last step
+  assert [h["step"] for h in straight.history] == [3, 4, 6, 8, 9, 10]
+  assert [h["step"] for h in resumed.history] == [3, 4, 5, 6, 8, 9, 10]
+  losses = {h["step"]: h["loss"] for h in resumed.history}
+  assert all(losses[h["step"]] == h["loss"] for h in straight.history)
+  assert resumed.timing()["timed_steps"] == straight.timing()["timed_steps"] == 10
+  elapsed = [h["elapsed_s"] for h in straight.history]
+  assert elapsed == sorted(elapsed) and elapsed[0] > 0
+  assert traces.counts == {"toy_step": 1}, "one trace for the whole run: no silent re-traces"
+
+
+def test_non_finite_stats_stop_the_run_naming_the_step(tmp_path):
+  with pytest.raises(FloatingPointError, match="toy diverged at step 3"):
+    _run(tmp_path, loop.TraceCounter(), blow_up_at=2)
+
+
+def test_bad_loop_settings_are_rejected():
+  for bad in (dict(iterations=0), dict(iterations=5, log_every=0), dict(iterations=5, checkpoint_every=-1)):
+    with pytest.raises(ValueError, match="iterations and log_every"):
+      loop.LoopSettings(**bad)
