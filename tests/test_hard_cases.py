@@ -13,7 +13,7 @@ from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat import projection, sh as sh_lib
 from tests.conftest import assert_finite_tree, make_camera, make_gaussians, random_gaussians, reference
 
-EXACT = RenderOptions(max_per_tile=None, exact_chunk=8, background=(0.2, 0.4, 0.6), with_depth=True)
+EXACT = RenderOptions(max_per_tile=None, background=(0.2, 0.4, 0.6), with_depth=True)
 # A camera at the origin looking down +z: depths equal the world z coordinate exactly.
 AXIS_CAMERA = Camera.from_fov(np.eye(4), 0.8, 24, 20)
 
@@ -225,7 +225,7 @@ def test_more_than_k_per_tile_reports_overflow_and_exact_mode_stays_exact():
   truncated = render(g, cam, RenderOptions(max_per_tile=4))
   assert int(truncated.num_overflow_tiles) > 0
   assert int(render(g, cam, RenderOptions(max_per_tile=64)).num_overflow_tiles) == 0
-  exact = check(g, cam, RenderOptions(max_per_tile=None, exact_chunk=4))
+  exact = check(g, cam, RenderOptions(max_per_tile=None))
   assert int(exact.num_overflow_tiles) == 0
   np.testing.assert_allclose(render(g, cam, RenderOptions(max_per_tile=64)).rgb, exact.rgb, atol=1e-6)
 
