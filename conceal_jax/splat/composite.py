@@ -57,22 +57,21 @@ def running_sum(x: jax.Array) -> jax.Array:
 def chain_segments(totals: jax.Array, first: jax.Array, carry: jax.Array) -> tuple[jax.Array, jax.Array]:
   """Exclusive prefix of per-segment sums within each tile: what lies in front of each segment.
 
-  totals: [S, ...] per-segment sums in tile order; first: [S] True where a segment opens its tile;
-  carry: [...] the running sum of the tile the previous block ended in. Returns (in_front [S, ...],
-  running sum after the last segment [...]). A segmented scan, so no sum crosses a tile boundary (no
-  cancellation between tiles).
+  totals: [B, ...] per-segment sums in tile order; first: [B] True where a segment opens its tile;
+  carry: [...] the running sum of the tile the previous block ended in (it continues into the segments
+  before the block's first opening). Returns (in_front [B, ...], running sum after the last segment [...]).
+  Segments b' < b share b's tile exactly when no segment in (b', b] opens a tile, i.e. when the running
+  counts of openings agree; the sums are one [B, B] x [B, ...] product that never adds across tiles
+  (no cancellation between tiles).
   """
-  values = jnp.concatenate([carry[None], totals])
-  flags = jnp.concatenate([jnp.ones((1,), bool), first])
-
-  def combine(left, right):
-    (lv, lf), (rv, rf) = left, right
-    expand = lambda f: f.reshape(f.shape + (1,) * (rv.ndim - f.ndim))
-    return jnp.where(expand(rf), rv, lv + rv), lf | rf
-
-  inclusive, _ = jax.lax.associative_scan(combine, (values, flags))
-  in_front = jnp.where(first.reshape(first.shape + (1,) * (totals.ndim - 1)), 0.0, inclusive[:-1])
-  return in_front, inclusive[-1]
+  opened = jnp.cumsum(first.astype(jnp.int32))
+  earlier = jnp.arange(first.shape[0])[None, :] < jnp.arange(first.shape[0])[:, None]
+  same_tile = (earlier & (opened[:, None] == opened[None, :])).astype(totals.dtype)
+  flat = totals.reshape(totals.shape[0], -1)
+  continues = (opened == 0).astype(totals.dtype)[:, None]
+  in_front = same_tile @ flat + continues * carry.reshape(1, -1)
+  last = in_front[-1] + flat[-1]
+  return in_front.reshape(totals.shape), last.reshape(carry.shape)
 
 
 def _block_inputs(b, block, seg_splats, seg_tiles, seg_first, origins, means2d, conics, opacities, values):
