@@ -36,8 +36,8 @@ from conceal_jax.splat.projection import project
 _DEPTH_ALPHA_FLOOR = 1e-10
 # Capacity buckets: a geometric series with ratio sqrt(2) from _MIN_CAPACITY, rounded up to 256.
 _MIN_CAPACITY = 1024
-# Pixel-pairs evaluated per loop iteration of the compositor (about a few hundred kB per intermediate).
-_BLOCK_PIXEL_PAIRS = 1 << 17
+# Pixel-pairs evaluated per loop iteration of the compositor: intermediates of 128 kB stay in cache.
+_BLOCK_PIXEL_PAIRS = 1 << 15
 # Last capacity that sufficed, per (options, number of Gaussians, image size), for eager calls.
 _capacity_cache: dict = {}
 
