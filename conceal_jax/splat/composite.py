@@ -199,7 +199,7 @@ def _composite_bwd(tile_size, grid, block, residuals, cotangents):
     t_before = jnp.exp(seen - log_1m)
     weights = jnp.where(keep, alpha * t_before, 0.0)
     g, g_t = g_values[tiles], g_log_t[tiles]  # [B, P, C], [B, P]
-    g_colour = jnp.einsum("bpc,blc->bpl", g, val)  # dL/dvalues . c_i per pixel and pair
+    g_colour = jnp.sum(g[:, :, None, :] * val[:, None, :, :], -1)  # dL/dvalues . c_i per pixel and pair
     # dL/dalpha_i = T_i g.c_i - (g.(colour behind i) + dL/dlogT) / (1 - alpha_i) (3D-GS backward), the colour
     # behind i being the tile's final colour minus everything composited up to and including i.
     after_front = jnp.sum(g * (out_values[tiles] - front_values), -1)

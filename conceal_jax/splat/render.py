@@ -59,7 +59,7 @@ class RenderOptions:
   """
   sh_degree: int | None = None
   background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-  tile_size: int = 16
+  tile_size: int = 8
   max_per_tile: int | None = None
   segment_size: int = 32
   pair_capacity: int | None = None
