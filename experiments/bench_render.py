@@ -38,14 +38,14 @@ SIZES = {"256x166": (256, 166), "native": (648, 420)}
 DEFAULT = RenderOptions(sh_degree=3, background=(1.0, 1.0, 1.0))
 VARIANTS = {
     "exact (default)": DEFAULT,
-    "exact, 16 px tiles": dataclasses.replace(DEFAULT, tile_size=16),
-    "exact, L=16": dataclasses.replace(DEFAULT, segment_size=16),
-    "exact, L=64": dataclasses.replace(DEFAULT, segment_size=64),
+    "exact 16px tiles": dataclasses.replace(DEFAULT, tile_size=16),
+    "exact L=16": dataclasses.replace(DEFAULT, segment_size=16),
+    "exact L=64": dataclasses.replace(DEFAULT, segment_size=64),
     "K=64": dataclasses.replace(DEFAULT, max_per_tile=64),
     "K=128": dataclasses.replace(DEFAULT, max_per_tile=128),
     "K=256": dataclasses.replace(DEFAULT, max_per_tile=256),
 }
-QUICK_VARIANTS = ["exact (default)", "exact, 16 px tiles", "K=256"]
+QUICK_VARIANTS = ["exact (default)", "exact 16px tiles", "K=256"]
 
 
 def garden_scene(points: np.ndarray, colors: np.ndarray, count: int, degree: int, seed: int = 0):
