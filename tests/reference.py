@@ -3,6 +3,11 @@
 Written from the 3D-GS rasterizer's rules (REFERENCE s.4) without sharing code with conceal_jax:
 explicit matrix inverses instead of the closed-form conic, Python int() truncation for tile rects, a
 scalar SH evaluation, and a sequential compositing loop with the early stop of the CUDA kernel.
+
+Tile lists follow the culling rule of REFERENCE s.7 (the renderer's rule, so truncated lists agree too):
+a splat is listed in a tile of its 3-sigma rect unless its opacity is < 1/255 or its largest alpha over
+the tile's pixel-centre rectangle is < 1/255 (tested per tile, from the minimum of the quadratic form on
+the rectangle's edges). Neither changes a pixel of the untruncated image.
 """
 from __future__ import annotations
 
@@ -91,6 +96,32 @@ def _rect(mean2d, radius, tile_size, grid):
   return lo, hi
 
 
+def _min_quadratic_on_rect(conic, mean, x0, x1, y0, y1):
+  """min over the rectangle [x0, x1] x [y0, y1] of q(d) = A dx^2 + 2 B dx dy + C dy^2, d = p - mean."""
+  a, b, c = conic
+  mx, my = mean
+  if x0 <= mx <= x1 and y0 <= my <= y1:
+    return 0.0
+  q = lambda dx, dy: a * dx * dx + 2 * b * dx * dy + c * dy * dy
+  best = math.inf
+  for x in (x0, x1):  # on a vertical edge q is a parabola in dy: its clamped vertex is the minimum
+    dx = x - mx
+    best = min(best, q(dx, min(max(-b * dx / c, y0 - my), y1 - my)))
+  for y in (y0, y1):
+    dy = y - my
+    best = min(best, q(min(max(-b * dy / a, x0 - mx), x1 - mx), dy))
+  return best
+
+
+def _reaches_tile(s, tx, ty, tile_size):
+  """Does the splat reach alpha >= 1/255 at some pixel centre of tile (tx, ty)? (REFERENCE s.7)"""
+  if s["opacity"] < 1.0 / 255.0:
+    return False
+  x0, y0 = tx * tile_size + 0.5, ty * tile_size + 0.5
+  m = _min_quadratic_on_rect(s["conic"], s["mean2d"], x0, x0 + tile_size - 1, y0, y0 + tile_size - 1)
+  return s["opacity"] * math.exp(-0.5 * m) >= 1.0 / 255.0
+
+
 def render_reference(means, log_scales, quats, opacity_logits, sh, w2c, fx, fy, cx, cy, width, height,
                      degree=None, background=(0.0, 0.0, 0.0), tile_size=16, max_per_tile=None,
                      near=0.2, antialiased=False):
@@ -117,7 +148,8 @@ def render_reference(means, log_scales, quats, opacity_logits, sh, w2c, fx, fy, 
   lists = {}
   for ty in range(grid[1]):
     for tx in range(grid[0]):
-      hits = [s for s in splats if s["rect"][0][0] <= tx < s["rect"][1][0] and s["rect"][0][1] <= ty < s["rect"][1][1]]
+      hits = [s for s in splats if s["rect"][0][0] <= tx < s["rect"][1][0] and s["rect"][0][1] <= ty < s["rect"][1][1]
+              and _reaches_tile(s, tx, ty, tile_size)]
       lists[tx, ty] = hits if max_per_tile is None else hits[:max_per_tile]
   rgb = np.zeros((height, width, 3))
   alpha = np.zeros((height, width))

@@ -1,6 +1,7 @@
 """Hard cases of REFERENCE s.4: finite values and gradients, and agreement with the float64 reference."""
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -11,9 +12,10 @@ import pytest
 from conceal_jax import Camera, RenderOptions, render, render_batch
 from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat import projection, sh as sh_lib
+from conceal_jax.splat import render as render_lib
 from tests.conftest import assert_finite_tree, make_camera, make_gaussians, random_gaussians, reference
 
-EXACT = RenderOptions(max_per_tile=None, exact_chunk=8, background=(0.2, 0.4, 0.6), with_depth=True)
+EXACT = RenderOptions(background=(0.2, 0.4, 0.6), with_depth=True)
 # A camera at the origin looking down +z: depths equal the world z coordinate exactly.
 AXIS_CAMERA = Camera.from_fov(np.eye(4), 0.8, 24, 20)
 
@@ -225,7 +227,7 @@ def test_more_than_k_per_tile_reports_overflow_and_exact_mode_stays_exact():
   truncated = render(g, cam, RenderOptions(max_per_tile=4))
   assert int(truncated.num_overflow_tiles) > 0
   assert int(render(g, cam, RenderOptions(max_per_tile=64)).num_overflow_tiles) == 0
-  exact = check(g, cam, RenderOptions(max_per_tile=None, exact_chunk=4))
+  exact = check(g, cam, RenderOptions(max_per_tile=None))
   assert int(exact.num_overflow_tiles) == 0
   np.testing.assert_allclose(render(g, cam, RenderOptions(max_per_tile=64)).rgb, exact.rgb, atol=1e-6)
 
@@ -242,3 +244,102 @@ def test_jit_vmap_and_repeated_calls_are_deterministic():
   np.testing.assert_array_equal(again.rgb, batched.rgb)
   grad = lambda: jax.grad(lambda g: jnp.sum(render(g, cams[0], options).rgb))(g)
   jax.tree.map(np.testing.assert_array_equal, grad(), grad())
+
+
+# --- Renderer v2: pair buffers of static capacity, culled pairs, degenerate image shapes ---------------
+
+
+def test_capacity_overflow_is_reported_when_traced_and_regrown_eagerly():
+  g = random_gaussians(7, 200, degree=0, spread=0.3)
+  cam = make_camera(48, 40)
+  small = RenderOptions(pair_capacity=1024, tile_size=4, background=(0.2, 0.4, 0.6))
+  traces = render_lib._render._cache_size()
+  eager = render(g, cam, small)  # an eager call never truncates: it re-runs with the grown capacity
+  assert render_lib._render._cache_size() - traces == 2, "one trace at 1024 and one re-trace"
+  needed = int(eager.num_pairs)
+  assert needed > 1024 and not bool(eager.overflowed) and eager.pair_capacity >= needed
+  rgb, alpha, _, ambiguous = reference(g, cam, small)
+  assert not ambiguous.any()
+  np.testing.assert_allclose(eager.rgb, rgb, atol=1e-5, rtol=0)
+  np.testing.assert_allclose(eager.alpha, alpha, atol=1e-5, rtol=0)
+  # Traced inside a caller's jit it cannot re-run: it reports the overflow, the caller grows the options.
+  traced = jax.jit(lambda g: render(g, cam, small))(g)
+  assert bool(traced.overflowed) and int(traced.num_pairs) == needed and traced.pair_capacity == 1024
+  assert float(np.max(np.abs(np.asarray(traced.rgb) - rgb))) > 1e-2, "the truncated image differs"
+  grown = render_lib.grow_capacity(small, traced.num_pairs)
+  assert grown == dataclasses.replace(small, pair_capacity=eager.pair_capacity)
+  # Gradients of an eager call use the grown capacity too.
+  assert_finite_tree(jax.grad(lambda g: jnp.sum(render(g, cam, small).rgb))(g), "gradient")
+  # A batch grows to what its largest view needs.
+  cams = camera_lib.stack([cam, make_camera(48, 40, eye=(0.5, -3.0, 0.5))])
+  batch = render_batch(g, cams, small)
+  assert not np.any(np.asarray(batch.overflowed)) and batch.pair_capacity >= int(np.max(batch.num_pairs))
+  np.testing.assert_allclose(batch.rgb[0], eager.rgb, atol=1e-6)
+
+
+def _points_in_pixel_box(rng, n, box, depth=(2.0, 6.0), cam=AXIS_CAMERA):
+  """n world points on the axis camera that project inside the pixel box (u0, u1, v0, v1)."""
+  u = rng.uniform(box[0], box[1], n)
+  v = rng.uniform(box[2], box[3], n)
+  z = rng.uniform(*depth, n)
+  x = (u - float(cam.cx)) / float(cam.fx) * z
+  y = (v - float(cam.cy)) / float(cam.fy) * z
+  return np.stack([x, y, z], -1)
+
+
+def _small_splats(rng, means, logit_range=(-4.0, -1.0), log_scale=-4.0):
+  n = means.shape[0]
+  sh = np.zeros((n, 1, 3))
+  sh[:, 0] = rng.normal(size=(n, 3))
+  return make_gaussians(means, np.full((n, 3), log_scale), rng.normal(size=(n, 4)),
+                        rng.uniform(*logit_range, n), sh)
+
+
+def test_one_tile_touched_by_5000_splats():
+  rng = np.random.default_rng(11)
+  cam = Camera.from_fov(np.eye(4), 0.8, 32, 32)
+  crowd = _small_splats(rng, _points_in_pixel_box(rng, 5000, (3, 13, 3, 13), cam=cam), logit_range=(-4, -2.5),
+                        log_scale=-2.5)
+  g = stack([crowd, one_gaussian([0.3, 0.3, 8.0], log_scale=(-0.5, -0.5, -0.5))])
+  out = check(g, cam)
+  assert int(out.num_pairs) >= 5000
+  assert float(jnp.max(out.alpha[:16, :16])) > 0.9
+
+
+def test_every_splat_in_one_tile():
+  rng = np.random.default_rng(12)
+  cam = Camera.from_fov(np.eye(4), 0.8, 64, 48)
+  options = dataclasses.replace(EXACT, tile_size=8)
+  g = _small_splats(rng, _points_in_pixel_box(rng, 400, (27, 29, 19, 21), depth=(4.0, 6.0), cam=cam), logit_range=(-3, 1))
+  out = check(g, cam, options)
+  assert int(out.num_pairs) == 400, "each splat stays inside tile (3, 2)"
+  alpha = np.asarray(out.alpha)
+  assert alpha[16:24, 24:32].max() > 0.5 and alpha[:16].max() == 0 and alpha[:, :24].max() == 0
+
+
+@pytest.mark.parametrize("size", [(1, 1), (1, 1000), (1000, 3)])
+def test_degenerate_image_sizes(size):
+  width, height = size
+  focal = max(width, height) / (2 * math.tan(0.35))
+  w2c = camera_lib.look_at((0.0, -4.0, 1.0), (0.0, 0.0, 0.0))
+  cam = Camera.from_intrinsics(w2c, focal, focal, width / 2, height / 2, width, height)
+  g = random_gaussians(9, 30, degree=1, log_scale=(-1.5, -0.8) if size == (1, 1) else (-2.3, -1.2))
+  out = check(g, cam)
+  assert out.rgb.shape == (height, width, 3)
+  assert float(jnp.max(out.alpha)) > 0.1, "the image must show something"
+
+
+@pytest.mark.parametrize("relative", [-1e-3, 1e-3])
+def test_opacities_just_below_and_above_the_cull_threshold(relative):
+  rng = np.random.default_rng(13)
+  opacity = (1 / 255) * (1 + relative)
+  logit = math.log(opacity / (1 - opacity))
+  half_pixel = 0.5 * 3.0 / float(AXIS_CAMERA.fx)  # peak on the centre of pixel (10, 12)
+  faint = [one_gaussian([half_pixel, half_pixel, 3.0], log_scale=(0.0, 0.0, 0.0), logit=logit)]
+  faint += [one_gaussian(list(p), log_scale=(-1.0, -1.0, -1.0), logit=logit)
+            for p in _points_in_pixel_box(rng, 5, (2, 22, 2, 18), depth=(2.0, 4.0))]
+  behind = one_gaussian([0.2, -0.1, 6.0], log_scale=(-0.3, -0.3, -0.3), logit=0.0)
+  out = check(stack(faint + [behind]), AXIS_CAMERA)
+  alone = render(behind, AXIS_CAMERA, EXACT)
+  changed = float(jnp.max(jnp.abs(out.rgb - alone.rgb)))
+  assert (changed > 0) == (relative > 0), "faint splats below 1/255 are culled, above it they show"

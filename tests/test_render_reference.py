@@ -21,7 +21,7 @@ def test_exact_mode_matches_reference(seed, degree, antialiased, background, siz
   g = random_gaussians(seed, 40, degree=degree)
   cam = make_camera(*size)
   options = RenderOptions(sh_degree=degree, background=background, antialiased=antialiased,
-                          max_per_tile=None, exact_chunk=16, with_depth=True)
+                          max_per_tile=None, with_depth=True)
   out = render(g, cam, options)
   rgb, alpha, depth, ambiguous = reference(g, cam, options)
   assert not ambiguous.any()

@@ -39,3 +39,14 @@ def test_truncation_without_overflow_equals_exact_mode(garden):
   assert int(wide.num_overflow_tiles) == 0 and int(narrow.num_overflow_tiles) > 0
   np.testing.assert_allclose(wide.rgb, exact.rgb, atol=1e-5)
   assert float(np.max(np.abs(narrow.rgb - exact.rgb))) > 1e-3
+
+
+def test_default_options_are_exact_on_20k_points_at_256x166(garden):
+  """The issue's accuracy target: default options against the float64 render of the same scene."""
+  from experiments.bench_render import float64_reference
+  g = garden_scene(garden["means3d"], garden["colors"], 20000, degree=3)
+  options = RenderOptions(sh_degree=3, background=(1.0, 1.0, 1.0))
+  out = render(g, garden_camera(garden, (256, 166)), options)
+  assert not bool(out.overflowed) and int(out.num_overflow_tiles) == 0
+  err = np.abs(np.asarray(out.rgb, np.float64) - float64_reference(g, garden, (256, 166), options))
+  assert err.mean() <= 1e-4 and np.quantile(err, 0.999) <= 2e-3

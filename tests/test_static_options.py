@@ -69,15 +69,27 @@ def test_depth_composited_only_when_asked():
   assert not any(s[-1:] == (4,) and len(s) == 3 for s in _shapes(plain))
 
 
-def test_default_mode_traces_no_exact_loop():
-  default = _primitives(_jaxpr(RenderOptions(max_per_tile=64)).jaxpr)
-  exact = _primitives(_jaxpr(RenderOptions(max_per_tile=None)).jaxpr)
-  assert "cond" not in default and "cond" in exact
-  assert exact.count("scan") == default.count("scan") + 1  # binning maps over tiles in both
+def test_default_is_exact_and_binning_never_builds_tiles_by_gaussians():
+  assert RenderOptions().max_per_tile is None and RenderOptions().exact
+  cam = make_camera(80, 48)  # 15 tiles of 16 px: a count no other axis has
+  for options in (RenderOptions(), RenderOptions(max_per_tile=64)):
+    tiles = -(-cam.width // options.tile_size) * -(-cam.height // options.tile_size)
+    jaxpr = jax.make_jaxpr(lambda g, c: render(g, c, options))(random_gaussians(0, N, degree=3), cam)
+    shapes = _shapes(jaxpr.jaxpr)
+    # The old binning masked all N splats per tile; pairs now come from per-splat rows and one sort.
+    assert not any(tiles in s and N in s for s in shapes), sorted(s for s in shapes if N in s)
+
+
+def test_pair_capacity_is_static_and_reported():
+  options = RenderOptions(pair_capacity=2048)
+  out = render(random_gaussians(0, N, degree=3), make_camera(), options)
+  assert out.pair_capacity == 2048 and not bool(out.overflowed) and 0 < int(out.num_pairs) <= 2048
+  assert (2048,) in _shapes(_jaxpr(options).jaxpr)  # the pair buffer
 
 
 @pytest.mark.parametrize("kwargs", [dict(sh_degree=4), dict(tile_size=0), dict(max_per_tile=0),
-                                    dict(background=(1, 1)), dict(near=0.0), dict(exact_chunk=0)])
+                                    dict(background=(1, 1)), dict(near=0.0), dict(segment_size=0),
+                                    dict(pair_capacity=0)])
 def test_bad_options_are_rejected(kwargs):
   with pytest.raises(ValueError):
     RenderOptions(**kwargs)

@@ -30,7 +30,8 @@ class Splats2D:
   """N projected Gaussians; lanes with radii == 0 are culled and hold zeros.
 
   means2d: [N, 2] pixel coordinates (u, v); conics: [N, 3] inverse 2D covariance (A, B, C);
-  depths: [N] camera-space z; opacities: [N]; colors: [N, 3]; radii: [N] int32 3-sigma pixel radius.
+  depths: [N] camera-space z; opacities: [N]; colors: [N, 3]; radii: [N] int32 3-sigma pixel radius;
+  cov2d: [N, 3] (a, b, c) of the dilated screen covariance [[a, b], [b, c]] (for the pair tests of binning).
   """
   means2d: jax.Array
   conics: jax.Array
@@ -38,6 +39,7 @@ class Splats2D:
   opacities: jax.Array
   colors: jax.Array
   radii: jax.Array
+  cov2d: jax.Array
 
 
 def to_camera_frame(points: jax.Array, world_to_camera: jax.Array) -> jax.Array:
@@ -150,7 +152,8 @@ def project(gaussians: gs.Gaussians, camera: Camera, sh_degree: int, near: float
   # Radii are clipped before the integer cast: a splat wider than any image needs no exact radius.
   radii = jnp.where(keep, jnp.minimum(radii, 2.0**30), 0).astype(jnp.int32)
   return Splats2D(means2d=zeros(means2d), conics=zeros(conics), depths=zeros(z),
-                  opacities=zeros(opacities), colors=zeros(colors), radii=radii)
+                  opacities=zeros(opacities), colors=zeros(colors), radii=radii,
+                  cov2d=zeros(jnp.stack([cov2d[:, 0, 0], cov2d[:, 0, 1], cov2d[:, 1, 1]], -1)))
 
 
 def _sanitize(gaussians: gs.Gaussians, finite: jax.Array) -> gs.Gaussians:

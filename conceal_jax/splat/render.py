@@ -1,14 +1,24 @@
-"""The differentiable tile renderer: project -> bin -> composite, specialised by static options.
+"""The differentiable tile renderer: project -> bin pairs -> cut into segments -> composite.
 
-`render` is jit-compiled with `RenderOptions` as a static argument, so every option below changes the
-traced program rather than adding runtime branches: a degree-0 scene evaluates no SH basis beyond DC,
-the non-antialiased path computes no compensation, depth is composited only when asked for, and the
-default (truncated) mode never traces the exact mode's loop.
+`render` composites, by default, every splat the 3D-GS rasterizer composites (Kerbl et al. 2023,
+arXiv:2308.04079, s.6) on every image: the work is proportional to the splat-tile pairs that exist, held in
+buffers of a static capacity. Options are static (a change retraces): a degree-0 scene evaluates no SH
+basis beyond DC, the non-antialiased path computes no compensation, and depth is composited only when
+asked for.
+
+Capacity contract. `RenderOptions.pair_capacity` sizes the pair buffer (None: automatic). Every output
+reports `num_pairs`, the pairs the image needed, and `overflowed` (num_pairs > pair_capacity, the static
+capacity used). Called eagerly (concrete inputs, also under jax.grad without jit), `render` and
+`render_batch` never return a truncated image: on overflow they re-run once with `grow_capacity` and
+remember the capacity for the next call with the same scene size and options. Traced inside a caller's
+jit, they cannot re-run: the caller checks `overflowed` and re-runs its step with
+`grow_capacity(options, num_pairs)` (for a batch, the max over views).
 """
 from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 
 import jax
 import jax.numpy as jnp
@@ -16,13 +26,20 @@ from flax import struct
 
 from conceal_jax.splat import binning
 from conceal_jax.splat import composite
+from conceal_jax.splat import segments as segments_lib
 from conceal_jax.splat import sh as sh_lib
 from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.gaussians import Gaussians
-from conceal_jax.splat.projection import Splats2D, project
+from conceal_jax.splat.projection import project
 
 # Pixels whose coverage is below this get depth 0 instead of a division by ~0.
 _DEPTH_ALPHA_FLOOR = 1e-10
+# Capacity buckets: a geometric series with ratio sqrt(2) from _MIN_CAPACITY, rounded up to 256.
+_MIN_CAPACITY = 1024
+# Pixel-pairs evaluated per loop iteration of the compositor: intermediates of 128 kB stay in cache.
+_BLOCK_PIXEL_PAIRS = 1 << 15
+# Last capacity that sufficed, per (options, number of Gaussians, image size), for eager calls.
+_capacity_cache: dict = {}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -32,17 +49,20 @@ class RenderOptions:
   sh_degree: SH bands to evaluate, 0..3; None uses every band the scene stores.
   background: RGB composited behind the splats, weighted by the final transmittance.
   tile_size: square tile edge in pixels.
-  max_per_tile: K, the number of nearest splats composited per tile; None selects the exact mode, which
-    walks every overlapping splat in chunks of `exact_chunk` (slower, never truncates).
+  max_per_tile: None (default): exact, every splat 3D-GS composites. An int K is an APPROXIMATION: each
+    tile composites only its K nearest splats (`num_overflow_tiles` counts the tiles that lost some).
+  segment_size: pairs per compositing segment (work is pairs plus < segment_size padding per tile).
+  pair_capacity: static size of the splat-tile pair buffer; None picks one automatically (see module doc).
   antialiased: Mip-Splatting style opacity compensation for the 2D dilation.
   near: camera-space z at or below which splats are culled.
   with_alpha / with_depth: also return coverage [H, W] / expected depth [H, W].
   """
   sh_degree: int | None = None
   background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-  tile_size: int = 16
-  max_per_tile: int | None = 256
-  exact_chunk: int = 128
+  tile_size: int = 8
+  max_per_tile: int | None = None
+  segment_size: int = 32
+  pair_capacity: int | None = None
   antialiased: bool = False
   near: float = 0.2
   with_alpha: bool = True
@@ -58,8 +78,10 @@ class RenderOptions:
       raise ValueError(f"tile_size must be positive, got {self.tile_size}")
     if self.max_per_tile is not None and self.max_per_tile < 1:
       raise ValueError(f"max_per_tile must be positive or None (exact), got {self.max_per_tile}")
-    if self.exact_chunk < 1:
-      raise ValueError(f"exact_chunk must be positive, got {self.exact_chunk}")
+    if self.segment_size < 1:
+      raise ValueError(f"segment_size must be positive, got {self.segment_size}")
+    if self.pair_capacity is not None and self.pair_capacity < 1:
+      raise ValueError(f"pair_capacity must be positive or None (automatic), got {self.pair_capacity}")
     if not self.near > 0:
       raise ValueError(f"near must be positive, got {self.near}")
 
@@ -71,16 +93,44 @@ class RenderOptions:
 @struct.dataclass
 class RenderOutput:
   """rgb: [H, W, 3]; alpha: [H, W] or None; depth: [H, W] or None (expected z of the visible splats);
-  num_overflow_tiles: int32, tiles touched by more than max_per_tile splats (0 in exact mode);
-  radii: [N] int32 screen radius of every Gaussian in pixels, 0 where culled (for densification)."""
+  num_overflow_tiles: int32, tiles with more than max_per_tile pairs (0 in the exact default);
+  radii: [N] int32 3D-GS screen radius (3 sigma) of every Gaussian in pixels, 0 where culled;
+  num_pairs: int32 splat-tile pairs the image needs; overflowed: bool, num_pairs > pair_capacity (the
+  image is then missing pairs: re-run with grow_capacity); pair_capacity: static int, the capacity used."""
   rgb: jax.Array
   alpha: jax.Array | None
   depth: jax.Array | None
   num_overflow_tiles: jax.Array
   radii: jax.Array
+  num_pairs: jax.Array
+  overflowed: jax.Array
+  pair_capacity: int = struct.field(pytree_node=False, default=0)
 
 
-@functools.partial(jax.jit, static_argnames=("options",))
+def capacity_bucket(needed: int) -> int:
+  """The smallest bucket >= needed: 1024 * sqrt(2)^k rounded up to a multiple of 256 (pure, host-side)."""
+  k = max(0, math.ceil(2 * math.log2(max(needed, 1) / _MIN_CAPACITY) - 1e-9))
+  while True:
+    bucket = -(-int(math.ceil(_MIN_CAPACITY * 2 ** (k / 2))) // 256) * 256
+    if bucket >= needed:
+      return bucket
+    k += 1
+
+
+def grow_capacity(options: RenderOptions, needed) -> RenderOptions:
+  """Options whose pair_capacity is the next bucket >= needed (an int, or a concrete array such as
+  RenderOutput.num_pairs, batched or not: the max is taken). Pure and host-side."""
+  needed = int(jnp.max(jnp.asarray(needed)))
+  return dataclasses.replace(options, pair_capacity=capacity_bucket(needed))
+
+
+def initial_capacity(num_gaussians: int, options: RenderOptions) -> int:
+  """The automatic capacity before anything is known about the scene: a few tiles per Gaussian (garden
+  scenes need about 2.6 pairs per visible Gaussian at 16 px tiles and 6 at 8 px)."""
+  per_gaussian = 2 + 48 / options.tile_size
+  return capacity_bucket(int(num_gaussians * per_gaussian))
+
+
 def render(gaussians: Gaussians, camera: Camera, options: RenderOptions = RenderOptions(),
            means2d_offset: jax.Array | None = None) -> RenderOutput:
   """Renders `gaussians` from `camera`; differentiable with respect to both (except binning).
@@ -89,87 +139,79 @@ def render(gaussians: Gaussians, camera: Camera, options: RenderOptions = Render
   differentiating with respect to them gives the loss gradient at the 2D means, which 3D-GS
   densification accumulates (the offsets do not move the tile binning).
   """
+  return _with_capacity(lambda opts: _render(gaussians, camera, opts, means2d_offset), options,
+                        (gaussians.num, camera.width, camera.height))
+
+
+def render_batch(gaussians: Gaussians, cameras: Camera,
+                 options: RenderOptions = RenderOptions()) -> RenderOutput:
+  """`render` vmapped over a stacked Camera (see camera.stack): every output gains a leading axis.
+  One capacity serves every view; eagerly it grows to the max over views."""
+  batched = lambda opts: jax.vmap(_render, in_axes=(None, 0, None))(gaussians, cameras, opts)
+  return _with_capacity(batched, options, (gaussians.num, cameras.width, cameras.height))
+
+
+def _with_capacity(run, options: RenderOptions, scene_key) -> RenderOutput:
+  """Runs `run(options)` with a concrete capacity; re-runs with a grown one while it reports overflow and
+  its outputs are concrete (an eager call). Traced outputs are returned as they are."""
+  key = (dataclasses.replace(options, pair_capacity=None),) + tuple(scene_key)
+  opts = options
+  if opts.pair_capacity is None:
+    opts = dataclasses.replace(opts, pair_capacity=_capacity_cache.get(key, initial_capacity(scene_key[0], opts)))
+  out = run(opts)
+  needed = _concrete_max(out.num_pairs)
+  while needed is not None and needed > opts.pair_capacity:
+    opts = grow_capacity(opts, needed)
+    out = run(opts)
+    needed = _concrete_max(out.num_pairs)
+  if needed is not None and options.pair_capacity is None:
+    if len(_capacity_cache) > 256:
+      _capacity_cache.clear()
+    _capacity_cache[key] = opts.pair_capacity
+  return out
+
+
+def _concrete_max(x: jax.Array) -> int | None:
+  """max(x) as a Python int when x is concrete, None when it is traced."""
+  try:
+    return int(jnp.max(x))
+  except (jax.errors.ConcretizationTypeError, jax.errors.TracerIntegerConversionError, TypeError):
+    return None
+
+
+@functools.partial(jax.jit, static_argnames=("options",))
+def _render(gaussians: Gaussians, camera: Camera, options: RenderOptions,
+            means2d_offset: jax.Array | None = None) -> RenderOutput:
   degree = gaussians.sh_degree if options.sh_degree is None else options.sh_degree
   dtype = gaussians.means.dtype
   background = jnp.asarray(options.background, dtype)
+  capacity = options.pair_capacity
   if gaussians.num == 0:
     return _background_only(camera, background, options)
   splats = project(gaussians, camera, degree, options.near, options.antialiased)
   if means2d_offset is not None:
     splats = splats.replace(means2d=splats.means2d + jnp.where(splats.radii[:, None] > 0, means2d_offset, 0))
-  grid = binning.tile_grid(camera.width, camera.height, options.tile_size)
-  length = gaussians.num if options.exact else options.max_per_tile
-  lists, counts = binning.tile_lists(splats.means2d, splats.depths, splats.radii, options.tile_size,
-                                     grid, length)
-  acc = _rasterize(splats, lists, counts, grid, options)
-  t_final = jnp.exp(acc.log_t)
-  rgb = acc.values[..., :3] + t_final[..., None] * background
-  alpha = 1.0 - t_final
-  depth = acc.values[..., 3] / jnp.maximum(alpha, _DEPTH_ALPHA_FLOOR) if options.with_depth else None
-  untile = lambda x: _untile(x, grid, options.tile_size, camera) if x is not None else None
-  overflow = jnp.zeros((), jnp.int32) if options.exact else jnp.sum(counts > options.max_per_tile,
-                                                                     dtype=jnp.int32)
-  return RenderOutput(rgb=untile(rgb), alpha=untile(alpha) if options.with_alpha else None,
-                      depth=untile(depth), num_overflow_tiles=overflow, radii=splats.radii)
-
-
-def render_batch(gaussians: Gaussians, cameras: Camera,
-                 options: RenderOptions = RenderOptions()) -> RenderOutput:
-  """`render` vmapped over a stacked Camera (see camera.stack): every output gains a leading axis."""
-  return jax.vmap(render, in_axes=(None, 0, None))(gaussians, cameras, options)
-
-
-def _rasterize(splats: Splats2D, lists: jax.Array, counts: jax.Array, grid: tuple[int, int],
-               options: RenderOptions) -> composite.Accumulator:
-  """Composites each tile's list of splats over its pixels; returns per-tile accumulators [T, S*S]."""
-  ts = options.tile_size
-  pixels = _tile_pixel_centres(grid, ts, splats.means2d.dtype)  # [T, S*S, 2]
+  ts, length = options.tile_size, options.segment_size
+  grid = binning.tile_grid(camera.width, camera.height, ts)
+  num_tiles = grid[0] * grid[1]
+  pairs = binning.bin_pairs(splats.means2d, splats.cov2d, splats.depths, splats.opacities, splats.radii, ts,
+                            grid, capacity)
+  block = max(1, _BLOCK_PIXEL_PAIRS // (ts * ts * length))
+  slots = segments_lib.segment_capacity(capacity, num_tiles, length, block, options.max_per_tile)
+  segs, overflow_tiles = segments_lib.segment_layout(pairs, gaussians.num, length, slots, options.max_per_tile)
   values = splats.colors
   if options.with_depth:
     values = jnp.concatenate([values, splats.depths[:, None]], -1)
-  # Index N is the "no splat" sentinel of the lists: zero opacity never composites.
-  pad = lambda x: jnp.concatenate([x, jnp.zeros((1,) + x.shape[1:], x.dtype)])
-  means2d, conics, opacities, values = map(pad, (splats.means2d, splats.conics, splats.opacities, values))
-
-  def composite_lists(acc, idx):  # idx: [T, C] splat indices, one chunk of every tile's list
-    alpha = jax.vmap(composite.gaussian_alpha)(pixels, means2d[idx], conics[idx], opacities[idx])
-    return jax.vmap(composite.composite_chunk)(acc, alpha, values[idx])
-
-  acc = composite.Accumulator.empty((lists.shape[0], ts * ts), values.shape[-1], values.dtype)
-  if not options.exact:
-    return composite_lists(acc, lists)
-  sentinel = splats.radii.shape[0]
-  return _composite_in_chunks(composite_lists, acc, lists, jnp.max(counts), options.exact_chunk, sentinel)
-
-
-def _composite_in_chunks(composite_lists, acc, lists, max_count, chunk, sentinel):
-  """Exact mode: a scan over chunks of the full depth-sorted lists.
-
-  A chunk past every tile's count, or after every pixel has stopped, is skipped by lax.cond; the body is
-  rematerialised in the backward pass so memory stays at one chunk's worth of intermediates.
-  """
-  num_tiles, length = lists.shape
-  num_chunks = -(-length // chunk)
-  lists = jnp.pad(lists, ((0, 0), (0, num_chunks * chunk - length)), constant_values=sentinel)
-  chunks = jnp.moveaxis(lists.reshape(num_tiles, num_chunks, chunk), 1, 0)  # [chunks, T, C]
-
-  @jax.checkpoint
-  def step(acc, inputs):
-    start, idx = inputs
-    live = (start < max_count) & jnp.any(acc.log_t_seen >= composite.LOG_T_MIN)
-    return jax.lax.cond(live, composite_lists, lambda a, _: a, acc, idx), None
-
-  acc, _ = jax.lax.scan(step, acc, (jnp.arange(num_chunks) * chunk, chunks))
-  return acc
-
-
-def _tile_pixel_centres(grid: tuple[int, int], tile_size: int, dtype) -> jax.Array:
-  """[T, S*S, 2] (u, v) pixel centres of every tile, tiles row-major, pixels row-major inside a tile."""
-  tiles_x, tiles_y = grid
-  local = jnp.stack(jnp.meshgrid(jnp.arange(tile_size), jnp.arange(tile_size), indexing="xy"), -1)
-  origin = jnp.stack(jnp.meshgrid(jnp.arange(tiles_x), jnp.arange(tiles_y), indexing="xy"), -1)
-  centres = origin.reshape(-1, 1, 2) * tile_size + local.reshape(1, -1, 2) + 0.5
-  return centres.astype(dtype)
+  tile_values, log_t = composite.composite(splats.means2d, splats.conics, splats.opacities, values,
+                                           segs.splats, segs.tiles, segs.first, segs.count, ts, grid, block)
+  t_final = jnp.exp(log_t)
+  rgb = tile_values[..., :3] + t_final[..., None] * background
+  alpha = 1.0 - t_final
+  depth = tile_values[..., 3] / jnp.maximum(alpha, _DEPTH_ALPHA_FLOOR) if options.with_depth else None
+  untile = lambda x: _untile(x, grid, ts, camera) if x is not None else None
+  return RenderOutput(rgb=untile(rgb), alpha=untile(alpha) if options.with_alpha else None,
+                      depth=untile(depth), num_overflow_tiles=overflow_tiles, radii=splats.radii,
+                      num_pairs=pairs.num_pairs, overflowed=pairs.num_pairs > capacity, pair_capacity=capacity)
 
 
 def _untile(per_tile: jax.Array, grid: tuple[int, int], tile_size: int, camera: Camera) -> jax.Array:
@@ -187,4 +229,6 @@ def _background_only(camera: Camera, background: jax.Array, options: RenderOptio
   return RenderOutput(rgb=jnp.broadcast_to(background, shape + (3,)),
                       alpha=zeros if options.with_alpha else None,
                       depth=zeros if options.with_depth else None,
-                      num_overflow_tiles=jnp.zeros((), jnp.int32), radii=jnp.zeros((0,), jnp.int32))
+                      num_overflow_tiles=jnp.zeros((), jnp.int32), radii=jnp.zeros((0,), jnp.int32),
+                      num_pairs=jnp.zeros((), jnp.int32), overflowed=jnp.zeros((), bool),
+                      pair_capacity=options.pair_capacity)
