@@ -2,7 +2,6 @@
 under ../shared/data when present (skipped otherwise)."""
 import json
 import math
-from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
@@ -12,8 +11,9 @@ from scipy.spatial.transform import Rotation
 from conceal_jax.data import datasets
 from conceal_jax.splat.camera import look_at
 from conceal_jax.data.datasets import DatasetError
+from tests.helpers import DATA_DIR
 
-DATA = Path(__file__).parents[1] / ".." / "shared" / "data"
+DATA = DATA_DIR
 LEGO = DATA / "nerf_synthetic" / "lego"
 BEER = DATA / "colmap" / "beer"
 GL_FLIP = np.diag([1.0, -1.0, -1.0, 1.0])

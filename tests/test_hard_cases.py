@@ -13,7 +13,7 @@ from conceal_jax import Camera, RenderOptions, render, render_batch
 from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat import projection, sh as sh_lib
 from conceal_jax.splat import render as render_lib
-from tests.conftest import assert_finite_tree, make_camera, make_gaussians, random_gaussians, reference
+from tests.helpers import assert_finite_tree, make_camera, make_gaussians, random_gaussians, reference
 
 EXACT = RenderOptions(background=(0.2, 0.4, 0.6), with_depth=True)
 # A camera at the origin looking down +z: depths equal the world z coordinate exactly.

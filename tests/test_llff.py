@@ -1,6 +1,5 @@
 """LLFF loader: a tiny self-made forward-facing capture (poses_bounds.npy, images/, images_2/), and the
 real capture under ../shared/data when present (skipped otherwise)."""
-from pathlib import Path
 
 import imageio.v3 as iio
 import numpy as np
@@ -12,8 +11,9 @@ from conceal_jax.data.datasets import DatasetError
 from conceal_jax.data.llff import llff_bounds_box, load_llff
 from conceal_jax.gs import train
 from conceal_jax.splat.camera import camera_centers, look_at
+from tests.helpers import DATA_DIR
 
-BEER = Path(__file__).parents[1] / ".." / "shared" / "data" / "colmap" / "beer"
+BEER = DATA_DIR / "colmap" / "beer"
 WIDTH, HEIGHT, COUNT = 16, 12, 9
 TARGET = np.array([0.0, 0.0, 0.0])
 

@@ -8,7 +8,7 @@ import pytest
 
 from conceal_jax import RenderOptions
 from conceal_jax import render
-from tests.conftest import make_camera, random_gaussians, reference
+from tests.helpers import make_camera, random_gaussians, reference
 
 
 @pytest.mark.parametrize("seed,degree,antialiased,background,size", [

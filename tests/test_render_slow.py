@@ -7,7 +7,7 @@ import pytest
 from conceal_jax import RenderOptions
 from conceal_jax import render
 from experiments.bench_render import garden_camera, garden_scene
-from tests.conftest import DATA_DIR, reference
+from tests.helpers import DATA_DIR, reference
 
 pytestmark = pytest.mark.slow
 

@@ -8,7 +8,7 @@ import pytest
 
 from conceal_jax import RenderOptions, render
 from conceal_jax.splat.camera import Camera
-from tests.conftest import make_camera, random_gaussians
+from tests.helpers import make_camera, random_gaussians
 
 N = 37  # an odd count, so that [N, k] shapes in the program are recognisable
 

@@ -6,7 +6,7 @@ import pytest
 
 from conceal_jax.conceal import unet
 from conceal_jax.gs import metrics
-from tests.conftest import assert_finite_tree
+from tests.helpers import assert_finite_tree
 
 SMALL = 8
 

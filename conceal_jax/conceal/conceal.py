@@ -38,8 +38,9 @@ from conceal_jax.conceal import guidance, hidden as hidden_lib, key as key_lib, 
 from conceal_jax.conceal.objective import ConcealSettings, decoder_identity_objective, student_objective
 from conceal_jax.core import fileio, loop, settings as settings_lib
 from conceal_jax.data import ply
-from conceal_jax.gs import evaluate, metrics, optimizer
+from conceal_jax.gs import capacity, evaluate, metrics, optimizer
 from conceal_jax.splat import camera as camera_lib
+from conceal_jax.splat import render as render_lib
 from conceal_jax.splat.render import RenderOptions, render
 
 STUDENT_FILE = "student.ply"
@@ -84,7 +85,8 @@ def validate(config: ml_collections.ConfigDict) -> None:
 
 def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student_tx, decoder_tx,
                       traces: loop.TraceCounter | None = None):
-  """Builds step(state, data, view, normal_view) -> (state, stats), jitted with the state donated.
+  """Builds step(state, data, view, normal_view) -> (state, stats), jitted with the state donated. `options`
+  carry a pair capacity; a step whose renders overflowed it returns the state unchanged (gs.capacity).
 
   The student and the decoder share one backward pass of `student_objective` (its decoder half is
   lambda+ grad L_d^+); `decoder_identity_objective` has its own. The decoder update is the guided one
@@ -98,7 +100,7 @@ def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student
     updates, student_opt = student_tx.update(student_grad, state.student_opt, state.student)
     new_state = state.replace(step=state.step + 1, student=optax.apply_updates(state.student, updates),
                               student_opt=student_opt)
-    stats = dict(loss=total, normal=aux["normal"], plus=aux["plus"],
+    stats = dict(loss=total, normal=aux["normal"], plus=aux["plus"], num_pairs=aux["num_pairs"],
                  psnr=metrics.psnr(jnp.clip(aux["rgb"], 0, 1),
                                    data["teacher"][view] if s.distill else data["images"][view]))
     if s.use_decoder:
@@ -115,7 +117,7 @@ def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student
       new_state = new_state.replace(decoder=optax.apply_updates(state.decoder, updates), decoder_opt=decoder_opt)
       stats["minus"] = minus
       stats["loss"] = total + minus
-    return new_state, stats
+    return capacity.keep_unless_overflowed(aux["overflowed"], new_state, state), stats
 
   if traces is not None:
     step = traces.wrap("conceal_step", step)
@@ -168,7 +170,9 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   student_tx = optimizer.gaussian_optimizer(c.lr, scene.scene_extent())
   decoder_tx = optax.adam(c.decoder_lr, eps=optimizer.ADAM_EPS)
   traces = loop.TraceCounter()
-  step_fn = make_conceal_step(settings, options, student_tx, decoder_tx, traces)
+  steps = capacity.GrowingSteps(lambda _, opts: make_conceal_step(settings, opts, student_tx, decoder_tx, traces),
+                                options)
+  steps.grow(render_lib.initial_capacity(teacher.num, options))
   num_views = len(scene.train_cameras)
 
   def fresh():
@@ -177,7 +181,7 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
 
   def step(state, iteration):
     rng = np.random.default_rng([config.seed, iteration])
-    return step_fn(state, data, rng.integers(num_views), rng.integers(num_views))
+    return steps(None, state, data, rng.integers(num_views), rng.integers(num_views))
 
   result = loop.run("conceal", loop_settings(config), workdir, init_state=fresh, restore_template=lambda _: fresh(),
                     step=step, postfix_keys=("plus",), max_steps=max_steps)
@@ -195,6 +199,7 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   fileio.write_image(os.path.join(workdir, "hidden.png"), hidden)
   summary = dict(iterations=c.iterations, resumed_from=result.start, settings=dataclasses.asdict(settings),
                  num_gaussians=int(teacher.num), **result.timing(), traces=dict(traces.counts),
+                 pair_capacity=steps.capacity, capacity_reruns=steps.reruns,
                  history=result.history)
   fileio.write_json(os.path.join(workdir, SUMMARY_FILE), summary)
   scored = evaluate_concealment(config, workdir, scene, teacher, state.student, decoder, settings,

@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 
 import jax
+import jax.numpy as jnp
 
 from conceal_jax.conceal import guidance, reveal, unet
 from conceal_jax.gs import losses
@@ -71,23 +72,28 @@ def student_objective(student, decoder, data: dict, view, settings: ConcealSetti
   Without consistency, or in the released variant, the normal view is supervised by its ground-truth
   image with the 3D-GS photometric loss instead of L_kd; the released variant adds an L1 between the
   student's check render and the check view's image. aux: normal (the normal-view term), plus (L_d^+),
-  rgb (the student's normal render [H, W, 3]).
+  rgb (the student's normal render [H, W, 3]), num_pairs and overflowed (the larger need of the two
+  renders and whether either exceeded its static pair capacity; see gs.capacity).
   """
   s = settings
   camera = jax.tree.map(lambda x: x[view], data["cameras"])
-  rgb = render(student, camera, options).rgb
+  normal_out = render(student, camera, options)
+  rgb = normal_out.rgb
   if s.distill:
     normal = s.weight_kd * losses.distillation_loss(rgb, data["teacher"][view])
   else:
     normal = losses.photometric_loss(rgb, data["images"][view])
-  check_rgb = render(student, data["check_camera"], options).rgb
+  check_out = render(student, data["check_camera"], options)
+  check_rgb = check_out.rgb
   small = reveal.resize_for_decoder(check_rgb, s.hidden_size)
   revealed = reveal.decode(decoder, s.decoder_width, small) if s.use_decoder else small
   plus = losses.hidden_image_loss(revealed, data["hidden"])
   total = normal + s.weight_plus * plus
   if s.variant == "released":
     total = total + s.weight_check * losses.l1(check_rgb, data["check_image"])
-  return total, dict(normal=normal, plus=plus, rgb=rgb)
+  return total, dict(normal=normal, plus=plus, rgb=rgb,
+                     num_pairs=jnp.maximum(normal_out.num_pairs, check_out.num_pairs),
+                     overflowed=normal_out.overflowed | check_out.overflowed)
 
 
 def decoder_identity_objective(decoder, data: dict, normal_view, settings: ConcealSettings) -> jax.Array:

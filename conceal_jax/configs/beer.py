@@ -9,5 +9,4 @@ def get_config():
   config = colmap.get_config()
   config.data.path = "../shared/data/colmap/beer"
   config.data.downscale = 4.0
-  config.render.tile_size = 8
   return config

@@ -32,10 +32,10 @@ def get_config() -> ml_collections.ConfigDict:
   config.render = ml_collections.ConfigDict()
   config.render.sh_degree = ml_collections.config_dict.placeholder(int)  # None: every band the scene stores
   config.render.background = (1.0, 1.0, 1.0)  # train / eval / conceal use the dataset's background
-  config.render.tile_size = 16
-  # K nearest splats per tile (an approximation); None composites every splat (exact)
+  config.render.tile_size = 8
+  config.render.segment_size = 32   # pairs per compositing segment
+  # None (default) composites every splat (exact); an int K keeps each tile's K nearest (an approximation)
   config.render.max_per_tile = ml_collections.config_dict.placeholder(int)
-  config.render.max_per_tile = 256
   config.render.antialiased = False
 
   # train / eval / conceal modes: the dataset
@@ -82,7 +82,7 @@ def get_config() -> ml_collections.ConfigDict:
 
   config.eval = ml_collections.ConfigDict()
   config.eval.ply = ""               # scene to score; empty: <workdir>/point_cloud.ply
-  config.eval.exact = True           # score with max_per_tile None whatever render.max_per_tile says
+  config.eval.exact = True           # score exactly even when render.max_per_tile truncates
   config.eval.max_views = 0          # 0: the whole test split
   config.eval.lpips_net = "vgg"
 

@@ -18,8 +18,6 @@ def get_config():
   config.mode = "train"
   config.data.path = "demo"
   config.data.background = "white"
-  # 8 px tiles and a sparser random start keep most tiles within K = 256 splats early in training.
-  config.render.tile_size = 8
   config.init.num_random_points = 3000
   config.train.iterations = 1500
   config.train.sh_increase_every = 300

@@ -22,9 +22,10 @@ from flax import struct
 
 from conceal_jax.core import fileio, loop, settings
 from conceal_jax.data import datasets, ply
-from conceal_jax.gs import densify, evaluate, init, losses, metrics, optimizer
+from conceal_jax.gs import capacity, densify, evaluate, init, losses, metrics, optimizer
 from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat.gaussians import Gaussians
+from conceal_jax.splat import render as render_lib
 from conceal_jax.splat.render import RenderOptions, render
 
 TRAIN_FILE = "train.json"
@@ -149,7 +150,8 @@ def masked(gaussians: Gaussians, alive: jax.Array) -> Gaussians:
 def make_train_step(tx: optax.GradientTransformation, options: RenderOptions, ssim_weight: float,
                     traces: loop.TraceCounter | None = None):
   """Builds step(state, images [V, H, W, 3], cameras (stacked), view) -> (state, stats), jitted with the
-  state donated. It also accumulates the densification statistics (3D-GS Sec. 5.2): the NDC norm of each
+  state donated; `options` must carry a pair capacity, and a step whose render overflowed it returns the
+  state unchanged (see gs.capacity). It also accumulates the densification statistics (3D-GS Sec. 5.2): the NDC norm of each
   visible Gaussian's 2D-mean gradient, its view count, and its largest screen radius."""
 
   def loss_fn(gaussians, offsets, alive, image, camera):
@@ -171,8 +173,8 @@ def make_train_step(tx: optax.GradientTransformation, options: RenderOptions, ss
         grad_count=state.grad_count + visible.astype(jnp.int32),
         max_radii=jnp.where(visible, jnp.maximum(state.max_radii, out.radii), state.max_radii))
     stats = dict(loss=loss, psnr=metrics.psnr(jnp.clip(out.rgb, 0, 1), image), overflow=out.num_overflow_tiles,
-                 num_gaussians=jnp.sum(state.alive))
-    return new_state, stats
+                 num_gaussians=jnp.sum(state.alive), num_pairs=out.num_pairs)
+    return capacity.keep_unless_overflowed(out.overflowed, new_state, state), stats
 
   if traces is not None:
     step = traces.wrap("train_step", step)
@@ -244,17 +246,22 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   base_options = evaluate.render_options(config, scene.background)
   white = tuple(scene.background) == (1.0, 1.0, 1.0)
   traces = loop.TraceCounter()
-  steps, variants = {}, set()  # one jitted step per SH degree; it compiles once per buffer capacity
+  variants = set()  # (SH degree, buffer capacity, pair capacity): each compiles the step once
+  # One jitted step per SH degree and pair capacity; the pair capacity grows when a render needs more. It
+  # starts from the checkpoint's, or from a guess for the buffer size at the first step.
+  build = lambda degree, options: make_train_step(tx, dataclasses.replace(options, sh_degree=degree),
+                                                  t.ssim_weight, traces)
+  steps = capacity.GrowingSteps(build, base_options)
 
   def step(state, iteration):
+    if steps.capacity is None:
+      steps.grow(render_lib.initial_capacity(int(state.alive.shape[0]), base_options))
     degree = t.sh_degree_at(iteration)
-    if degree not in steps:
-      steps[degree] = make_train_step(tx, dataclasses.replace(base_options, sh_degree=degree), t.ssim_weight,
-                                      traces)
     num_views = len(scene.train_images)
     view = view_order(config.seed, (iteration - 1) // num_views, num_views)[(iteration - 1) % num_views]
-    variants.add((degree, int(state.alive.shape[0])))
-    state, stats = steps[degree](state, images, cameras, view)
+    variants.add((degree, int(state.alive.shape[0]), steps.capacity))
+    state, stats = steps(degree, state, images, cameras, view)
+    variants.add((degree, int(state.alive.shape[0]), steps.capacity))  # a re-run compiled a new one
     return density_control(state, iteration, schedule, params, extent, white, config.seed), stats
 
   def quick_test_psnr(state, iteration):
@@ -269,11 +276,13 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
     return create_train_state(initial_gaussians(config, scene, np.random.default_rng(config.seed)), tx)
 
   def template(meta):
+    steps.grow(meta.get("pair_capacity", 0))
     return create_train_state(Gaussians.empty(t.sh_degree), tx, meta["capacity"])
 
   result = loop.run("train", loop_settings(config), workdir, init_state=fresh, restore_template=template,
                     step=step, after_window=quick_test_psnr, postfix_keys=("num_gaussians",),
-                    checkpoint_meta=lambda state: dict(capacity=int(state.alive.shape[0])), max_steps=max_steps)
+                    checkpoint_meta=lambda state: dict(capacity=int(state.alive.shape[0]),
+                                                       pair_capacity=steps.capacity), max_steps=max_steps)
   if not result.finished:
     return dict(stopped_at=int(result.state.step))
 
@@ -281,6 +290,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   ply.save_ply(os.path.join(workdir, evaluate.SCENE_FILE), gaussians)
   summary = dict(iterations=config.train.iterations, resumed_from=result.start, num_gaussians=int(gaussians.num),
                  **result.timing(), compiled_step_variants=sorted(variants), traces=dict(traces.counts),
+                 pair_capacity=steps.capacity, capacity_reruns=steps.reruns,
                  history=result.history)
   fileio.write_json(os.path.join(workdir, TRAIN_FILE), summary)
   scored = evaluate.evaluate_scene(jax.tree.map(jnp.asarray, gaussians), scene,

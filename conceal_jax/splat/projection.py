@@ -1,4 +1,5 @@
-"""EWA splatting: project 3D Gaussians to screen-space 2D Gaussians (3D-GS eq. 5, REFERENCE s.4).
+"""EWA splatting: project 3D Gaussians to screen-space 2D Gaussians (3D-GS, Kerbl et al. 2023,
+arXiv:2308.04079, Sec. 4, eq. 5).
 
 Every function works on all N Gaussians at once and keeps values and gradients finite for any input:
 Gaussians that cannot be drawn (behind the near plane, degenerate or non-finite) are culled by
