@@ -1,6 +1,9 @@
 """Shared pytest fixtures (helper functions live in tests/helpers.py)."""
 from __future__ import annotations
 
+import os
+import tempfile
+
 import jax
 import pytest
 
@@ -9,3 +12,14 @@ import pytest
 def x64():
   with jax.enable_x64(True):
     yield
+
+
+def pytest_configure(config):
+  """XLA's persistent compilation cache: tests that build the same program again (a resumed run, the
+  same render shapes in several tests) load it instead of compiling it again. Tracing still happens, so
+  the trace-count assertions keep their meaning. CONCEAL_JAX_TEST_XLA_CACHE chooses the folder."""
+  del config
+  folder = os.environ.get("CONCEAL_JAX_TEST_XLA_CACHE") or os.path.join(
+      tempfile.gettempdir(), f"conceal_jax_xla_cache_{os.getuid()}")
+  jax.config.update("jax_compilation_cache_dir", folder)
+  jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
