@@ -40,7 +40,8 @@ def get_config() -> ml_collections.ConfigDict:
 
   # train / eval / conceal modes: the dataset
   config.data = ml_collections.ConfigDict()
-  config.data.path = "demo"          # 'demo' (generated, cached) or a Blender / COLMAP / transforms.json folder
+  # 'demo' (generated, cached) or a Blender / COLMAP / transforms.json / LLFF folder
+  config.data.path = "demo"
   config.data.downscale = 1.0        # image resolution divisor
   config.data.background = "default"  # 'white', 'black' or 'default' (white for Blender, black otherwise)
 
