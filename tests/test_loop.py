@@ -5,17 +5,25 @@ import jax
 import jax.numpy as jnp
 import pytest
 
+from flax import struct
+
 from conceal_jax.core import loop
 
 
+@struct.dataclass
+class ToyState:
+  step: jax.Array
+  x: jax.Array
+
+
 def _toy(traces: loop.TraceCounter, blow_up_at: int = 0):
-  """A state {step, x} whose step adds the iteration to x; loss is x, NaN from `blow_up_at` on."""
+  """A state (step, x) whose step adds the iteration to x; loss is x, NaN from `blow_up_at` on."""
   def body(state, iteration):
-    x = state["x"] + iteration
+    x = state.x + iteration
     loss = jnp.where((iteration >= blow_up_at) & (blow_up_at > 0), jnp.nan, x)
-    return dict(step=state["step"] + 1, x=x), dict(loss=loss, psnr=-x)
+    return ToyState(step=state.step + 1, x=x), dict(loss=loss, psnr=-x)
   step = jax.jit(traces.wrap("toy_step", body), donate_argnums=0)
-  fresh = lambda: dict(step=jnp.zeros((), jnp.int32), x=jnp.zeros(()))
+  fresh = lambda: ToyState(step=jnp.zeros((), jnp.int32), x=jnp.zeros(()))
   return step, fresh
 
 
@@ -29,11 +37,11 @@ def _run(tmp_path, traces, max_steps=None, blow_up_at=0, iterations=10):
 def test_resumed_run_equals_an_uninterrupted_one(tmp_path):
   straight = _run(tmp_path / "a", loop.TraceCounter())
   stopped = _run(tmp_path / "b", loop.TraceCounter(), max_steps=5)
-  assert not stopped.finished and int(stopped.state["step"]) == 5
+  assert not stopped.finished and int(stopped.state.step) == 5
   traces = loop.TraceCounter()
   resumed = _run(tmp_path / "b", traces)  # a stop checkpoints where it stops
   assert resumed.finished and resumed.start == 5
-  assert float(resumed.state["x"]) == float(straight.state["x"]) == sum(range(1, 11))
+  assert float(resumed.state.x) == float(straight.state.x) == sum(range(1, 11))
   # log windows end at multiples of 3, at checkpoints (multiples of 4) and at the last step
   assert [h["step"] for h in straight.history] == [3, 4, 6, 8, 9, 10]
   assert [h["step"] for h in resumed.history] == [3, 4, 5, 6, 8, 9, 10]

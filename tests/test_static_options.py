@@ -112,9 +112,3 @@ def test_camera_constructors_agree():
   assert float(fov.fx) == pytest.approx(50.0) and float(fov.cy) == pytest.approx(12.0)
   half = fov.rescale(2)
   assert (half.width, half.height) == (16, 12) and float(half.fx) == pytest.approx(25.0)
-
-
-def test_prefix_count_matches_cumsum():
-  from conceal_jax.splat.binning import prefix_count
-  mask = np.random.default_rng(0).uniform(size=1000) < 0.3
-  np.testing.assert_array_equal(prefix_count(jax.numpy.asarray(mask), block=64), np.cumsum(mask))

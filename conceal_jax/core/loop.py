@@ -22,7 +22,7 @@ from tqdm import tqdm
 from conceal_jax.core import checkpoint
 
 CHECKPOINT_DIR = "checkpoints"
-State = Any
+State = Any  # a pytree with an int32 `step` field (a flax.struct dataclass)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -97,7 +97,7 @@ def run(name: str, settings: LoopSettings, workdir: str, *, init_state: Callable
     logging.info("%s: resuming from %s", name, path)
     state = jax.tree.map(jax.numpy.asarray, checkpoint.restore(restore_template(meta), leaves, path))
     history, windows = meta["history"], [tuple(w) for w in meta.get("windows", [])]
-  start = int(jax.device_get(_step_of(state)))
+  start = int(jax.device_get(state.step))
   end = settings.iterations if max_steps is None else min(settings.iterations, max_steps)
   bar = tqdm(total=settings.iterations, initial=start, desc=name, dynamic_ncols=True,
              disable=not settings.progress_bar)
@@ -128,6 +128,3 @@ def run(name: str, settings: LoopSettings, workdir: str, *, init_state: Callable
   return LoopResult(state=state, history=history, start=start, finished=end == settings.iterations,
                     windows=windows)
 
-
-def _step_of(state: State):
-  return state["step"] if isinstance(state, dict) else state.step

@@ -276,7 +276,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
     return create_train_state(initial_gaussians(config, scene, np.random.default_rng(config.seed)), tx)
 
   def template(meta):
-    steps.grow(meta.get("pair_capacity", 0))
+    if meta.get("pair_capacity"):
+      steps.grow(meta["pair_capacity"])
     return create_train_state(Gaussians.empty(t.sh_degree), tx, meta["capacity"])
 
   result = loop.run("train", loop_settings(config), workdir, init_state=fresh, restore_template=template,

@@ -20,7 +20,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-ALPHA_MIN = 1.0 / 255.0
+from conceal_jax.splat.composite import ALPHA_MIN
+
 # The pair test is made slightly generous (relative and absolute slack on the ellipse level) so that float32
 # rounding in it can never drop a pixel whose own alpha evaluation reaches 1/255.
 _LEVEL_SLACK_REL = 1e-3
@@ -56,6 +57,12 @@ def alpha_level(opacities: jax.Array) -> jax.Array:
   Negative where o < 1/255 (no pixel at all). 3D-GS eq. 2-3 with the 1/255 skip of its rasterizer.
   """
   return 2.0 * jnp.log(jnp.maximum(opacities / ALPHA_MIN, 1e-30))
+
+
+def pair_test_level(opacities: jax.Array, radii: jax.Array) -> jax.Array:
+  """[N] `alpha_level` made slightly generous for the pair tests; -1 (no pair) for culled splats."""
+  level = alpha_level(opacities)
+  return jnp.where((radii > 0) & (level >= 0), level * (1 + _LEVEL_SLACK_REL) + _LEVEL_SLACK_ABS, -1.0)
 
 
 def ellipse_span(s_uu: jax.Array, s_uv: jax.Array, s_vv: jax.Array, level: jax.Array, v_lo: jax.Array,
@@ -182,8 +189,7 @@ def bin_pairs(means2d: jax.Array, cov2d: jax.Array, depths: jax.Array, opacities
   tiles_x, tiles_y = grid
   num_tiles = tiles_x * tiles_y
   order = jnp.argsort(jnp.where(radii > 0, depths, jnp.inf), stable=True).astype(jnp.int32)
-  level = alpha_level(opacities[order])
-  level = jnp.where((radii[order] > 0) & (level >= 0), level * (1 + _LEVEL_SLACK_REL) + _LEVEL_SLACK_ABS, -1.0)
+  level = pair_test_level(opacities[order], radii[order])
   m2d, cov = means2d[order], cov2d[order]
   rect_min, rect_max = tile_rects(m2d, radii[order], tile_size, grid)
   row_first, row_count = splat_rows(m2d, cov, level, rect_min, rect_max, tile_size)
@@ -256,7 +262,7 @@ def pair_counts_by_rule(means2d: jax.Array, cov2d: jax.Array, opacities: jax.Arr
     lo.append(start)
     hi.append(start + count)
   square = area(jnp.stack(lo, -1), jnp.stack(hi, -1) * seen[:, None] + jnp.stack(lo, -1) * ~seen[:, None])
-  level = jnp.where((radii > 0) & seen, level * (1 + _LEVEL_SLACK_REL) + _LEVEL_SLACK_ABS, -1.0)
+  level = pair_test_level(opacities, radii)
   row_first, row_count = splat_rows(means2d, cov2d, level, rect_min, rect_max, tile_size)
   max_rows = grid[1]
 
@@ -269,17 +275,3 @@ def pair_counts_by_rule(means2d: jax.Array, cov2d: jax.Array, opacities: jax.Arr
   return dict(inria_rect=area(rect_min, rect_max),
               opacity_cull=area(rect_min, jnp.where(seen[:, None], rect_max, rect_min)),
               opacity_extent=square, ellipse=ellipse)
-
-
-def prefix_count(mask: jax.Array, block: int = 128) -> jax.Array:
-  """[N] bool -> [N] float32 running count of True (inclusive); exact for N < 2^24.
-
-  A blocked prefix sum: a small triangular matmul inside blocks of `block` and a short cumsum across
-  blocks. On CPU this is several times faster than jnp.cumsum, which XLA lowers to a reduce_window.
-  """
-  n = mask.shape[0]
-  padded = -(-n // block) * block
-  x = jnp.pad(mask.astype(jnp.float32), (0, padded - n)).reshape(-1, block)
-  within = x @ jnp.triu(jnp.ones((block, block), jnp.float32))
-  totals = within[:, -1]
-  return (within + (jnp.cumsum(totals) - totals)[:, None]).reshape(-1)[:n]

@@ -29,12 +29,12 @@ LOG_T_MIN = math.log(T_MIN)
 
 
 def pair_alpha(pixels: jax.Array, means2d: jax.Array, conics: jax.Array,
-               opacities: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array, jax.Array]:
+               opacities: jax.Array) -> tuple[jax.Array, jax.Array]:
   """alpha = min(0.99, o exp(-0.5 d^T Sigma'^-1 d)), 0 where skipped (3D-GS eq. 2-3), for segments.
 
   pixels: [P, 2] pixel centres relative to each segment's tile origin; means2d: [S, L, 2] (same frame);
-  conics: [S, L, 3] (A, B, C); opacities: [S, L]. Returns alpha [S, P, L], the exponentiated power
-  exp(min(power, 0)) [S, P, L], and dx, dy [S, P, L]. A positive power can only come from rounding in a
+  conics: [S, L, 3] (A, B, C); opacities: [S, L]. Returns alpha [S, P, L] and the exponentiated power
+  exp(min(power, 0)) [S, P, L]. A positive power can only come from rounding in a
   near-singular conic; it is skipped, as in 3D-GS.
   """
   dx = pixels[None, :, 0, None] - means2d[:, None, :, 0]
@@ -44,7 +44,7 @@ def pair_alpha(pixels: jax.Array, means2d: jax.Array, conics: jax.Array,
   falloff = jnp.exp(jnp.minimum(power, 0.0))
   alpha = jnp.minimum(ALPHA_MAX, opacities[:, None, :] * falloff)
   alpha = jnp.where((power <= 0) & (alpha >= ALPHA_MIN), alpha, 0.0)
-  return alpha, falloff, dx, dy
+  return alpha, falloff
 
 
 def running_sum(x: jax.Array) -> jax.Array:
@@ -151,7 +151,7 @@ def _composite_fwd(means2d, conics, opacities, values, seg_splats, seg_tiles, se
     out_values, out_log_t, in_front_log_t, in_front_values, carry_log_t, carry_values = state
     idx, tiles, first, m, con, op, val = _block_inputs(b, block, seg_splats, seg_tiles, seg_first, origins,
                                                        *padded)
-    alpha, _, _, _ = pair_alpha(pixels, m, con, op)
+    alpha, _ = pair_alpha(pixels, m, con, op)
     log_1m = jnp.log1p(-alpha)
     cum = running_sum(log_1m)
     start, carry_log_t = chain_segments(cum[..., -1], first, carry_log_t)
@@ -190,7 +190,7 @@ def _composite_bwd(tile_size, grid, block, residuals, cotangents):
   def body(b, grads):
     idx, tiles, first, m, con, op, val = _block_inputs(b, block, seg_splats, seg_tiles, seg_first, origins,
                                                        *padded)
-    alpha, falloff, _, _ = pair_alpha(pixels, m, con, op)
+    alpha, falloff = pair_alpha(pixels, m, con, op)
     log_1m = jnp.log1p(-alpha)
     start = jax.lax.dynamic_slice_in_dim(in_front_log_t, b * block, block)
     front_values = jax.lax.dynamic_slice_in_dim(in_front_values, b * block, block)

@@ -95,16 +95,20 @@ class RenderOutput:
   """rgb: [H, W, 3]; alpha: [H, W] or None; depth: [H, W] or None (expected z of the visible splats);
   num_overflow_tiles: int32, tiles with more than max_per_tile pairs (0 in the exact default);
   radii: [N] int32 3D-GS screen radius (3 sigma) of every Gaussian in pixels, 0 where culled;
-  num_pairs: int32 splat-tile pairs the image needs; overflowed: bool, num_pairs > pair_capacity (the
-  image is then missing pairs: re-run with grow_capacity); pair_capacity: static int, the capacity used."""
+  num_pairs: int32 splat-tile pairs the image needs; pair_capacity: static int, the capacity used."""
   rgb: jax.Array
   alpha: jax.Array | None
   depth: jax.Array | None
   num_overflow_tiles: jax.Array
   radii: jax.Array
   num_pairs: jax.Array
-  overflowed: jax.Array
   pair_capacity: int = struct.field(pytree_node=False, default=0)
+
+  @property
+  def overflowed(self) -> jax.Array:
+    """bool (batched like num_pairs): the image needed more pairs than the buffer holds, so it is missing
+    some; re-run with grow_capacity."""
+    return self.num_pairs > self.pair_capacity
 
 
 def capacity_bucket(needed: int) -> int:
@@ -211,7 +215,7 @@ def _render(gaussians: Gaussians, camera: Camera, options: RenderOptions,
   untile = lambda x: _untile(x, grid, ts, camera) if x is not None else None
   return RenderOutput(rgb=untile(rgb), alpha=untile(alpha) if options.with_alpha else None,
                       depth=untile(depth), num_overflow_tiles=overflow_tiles, radii=splats.radii,
-                      num_pairs=pairs.num_pairs, overflowed=pairs.num_pairs > capacity, pair_capacity=capacity)
+                      num_pairs=pairs.num_pairs, pair_capacity=capacity)
 
 
 def _untile(per_tile: jax.Array, grid: tuple[int, int], tile_size: int, camera: Camera) -> jax.Array:
@@ -230,5 +234,4 @@ def _background_only(camera: Camera, background: jax.Array, options: RenderOptio
                       alpha=zeros if options.with_alpha else None,
                       depth=zeros if options.with_depth else None,
                       num_overflow_tiles=jnp.zeros((), jnp.int32), radii=jnp.zeros((0,), jnp.int32),
-                      num_pairs=jnp.zeros((), jnp.int32), overflowed=jnp.zeros((), bool),
-                      pair_capacity=options.pair_capacity)
+                      num_pairs=jnp.zeros((), jnp.int32), pair_capacity=options.pair_capacity)
