@@ -59,6 +59,15 @@ def test_gaussian_window():
   np.testing.assert_allclose(w[4] / w[5], np.exp(-1 / (2 * 1.5**2)))
 
 
+@pytest.mark.parametrize("n", [1, 4, 11, 23])
+def test_blur_matrix_is_the_zero_padded_same_convolution(n):
+  w = metrics.gaussian_window_1d()
+  x = np.random.default_rng(n).normal(size=n)
+  # The window is symmetric, so correlation and convolution agree; mode="same" pads with zeros.
+  np.testing.assert_allclose(metrics.blur_matrix(n, w) @ x, np.convolve(x, w, mode="same")[:n] if n >= 11
+                             else np.convolve(x, w, mode="full")[5:5 + n], rtol=1e-12, atol=1e-15)
+
+
 @pytest.mark.parametrize("sigma", [0.02, 0.1, 0.3])
 def test_ssim_matches_float64_zero_padded_reference(sigma):
   a = smooth_image(37, 52)
