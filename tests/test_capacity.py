@@ -47,6 +47,29 @@ def test_overflowing_step_is_re_run_with_a_grown_capacity():
                reference.gaussians)
 
 
+def test_capacity_shrinks_to_what_a_window_needed_and_grows_back():
+  """A fake step reporting a chosen need: the capacity falls once a window needed far less, and an
+  overflow after that re-runs the step with a grown capacity as before."""
+  built = []
+
+  def build(key, opts):
+    built.append(opts.pair_capacity)
+    return lambda state, need: (state + 1, dict(num_pairs=jnp.asarray(need)))
+
+  steps = capacity.GrowingSteps(build, RenderOptions(pair_capacity=65536), shrink_window=3)
+  state = 0
+  for need in (5000, 6000, 4000):
+    state, _ = steps(None, state, need)
+  # 6000 * 1.25 = 7500 -> bucket 8192, at least two sqrt(2) buckets below 65536
+  assert steps.capacity == 8192 and steps.shrinks == 1 and steps.reruns == 0
+  state, stats = steps(None, state, 10_000)
+  assert steps.reruns == 1 and steps.capacity >= 10_000 and state == 5  # the overflowing call ran twice
+  for need in (9000, 9000):
+    state, _ = steps(None, state, need)
+  assert steps.shrinks == 1  # 9000 * 1.25 needs about the current bucket: no thrashing
+  assert built == [65536, 8192, steps.capacity]
+
+
 def test_a_step_that_overflows_returns_its_state_unchanged():
   g, camera, options, needed, image, tx = _setup()
   step = train.make_train_step(tx, dataclasses.replace(options, pair_capacity=1024), 0.2)

@@ -34,6 +34,27 @@ def test_clone_split_and_keep():
   np.testing.assert_allclose(np.exp(out.log_scales[4:]), np.exp(g.log_scales[[2, 2]]) / 1.6, rtol=1e-6)
 
 
+@pytest.mark.parametrize("cap, expected_source", [
+    (0, [0, 1, 3, -1, -1, -1]),  # no limit: as above
+    (6, [0, 1, 3, -1, -1, -1]),  # 4 live + 2 candidates fit exactly
+    (5, [0, 1, 2, 3, -1]),       # room for one: the larger gradient (the clone of 0, 5e-4) wins
+    (4, [0, 1, 2, 3]),           # full: nothing is densified
+    (3, [0, 1, 2, 3])])          # over the cap already: nothing is densified, nothing removed for it
+def test_max_gaussians_keeps_the_strongest_candidates(cap, expected_source):
+  small, large = np.log([0.01] * 3), np.log([0.05, 0.1, 0.02])
+  g = scene([small, small, large, large], [0.5, 0.5, 0.5, 0.5])
+  grads = np.array([5e-4, 1e-4, 3e-4, 1e-4])
+  out, source = densify.densify_and_prune(g, grads, np.zeros(4), EXTENT, DensifyParams(max_gaussians=cap),
+                                          False, np.random.default_rng(0))
+  np.testing.assert_array_equal(source, expected_source)
+  assert out.num == len(expected_source)
+
+
+def test_max_gaussians_must_not_be_negative():
+  with pytest.raises(ValueError, match="max_gaussians"):
+    DensifyParams(max_gaussians=-1)
+
+
 def test_split_samples_children_from_the_parent_gaussian():
   """Children centres = parent + R (s * z), z ~ N(0, I): check against an independent float64 draw."""
   angle = 0.7
@@ -70,6 +91,16 @@ def test_new_gaussians_escape_the_screen_size_prune():
     (1500, 2048, 2048), (2049, 2048, 3072), (300, 2048, 1024), (600, 2048, 2048)])
 def test_capacity_buckets(count, current, expected):
   assert densify.capacity_for(count, current) == expected
+
+
+@pytest.mark.parametrize("count,current,limit,expected", [
+    (3000, 0, 2500, 3072),       # above the cap (e.g. a large start): the cap does not apply
+    (2500, 0, 2500, 2500),       # the bucket would be 3072: the cap is the most ever needed
+    (2049, 2048, 2500, 2500),
+    (1500, 2048, 2500, 2048),    # fits the current buffer: kept
+    (30000, 143360, 40000, 40000)])  # a buffer above the cap shrinks once the count is under the cap
+def test_capacity_never_exceeds_the_gaussian_cap(count, current, limit, expected):
+  assert densify.capacity_for(count, current, limit) == expected
 
 
 def test_capacity_grows_geometrically():

@@ -88,6 +88,18 @@ def test_position_learning_rate_is_log_linear():
                              [1e-2, 1e-3, 1e-4, 1e-4], rtol=1e-5)
 
 
+def test_position_learning_rate_decays_over_the_run_unless_given_a_length():
+  lr = demo.get_config().train.lr
+  lr.means_init, lr.means_final = 1e-2, 1e-4
+  lr.means_steps = 0
+  assert optimizer.means_decay_steps(lr, 400) == 400
+  lr.means_steps = 100
+  assert optimizer.means_decay_steps(lr, 400) == 100
+  lr.means_steps = 0
+  with pytest.raises(ValueError, match="means_steps"):
+    optimizer.gaussian_optimizer(lr, 1.0, run_steps=0)
+
+
 def test_learning_rates_per_field():
   """After one Adam step from zero moments each update is -lr * sign(grad) (up to eps)."""
   config = demo.get_config()

@@ -47,6 +47,11 @@ STUDENT_FILE = "student.ply"
 DECODER_FILE = "decoder.msgpack"
 KEY_FILE = "key.json"
 SUMMARY_FILE = "conceal.json"
+# Leakage near the key: the student at the check pose moved by these fractions of the scene extent, or
+# turned by these degrees, each in NEAR_DIRECTIONS random directions (issue: a guessed pose must not reveal).
+NEAR_TRANSLATIONS = (0.02, 0.05)
+NEAR_ROTATIONS_DEG = (2.0, 5.0)
+NEAR_DIRECTIONS = 4
 
 
 @struct.dataclass
@@ -72,6 +77,7 @@ def validate(config: ml_collections.ConfigDict) -> None:
   c = config.conceal
   settings_from_config(config)
   loop_settings(config)
+  optimizer.means_decay_steps(c.lr, c.iterations)
   evaluate.validate(config)
   if c.key_kind not in key_lib.KEY_KINDS:
     raise ValueError(f"conceal.key_kind must be one of {key_lib.KEY_KINDS}, got {c.key_kind!r}")
@@ -167,7 +173,7 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
                  else render(teacher, check_camera, options).rgb)
   data = build_data(scene, teacher, options, check_camera, check_image, hidden, settings.hidden_size)
 
-  student_tx = optimizer.gaussian_optimizer(c.lr, scene.scene_extent())
+  student_tx = optimizer.gaussian_optimizer(c.lr, scene.scene_extent(), c.iterations)
   decoder_tx = optax.adam(c.decoder_lr, eps=optimizer.ADAM_EPS)
   traces = loop.TraceCounter()
   steps = capacity.GrowingSteps(lambda _, opts: make_conceal_step(settings, opts, student_tx, decoder_tx, traces),
@@ -199,7 +205,7 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   fileio.write_image(os.path.join(workdir, "hidden.png"), hidden)
   summary = dict(iterations=c.iterations, resumed_from=result.start, settings=dataclasses.asdict(settings),
                  num_gaussians=int(teacher.num), **result.timing(), traces=dict(traces.counts),
-                 pair_capacity=steps.capacity, capacity_reruns=steps.reruns,
+                 pair_capacity=steps.capacity, capacity_reruns=steps.reruns, capacity_shrinks=steps.shrinks,
                  history=result.history)
   fileio.write_json(os.path.join(workdir, SUMMARY_FILE), summary)
   scored = evaluate_concealment(config, workdir, scene, teacher, state.student, decoder, settings,
@@ -211,7 +217,8 @@ def evaluate_concealment(config, workdir, scene, teacher, student, decoder, sett
                          check_camera, options: RenderOptions, hidden: np.ndarray) -> dict:
   """metrics.json: render quality of student and teacher on the test split (vs ground truth, and the
   student vs the teacher), hidden-image recovery at the check view, and leakage: the best SSIM to the
-  hidden image of the decoder output over the student's test views and at the clean teacher's check view."""
+  hidden image of the decoder output over the student's test views, at the clean teacher's check view
+  and at the student's poses near the check view (near_check: the best SSIM per distance)."""
   eval_opts = evaluate.eval_options(config, scene.background)
   cameras, targets, names = evaluate.held_out_views(scene, config.eval.max_views)
   student_renders = evaluate.render_images(student, cameras, eval_opts)
@@ -223,17 +230,28 @@ def evaluate_concealment(config, workdir, scene, teacher, student, decoder, sett
   fileio.write_image(os.path.join(workdir, "revealed.png"), revealed)
   teacher_revealed = np.asarray(reveal.reveal_image(teacher, check_camera, options, decoder, width, size))
   fileio.write_image(os.path.join(workdir, "teacher_revealed.png"), teacher_revealed)
-  # Leakage is scored on the student's own test renders, as a viewer of the shared scene would see them.
+  # Leakage is scored on the student's own test renders, as a viewer of the shared scene would see them,
+  # and at poses near the key, as someone guessing it would.
   decoded_tests = reveal.reveal_renders(decoder, student_renders, width, size)
   hidden_batch = jnp.broadcast_to(jnp.asarray(hidden), decoded_tests.shape)
   ssim_to_hidden = np.asarray(metrics.batched_ssim(decoded_tests, hidden_batch))
+  near = key_lib.nearby_cameras(check_camera, scene.scene_extent(), NEAR_TRANSLATIONS, NEAR_ROTATIONS_DEG,
+                                NEAR_DIRECTIONS)
+  decoded_near = reveal.reveal_renders(decoder, evaluate.render_images(student, [c for _, _, c in near], options),
+                                       width, size)
+  ssim_near = np.asarray(metrics.batched_ssim(decoded_near, jnp.broadcast_to(jnp.asarray(hidden), decoded_near.shape)))
+  near_check = [dict(kind=kind, value=value, max_ssim=float(max(s for (k, v, _), s in zip(near, ssim_near)
+                                                                if (k, v) == (kind, value))))
+                for kind, value in dict.fromkeys((k, v) for k, v, _ in near)]
   result = dict(
       student_vs_ground_truth=evaluate.image_metrics(student_renders, targets, names, net)["mean"],
       teacher_vs_ground_truth=evaluate.image_metrics(teacher_renders, targets, names, net)["mean"],
       student_vs_teacher=evaluate.image_metrics(student_renders, teacher_renders, names, net)["mean"],
       hidden=dict(psnr=float(metrics.psnr(revealed, hidden)), ssim=float(metrics.ssim(revealed, hidden))),
       leakage=dict(max_ssim_student_test_views=float(ssim_to_hidden.max()),
-                   ssim_teacher_check_view=float(metrics.ssim(teacher_revealed, hidden))),
+                   ssim_teacher_check_view=float(metrics.ssim(teacher_revealed, hidden)),
+                   max_ssim_near_check=float(ssim_near.max())),
+      near_check=near_check,
       num_test_views=len(names), lpips_net=metrics.LPIPS_NET_NAME[net], eval_render_options=repr(eval_opts))
   fileio.write_json(os.path.join(workdir, evaluate.METRICS_FILE), result)
   return result

@@ -29,24 +29,44 @@ class DensifyParams:
   """grad_threshold: mean NDC 2D-mean gradient norm that triggers densification (2e-4);
   percent_dense: clone below, split above this fraction of the extent in max scale (0.01);
   split_factor: scale divisor of the two split children (1.6); min_opacity: prune below (0.005);
-  max_screen_radius: prune above, pixels (20); max_world_scale: prune above, fraction of extent (0.1)."""
+  max_screen_radius: prune above, pixels (20); max_world_scale: prune above, fraction of extent (0.1);
+  max_gaussians: 0 (3D-GS: no limit), or the most live Gaussians densification may create."""
   grad_threshold: float = 2e-4
   percent_dense: float = 0.01
   split_factor: float = 1.6
   min_opacity: float = 0.005
   max_screen_radius: float = 20.0
   max_world_scale: float = 0.1
+  max_gaussians: int = 0
+
+  def __post_init__(self):
+    if self.max_gaussians < 0:
+      raise ValueError(f"train.densify.max_gaussians must be >= 0 (0: no limit), got {self.max_gaussians}")
 
 
-def capacity_for(count: int, current: int = 0) -> int:
+def within_budget(selected: np.ndarray, mean_grads: np.ndarray, budget: int) -> np.ndarray:
+  """[M] bool: `selected` reduced to its `budget` largest gradients (ties: lower index first)."""
+  if selected.sum() <= budget:
+    return selected
+  candidates = np.flatnonzero(selected)
+  strongest = candidates[np.argsort(-mean_grads[candidates], kind="stable")[:max(budget, 0)]]
+  kept = np.zeros_like(selected)
+  kept[strongest] = True
+  return kept
+
+
+def capacity_for(count: int, current: int = 0, limit: int = 0) -> int:
   """Buffer size for `count` live Gaussians: keeps `current` while count fits and is above a quarter
-  of it, else the smallest bucket quantum * 1.5^k (rounded up to the quantum) that holds count."""
-  if 0 < current and current // 4 <= count <= current:
+  of it, else the smallest bucket quantum * 1.5^k (rounded up to the quantum) that holds count. With a
+  Gaussian cap `limit` (max_gaussians) that count respects, no bucket exceeds it: the buffer's rows cost
+  time in every step whether they are alive or not."""
+  capped = 0 < count <= limit
+  if 0 < current and current // 4 <= count <= current and not (capped and current > limit):
     return current
   capacity = CAPACITY_QUANTUM
   while capacity < count:
     capacity = int(math.ceil(capacity * CAPACITY_GROWTH / CAPACITY_QUANTUM)) * CAPACITY_QUANTUM
-  return capacity
+  return min(capacity, limit) if capped else capacity
 
 
 def take(gaussians: Gaussians, rows: np.ndarray) -> Gaussians:
@@ -81,11 +101,14 @@ def densify_and_prune(gaussians: Gaussians, mean_grads: np.ndarray, max_radii: n
   mean_grads: [M] accumulated NDC 2D-mean gradient norms divided by their view counts;
   max_radii: [M] largest screen radius seen since the last round.
   Clones small Gaussians with large gradients, splits large ones (the parent is removed), then prunes
-  near-transparent ones and, when `prune_large`, those too large on screen or in the world.
+  near-transparent ones and, when `prune_large`, those too large on screen or in the world. Clone and split
+  each add one Gaussian, so with params.max_gaussians only the strongest max_gaussians - M candidates act.
   Returns the new live Gaussians and `source` [M'] (the input row each continues, FRESH for new ones).
   """
   max_scale = np.exp(np.asarray(gaussians.log_scales)).max(-1)
   selected = mean_grads >= params.grad_threshold
+  if params.max_gaussians:
+    selected = within_budget(selected, mean_grads, params.max_gaussians - gaussians.num)
   small = max_scale <= params.percent_dense * extent
   clone, split = selected & small, selected & ~small
   parts = [take(gaussians, ~split), take(gaussians, clone),

@@ -119,8 +119,10 @@ def evaluate(config: ml_collections.ConfigDict, workdir: str) -> dict:
 
 def held_out_views(scene: datasets.SceneData,
                    max_views: int = 0) -> tuple[list[Camera], list[np.ndarray], list[str]]:
-  """The first `max_views` (0 = all) test cameras, images and names (view_000, ... if unnamed)."""
-  count = len(scene.test_cameras) if max_views <= 0 else min(max_views, len(scene.test_cameras))
-  names = list(scene.test_names[:count]) if len(scene.test_names) >= count else [
-      f"view_{i:03d}" for i in range(count)]
-  return scene.test_cameras[:count], scene.test_images[:count], names
+  """`max_views` (0 = all) test cameras, images and names (view_000, ... if unnamed), evenly spaced over
+  the test split so that a subset of an orbit covers the whole orbit."""
+  total = len(scene.test_cameras)
+  count = total if max_views <= 0 else min(max_views, total)
+  rows = np.linspace(0, total - 1, count).round().astype(int) if count else np.zeros(0, int)
+  names = [scene.test_names[i] if len(scene.test_names) == total else f"view_{i:03d}" for i in rows]
+  return [scene.test_cameras[i] for i in rows], [scene.test_images[i] for i in rows], names

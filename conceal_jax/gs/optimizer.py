@@ -25,13 +25,25 @@ def log_linear_schedule(init: float, final: float, max_steps: int) -> optax.Sche
   return schedule
 
 
-def scale_by_gaussian_learning_rates(lr: ml_collections.ConfigDict, extent: float) -> optax.GradientTransformation:
+def means_decay_steps(lr: ml_collections.ConfigDict, run_steps: int) -> int:
+  """lr.means_steps, or the run's length `run_steps` where it is 0 (3D-GS decays the position learning
+  rate over the whole run: position_lr_max_steps = iterations = 30k)."""
+  steps = int(lr.means_steps) or int(run_steps)
+  if steps < 1 or lr.means_steps < 0:
+    raise ValueError(f"lr.means_steps must be >= 1, or 0 for the run's length; got {lr.means_steps} "
+                     f"with a run of {run_steps} steps")
+  return steps
+
+
+def scale_by_gaussian_learning_rates(lr: ml_collections.ConfigDict, extent: float,
+                                     run_steps: int = 0) -> optax.GradientTransformation:
   """Multiplies each `Gaussians` field's update by minus its learning rate.
 
-  Means decay log-linearly from lr.means_init * extent to lr.means_final * extent over lr.means_steps;
-  SH coefficient 0 (DC) uses lr.sh_dc and the higher bands lr.sh_rest.
+  Means decay log-linearly from lr.means_init * extent to lr.means_final * extent over
+  `means_decay_steps`; SH coefficient 0 (DC) uses lr.sh_dc and the higher bands lr.sh_rest.
   """
-  means_lr = log_linear_schedule(lr.means_init * extent, lr.means_final * extent, lr.means_steps)
+  means_lr = log_linear_schedule(lr.means_init * extent, lr.means_final * extent,
+                                 means_decay_steps(lr, run_steps))
 
   def init(params):
     del params
@@ -48,10 +60,11 @@ def scale_by_gaussian_learning_rates(lr: ml_collections.ConfigDict, extent: floa
   return optax.GradientTransformation(init, update)
 
 
-def gaussian_optimizer(lr: ml_collections.ConfigDict, extent: float) -> optax.GradientTransformation:
-  """Adam (b1 0.9, b2 0.999, eps 1e-15) with the 3D-GS learning rates of `lr`, scaled by scene extent."""
+def gaussian_optimizer(lr: ml_collections.ConfigDict, extent: float, run_steps: int = 0) -> optax.GradientTransformation:
+  """Adam (b1 0.9, b2 0.999, eps 1e-15) with the 3D-GS learning rates of `lr`, scaled by scene extent;
+  run_steps: the run's length, over which the means decay when lr.means_steps is 0."""
   return optax.chain(optax.scale_by_adam(b1=0.9, b2=0.999, eps=ADAM_EPS),
-                     scale_by_gaussian_learning_rates(lr, extent))
+                     scale_by_gaussian_learning_rates(lr, extent, run_steps))
 
 
 def adam_moments(opt_state) -> optax.ScaleByAdamState:

@@ -87,6 +87,7 @@ def validate(config: ml_collections.ConfigDict) -> None:
   settings.from_section(TrainSettings, config.train)
   settings.from_section(DensifySchedule, config.train.densify)
   settings.from_section(densify.DensifyParams, config.train.densify)
+  optimizer.means_decay_steps(config.train.lr, config.train.iterations)
   evaluate.validate(config)
   if config.init.kind not in INIT_KINDS:
     raise ValueError(f"init.kind must be one of {INIT_KINDS}, got {config.init.kind!r}")
@@ -190,7 +191,7 @@ def densify_state(state: TrainState, extent: float, params: densify.DensifyParam
   live, source = densify.densify_and_prune(densify.take(host.gaussians, rows), mean_grads,
                                            host.max_radii[rows], extent, params, prune_large, rng)
   buffer_source = np.where(source == densify.FRESH, densify.FRESH, rows[np.maximum(source, 0)])
-  capacity = densify.capacity_for(live.num, host.alive.shape[0])
+  capacity = densify.capacity_for(live.num, host.alive.shape[0], params.max_gaussians)
   moments = optimizer.adam_moments(host.opt_state)
   gather = lambda tree: jax.tree.map(lambda x: jnp.asarray(densify.gather_rows(x, buffer_source, capacity)), tree)
   opt_state = optimizer.with_adam_moments(host.opt_state, moments._replace(mu=gather(moments.mu),
@@ -240,7 +241,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   params = settings.from_section(densify.DensifyParams, config.train.densify)
   scene = evaluate.load_scene_data(config)
   extent = scene.scene_extent()
-  tx = optimizer.gaussian_optimizer(config.train.lr, extent)
+  tx = optimizer.gaussian_optimizer(config.train.lr, extent, config.train.iterations)
   images = jnp.asarray(np.stack(scene.train_images))
   cameras = camera_lib.stack(scene.train_cameras)
   base_options = evaluate.render_options(config, scene.background)
@@ -291,7 +292,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   ply.save_ply(os.path.join(workdir, evaluate.SCENE_FILE), gaussians)
   summary = dict(iterations=config.train.iterations, resumed_from=result.start, num_gaussians=int(gaussians.num),
                  **result.timing(), compiled_step_variants=sorted(variants), traces=dict(traces.counts),
-                 pair_capacity=steps.capacity, capacity_reruns=steps.reruns,
+                 pair_capacity=steps.capacity, capacity_reruns=steps.reruns, capacity_shrinks=steps.shrinks,
                  history=result.history)
   fileio.write_json(os.path.join(workdir, TRAIN_FILE), summary)
   scored = evaluate.evaluate_scene(jax.tree.map(jnp.asarray, gaussians), scene,
