@@ -46,6 +46,7 @@ def run(rows, widths, iterations, eval_views, workdir: pathlib.Path, out: pathli
         c[name] = value
       run_dir = workdir / "lego" / f"conceal_{row}_w{width}"
       run_dir.mkdir(parents=True, exist_ok=True)
+      fileio.write_json(run_dir / "config.json", config.to_dict())  # as the command line would (bench-robust reads it)
       result = conceal.conceal_and_evaluate(config, str(run_dir))
       results.append(dict(row=row, decoder_width=width, iterations=result["iterations"],
                           wall_time_s=result["wall_time_s"], median_step_s=result["median_step_s"],

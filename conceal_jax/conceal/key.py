@@ -44,6 +44,37 @@ def orbit_camera(cameras: Sequence[Camera], seed: int) -> Camera:
                                 c.width, c.height)
 
 
+def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
+  """[3, 3] rotation by `angle` radians about the unit vector `axis` (Rodrigues)."""
+  x, y, z = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+  k = np.array([[0, -z, y], [z, 0, -x], [-y, x, 0]])
+  return np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * (k @ k)
+
+
+def nearby_camera(camera: Camera, translation: float, rotation_deg: float, seed: int) -> Camera:
+  """`camera` moved by `translation` (world units) in a random direction and turned by `rotation_deg`
+  about a random axis through its centre; same intrinsics. A pose an attacker might guess near the key."""
+  rng = np.random.default_rng(seed)
+  direction, axis = rng.normal(size=3), rng.normal(size=3)
+  w2c = np.asarray(camera.world_to_camera, np.float64)
+  rotation = rotation_about(axis, math.radians(rotation_deg)) @ w2c[:3, :3]  # turned in the camera frame
+  center = camera_centers([camera])[0] + translation * direction / np.linalg.norm(direction)
+  moved = np.eye(4)
+  moved[:3, :3], moved[:3, 3] = rotation, -rotation @ center
+  return Camera.from_intrinsics(moved, float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy),
+                                camera.width, camera.height)
+
+
+def nearby_cameras(camera: Camera, extent: float, translations: Sequence[float], rotations_deg: Sequence[float],
+                   directions: int) -> list[tuple[str, float, Camera]]:
+  """(kind, value, camera) for `directions` random cameras per translation (a fraction of the scene
+  `extent`, not turned) and per rotation (degrees, not moved); a zero value gives the key itself once."""
+  poses = [("translation", t) for t in translations] + [("rotation", r) for r in rotations_deg]
+  return [(kind, value, nearby_camera(camera, value * extent if kind == "translation" else 0.0,
+                                      value if kind == "rotation" else 0.0, seed))
+          for kind, value in poses for seed in range(directions if value else 1)]
+
+
 def check_camera(cameras: Sequence[Camera], kind: str, index: int, seed: int) -> tuple[Camera, dict]:
   """The check view and a description of how it was chosen."""
   if kind == "train_index":
