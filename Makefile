@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 WORKDIR ?= workdirs/demo
 JOBS ?= 2
 
-.PHONY: venv demo test test-slow bench-render bench-train bench-conceal clean
+.PHONY: venv demo test test-slow bench-render bench-train profile-train bench-conceal profile-conceal bench-robust clean
 
 venv: $(STAMP)
 
@@ -40,8 +40,20 @@ bench-render: $(STAMP)
 bench-train: $(STAMP)
 	$(PY) -m experiments.bench_train --out=experiments/results --workdir=workdirs/bench $(BENCH_ARGS)
 
+# where a train step of bench-train's run spends its time (needs that run's checkpoint)
+profile-train: $(STAMP)
+	$(PY) -m experiments.profile_step --out=experiments/results --workdir=workdirs/bench $(BENCH_ARGS)
+
 bench-conceal: $(STAMP)
 	$(PY) -m experiments.bench_conceal --out=experiments/results --workdir=workdirs/bench $(BENCH_ARGS)
+
+# where a ConcealGS step spends its time, on bench-train's lego teacher
+profile-conceal: $(STAMP)
+	$(PY) -m experiments.profile_conceal --out=experiments/results --workdir=workdirs/bench $(BENCH_ARGS)
+
+# attacks on the check render and on the student, check-pose tolerance (the demo run and bench-conceal's lego run)
+bench-robust: $(STAMP)
+	$(PY) -m experiments.bench_robust --out=experiments/results $(BENCH_ARGS)
 
 clean:
 	rm -rf workdirs .pytest_cache

@@ -1,12 +1,15 @@
 """The real hand-held capture "beer" (COLMAP, 720x1280) at 1/4 resolution, as `make bench-train` trains it.
 
   python -m conceal_jax.main --config=conceal_jax/configs/beer.py --workdir=workdirs/bench/beer/teacher
+
+The CPU adjustments of cpu_budget.py, with at most 40k Gaussians; test PSNR every 500 steps on all 9
+held-out views.
 """
-from conceal_jax.configs import colmap
+from conceal_jax.configs import colmap, cpu_budget
 
 
 def get_config():
   config = colmap.get_config()
   config.data.path = "../shared/data/colmap/beer"
   config.data.downscale = 4.0
-  return config
+  return cpu_budget.apply(config, max_gaussians=40_000, eval_views=9)

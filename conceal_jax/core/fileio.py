@@ -44,6 +44,10 @@ def write_bytes(path: str | os.PathLike, data: bytes) -> None:
     f.write(data)
 
 
+def write_text(path: str | os.PathLike, text: str) -> None:
+  write_bytes(path, text.encode())
+
+
 def write_json(path: str | os.PathLike, obj: Any) -> None:
   write_bytes(path, (json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n").encode())
 

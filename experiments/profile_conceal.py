@@ -1,0 +1,124 @@
+"""Where a ConcealGS step spends its time, on the lego teacher of `make bench-train`.
+
+  make profile-conceal                                   # decoder widths 16 and 64
+  make profile-conceal BENCH_ARGS="--widths=16 --repeats=9"
+
+For each decoder width, times (median of --repeats, each part jitted on its own): the student's render of
+a normal view with L_kd and its gradient, `student_objective` with its gradient (the normal render, the
+check render and the decoder on it), the decoder alone (forward, forward+backward, for one image and for
+a batch of two), `decoder_identity_objective` with its gradient, the guided combination of the two
+decoder gradients, the two Adam updates, and the whole step. Writes conceal_step_profile.json to --out.
+Run it on a quiet machine.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import pathlib
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from conceal_jax.conceal import conceal, guidance, hidden as hidden_lib, key as key_lib, reveal
+from conceal_jax.conceal.objective import decoder_identity_objective, student_objective
+from conceal_jax.core import fileio
+from conceal_jax.data import ply
+from conceal_jax.gs import evaluate, losses, optimizer
+from conceal_jax.splat import render as render_lib
+from experiments.bench_train import scene_config
+from experiments.profile_step import median_ms
+
+
+def conceal_config(teacher: pathlib.Path, width: int):
+  config = scene_config("lego", None)
+  config.mode = "conceal"
+  c = config.conceal
+  c.teacher, c.hidden, c.decoder_width, c.decoder_vgg_init = str(teacher), "astronaut", width, width == 64
+  return config
+
+
+def profile(width: int, teacher: pathlib.Path, repeats: int) -> dict:
+  config = conceal_config(teacher, width)
+  c = config.conceal
+  settings = conceal.settings_from_config(config)
+  gaussians = jax.tree.map(jnp.asarray, ply.load_ply(c.teacher))
+  scene = evaluate.load_scene_data(config)
+  check_camera, key_info = key_lib.check_camera(scene.train_cameras, c.key_kind, c.key_index, c.key_seed)
+  options = evaluate.render_options(config, scene.background)
+  needed = max(int(render_lib.render(gaussians, cam, options).num_pairs)
+               for cam in (check_camera, scene.train_cameras[0]))
+  options = render_lib.grow_capacity(options, needed)
+  hidden = hidden_lib.load_hidden_image(c.hidden, settings.hidden_size)
+  data = conceal.build_data(scene, gaussians, options, check_camera, jnp.asarray(scene.train_images[0]), hidden,
+                            settings.hidden_size)
+  decoder = conceal.initial_decoder(config, settings)
+  times = {}
+
+  camera = jax.tree.map(lambda x: x[0], data["cameras"])
+  kd = lambda g: losses.distillation_loss(render_lib.render(g, camera, options).rgb, data["teacher"][0])
+  times["normal_render_kd_fwd_bwd"] = median_ms(jax.jit(jax.grad(kd)), gaussians, repeats=repeats)
+  student = jax.jit(jax.value_and_grad(
+      lambda g, d: student_objective(g, d, data, 0, settings, options), argnums=(0, 1), has_aux=True))
+  times["student_objective_fwd_bwd"] = median_ms(student, gaussians, decoder, repeats=repeats)
+
+  apply = lambda d, x: reveal.decode(d, width, x)
+  for batch in (1, 2):
+    images = data["teacher_small"][:batch]
+    times[f"decoder_fwd_batch{batch}"] = median_ms(jax.jit(apply), decoder, images, repeats=repeats)
+    times[f"decoder_fwd_bwd_batch{batch}"] = median_ms(
+        jax.jit(jax.grad(lambda d, x: jnp.sum(apply(d, x)))), decoder, images, repeats=repeats)
+  identity = jax.jit(jax.value_and_grad(lambda d: decoder_identity_objective(d, data, 1, settings)))
+  times["decoder_identity_fwd_bwd"] = median_ms(identity, decoder, repeats=repeats)
+
+  (_, _), (_, plus_grad) = student(gaussians, decoder)
+  _, minus_grad = identity(decoder)
+  guided = jax.jit(lambda p, m: guidance.guided_decoder_gradient(p, m, 1.0, 1.0, settings.granularity))
+  times["guidance"] = median_ms(guided, plus_grad, minus_grad, repeats=repeats)
+  student_tx = optimizer.gaussian_optimizer(c.lr, scene.scene_extent(), c.iterations)
+  decoder_tx = optax.adam(c.decoder_lr, eps=optimizer.ADAM_EPS)
+  times["student_adam"] = median_ms(jax.jit(student_tx.update), gaussians, student_tx.init(gaussians), gaussians,
+                                    repeats=repeats)
+  times["decoder_adam"] = median_ms(jax.jit(decoder_tx.update), plus_grad, decoder_tx.init(decoder), decoder,
+                                    repeats=repeats)
+
+  step = conceal.make_conceal_step(settings, options, student_tx, decoder_tx)
+  state = conceal.create_conceal_state(jax.tree.map(jnp.copy, gaussians), decoder, student_tx, decoder_tx)
+  state, _ = step(state, data, 0, 1)
+  step_times = []
+  for i in range(repeats):
+    start = time.perf_counter()
+    state, stats = step(state, data, i % len(scene.train_cameras), (i + 1) % len(scene.train_cameras))
+    jax.block_until_ready(stats)
+    step_times.append(time.perf_counter() - start)
+  times["conceal_step"] = 1e3 * float(np.median(step_times))
+  return dict(decoder_width=width, num_gaussians=int(gaussians.num), pair_capacity=options.pair_capacity,
+              tile_size=options.tile_size, image_size=[camera.width, camera.height],
+              hidden_size=settings.hidden_size, settings=dataclasses.asdict(settings), repeats=repeats,
+              median_ms=times)
+
+
+def main():
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--workdir", default="workdirs/bench")
+  parser.add_argument("--out", default="experiments/results")
+  parser.add_argument("--widths", default="16,64")
+  parser.add_argument("--repeats", type=int, default=7)
+  args = parser.parse_args()
+  teacher = pathlib.Path(args.workdir) / "lego" / "teacher" / "point_cloud.ply"
+  if not teacher.is_file():
+    raise SystemExit(f"no teacher at {teacher}: run make bench-train first")
+  rows = []
+  for width in (int(w) for w in args.widths.split(",") if w):
+    rows.append(profile(width, teacher, args.repeats))
+    print(f"decoder width {width}:")
+    for name, ms in rows[-1]["median_ms"].items():
+      print(f"  {name:28s} {ms:8.1f} ms")
+  fileio.write_json(pathlib.Path(args.out) / "conceal_step_profile.json", dict(device=str(jax.devices()[0]),
+                                                                                rows=rows))
+
+
+if __name__ == "__main__":
+  main()
