@@ -119,7 +119,10 @@ def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
   for name in ("key.json", "hidden.png", "revealed.png", "teacher_revealed.png", "metrics.json"):
     assert (a / name).is_file(), name
   metrics = json.loads((a / "metrics.json").read_text())
-  assert set(metrics["leakage"]) == {"max_ssim_student_test_views", "ssim_teacher_check_view"}
+  assert set(metrics["leakage"]) == {"max_ssim_student_test_views", "ssim_teacher_check_view", "max_ssim_near_check"}
+  assert [(r["kind"], r["value"]) for r in metrics["near_check"]] == [
+      ("translation", 0.02), ("translation", 0.05), ("rotation", 2.0), ("rotation", 5.0)]
+  assert metrics["leakage"]["max_ssim_near_check"] == max(r["max_ssim"] for r in metrics["near_check"])
   assert np.isfinite(metrics["hidden"]["psnr"]) and "VGG16" in metrics["lpips_net"]
   assert all(np.isfinite(h["loss"]) and 0 < h["mean_guidance_weight"] < 1 for h in straight["history"])
   assert ply.load_ply(a / "student.ply").num == 1200
