@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from conceal_jax.core import checkpoint, fileio
+from conceal_jax.core import settings as settings_lib
 from conceal_jax.gs import densify, evaluate, losses, optimizer, train
 from conceal_jax.splat import binning, composite, projection
 from conceal_jax.splat import render as render_lib
@@ -58,8 +59,7 @@ def profile(scene_name: str, workdir: pathlib.Path, repeats: int) -> dict:
   scene = evaluate.load_scene_data(config)
   extent = scene.scene_extent()
   state, meta, tx = restore_state(config, workdir, extent)
-  settings = train.TrainSettings(sh_degree=config.train.sh_degree,
-                                 sh_increase_every=config.train.sh_increase_every)
+  settings = settings_lib.from_section(train.TrainSettings, config.train)
   degree = settings.sh_degree_at(int(meta["step"]))
   options = dataclasses.replace(evaluate.render_options(config, scene.background), sh_degree=degree)
   gaussians = train.masked(state.gaussians, state.alive)

@@ -39,6 +39,7 @@ def test_overflowing_step_is_re_run_with_a_grown_capacity():
   steps = capacity.GrowingSteps(build, small)
   state, stats = steps(0, train.create_train_state(g, tx), image, cameras, 0)
   assert steps.reruns == 1 and built == [1024, steps.capacity] and steps.capacity >= needed
+  assert steps.last_capacities == [1024, steps.capacity]
   assert int(state.step) == 1 and int(stats["num_pairs"]) == needed
 
   ample = dataclasses.replace(options, pair_capacity=steps.capacity * 2)
@@ -64,6 +65,7 @@ def test_capacity_shrinks_to_what_a_window_needed_and_grows_back():
   assert steps.capacity == 8192 and steps.shrinks == 1 and steps.reruns == 0
   state, stats = steps(None, state, 10_000)
   assert steps.reruns == 1 and steps.capacity >= 10_000 and state == 5  # the overflowing call ran twice
+  assert steps.last_capacities == [8192, steps.capacity]
   for need in (9000, 9000):
     state, _ = steps(None, state, need)
   assert steps.shrinks == 1  # 9000 * 1.25 needs about the current bucket: no thrashing

@@ -43,7 +43,9 @@ def tiny_config(scene_path, iterations=8):
 
 def test_train_writes_scene_metrics_and_resumes_exactly(tiny_scene, tmp_path):
   config = tiny_config(tiny_scene)
+  config.train.snapshots = (4,)
   straight = train.train_and_evaluate(config, str(tmp_path / "a"))
+  assert ply.load_ply(tmp_path / "a" / train.snapshot_name(4)).num > 0
   assert train.train_and_evaluate(config, str(tmp_path / "b"), max_steps=4) == dict(stopped_at=4)
   resumed = train.train_and_evaluate(config, str(tmp_path / "b"))
   assert resumed["resumed_from"] == 4 and resumed["timed_steps"] == straight["timed_steps"] == 8
@@ -80,6 +82,39 @@ def test_bad_config_values_are_named(tiny_scene, tmp_path, field, value, message
 def test_sh_degree_schedule():
   schedule = train.TrainSettings(sh_degree=3, sh_increase_every=1000)
   assert [schedule.sh_degree_at(i) for i in (1, 1000, 1001, 2001, 3001, 9000)] == [0, 0, 1, 2, 3, 3]
+  fine_tune = train.TrainSettings(sh_degree=3, sh_degree_start=2, sh_increase_every=1000)
+  assert [fine_tune.sh_degree_at(i) for i in (1, 1001, 5000)] == [2, 3, 3]
+  with pytest.raises(ValueError, match="sh_degree_start"):
+    train.TrainSettings(sh_degree=1, sh_degree_start=2)
+
+
+def test_training_can_start_from_a_trained_scene(tiny_scene, tmp_path):
+  """init.kind='ply' starts from the scene's own Gaussians, SH bands padded with zeros to train.sh_degree."""
+  start = jax.tree.map(np.asarray, random_gaussians(3, 50, degree=1))
+  ply.save_ply(tmp_path / "start.ply", start)
+  config = tiny_config(tiny_scene)
+  config.init.kind, config.init.ply = "ply", str(tmp_path / "start.ply")
+  train.validate(config)
+  g = train.initial_gaussians(config, None, np.random.default_rng(0))
+  assert g.sh.shape == (50, 16, 3) and not np.any(g.sh[:, 4:])
+  np.testing.assert_allclose(g.sh[:, :4], start.sh, rtol=1e-6)
+  np.testing.assert_allclose(g.means, start.means, rtol=1e-6)
+  config.train.sh_degree = 0
+  with pytest.raises(ValueError, match="SH degree 1"):
+    train.initial_gaussians(config, None, np.random.default_rng(0))
+  config.init.ply = str(tmp_path / "missing.ply")
+  with pytest.raises(ValueError, match="init.ply"):
+    train.validate(config)
+
+
+def test_snapshots_must_fall_on_log_windows(tiny_scene):
+  config = tiny_config(tiny_scene)
+  config.train.log_every = 2
+  config.train.snapshots = (4, 8)
+  assert train.snapshot_steps(config) == (4, 8)
+  config.train.snapshots = (3,)
+  with pytest.raises(ValueError, match="train.snapshots"):
+    train.validate(config)
 
 
 def test_position_learning_rate_is_log_linear():

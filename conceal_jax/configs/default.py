@@ -46,13 +46,15 @@ def get_config() -> ml_collections.ConfigDict:
   config.data.background = "default"  # 'white', 'black' or 'default' (white for Blender, black otherwise)
 
   config.init = ml_collections.ConfigDict()
-  config.init.kind = "auto"          # 'auto', 'points' (SfM / point file) or 'random' (box)
+  config.init.kind = "auto"          # 'auto', 'points' (SfM / point file), 'random' (box) or 'ply'
+  config.init.ply = ""               # init.kind='ply': a trained 3D-GS .ply to train further (fine-tuning)
   config.init.num_random_points = 100_000
   config.init.box_half_extent = 1.3
 
   config.train = ml_collections.ConfigDict()
   config.train.iterations = 30_000
   config.train.sh_degree = 3
+  config.train.sh_degree_start = 0     # fine-tuning a trained scene: its degree (no schedule from 0)
   config.train.sh_increase_every = 1000
   config.train.ssim_weight = 0.2
   config.train.lr = ml_collections.ConfigDict()
@@ -82,6 +84,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.train.eval_every = 0        # quick test PSNR every this many steps; 0: only at the end
   config.train.eval_views = 4
   config.train.checkpoint_every = 1000  # 0: no checkpoints
+  config.train.snapshots = ()        # steps after which point_cloud_<step>.ply is also written
   config.train.progress_bar = True
 
   config.eval = ml_collections.ConfigDict()
@@ -125,4 +128,9 @@ def get_config() -> ml_collections.ConfigDict:
   config.reveal.decoder = ""  # decoder.msgpack written by conceal
   config.reveal.key = ""      # key.json written by conceal
   config.reveal.hidden = ""   # optional reference hidden image (path or sample name) to score against
+
+  # verify mode: the reveal section's ply, decoder, key and hidden image (required here), scored and
+  # decided at the threshold chosen from a calibration file of measured clean and marked scores
+  config.verify = ml_collections.ConfigDict()
+  config.verify.calibration = ""  # e.g. experiments/results/ownership_calibration.json (make bench-robust)
   return config

@@ -46,6 +46,7 @@ class GrowingSteps:
     self._steps: dict = {}
     self.reruns = 0
     self.shrinks = 0
+    self.last_capacities: list[int] = []  # the capacities the last call ran with (more than one on overflow)
     self._window_need, self._window_steps = 0, 0
 
   @property
@@ -60,7 +61,9 @@ class GrowingSteps:
   def __call__(self, key: Hashable, state, *args):
     if self.capacity is None:
       raise ValueError("GrowingSteps: call grow() with a first capacity before running a step")
+    self.last_capacities = []
     while True:
+      self.last_capacities.append(self.capacity)
       cache_key = (key, self.capacity)
       if cache_key not in self._steps:
         self._steps[cache_key] = self._build(key, self.options)

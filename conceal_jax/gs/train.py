@@ -29,13 +29,15 @@ from conceal_jax.splat import render as render_lib
 from conceal_jax.splat.render import RenderOptions, render
 
 TRAIN_FILE = "train.json"
-INIT_KINDS = ("auto", "points", "random")
+INIT_KINDS = ("auto", "points", "random", "ply")
 
 
 @dataclasses.dataclass(frozen=True)
 class TrainSettings:
-  """The `train` section besides the loop's fields: SH schedule, loss weight, periodic test PSNR."""
+  """The `train` section besides the loop's fields: SH schedule (from sh_degree_start, +1 every
+  sh_increase_every steps, up to sh_degree), loss weight, periodic test PSNR."""
   sh_degree: int = 3
+  sh_degree_start: int = 0
   sh_increase_every: int = 1000
   ssim_weight: float = 0.2
   eval_every: int = 0
@@ -44,14 +46,16 @@ class TrainSettings:
   def __post_init__(self):
     if not 0 <= self.sh_degree <= 3:
       raise ValueError(f"train.sh_degree must be in 0..3, got {self.sh_degree}")
+    if not 0 <= self.sh_degree_start <= self.sh_degree:
+      raise ValueError(f"train.sh_degree_start must be in 0..train.sh_degree, got {self.sh_degree_start}")
     if self.sh_increase_every < 1 or self.eval_every < 0 or self.eval_views < 1:
       raise ValueError("train.sh_increase_every and eval_views must be >= 1, eval_every >= 0")
     if not 0 <= self.ssim_weight <= 1:
       raise ValueError(f"train.ssim_weight must be in [0, 1], got {self.ssim_weight}")
 
   def sh_degree_at(self, iteration: int) -> int:
-    """Active SH degree at 1-based `iteration`: +1 every sh_increase_every, up to sh_degree."""
-    return min(self.sh_degree, (iteration - 1) // self.sh_increase_every)
+    """Active SH degree at 1-based `iteration`: sh_degree_start, +1 every sh_increase_every, up to sh_degree."""
+    return min(self.sh_degree, self.sh_degree_start + (iteration - 1) // self.sh_increase_every)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -87,12 +91,30 @@ def validate(config: ml_collections.ConfigDict) -> None:
   settings.from_section(TrainSettings, config.train)
   settings.from_section(DensifySchedule, config.train.densify)
   settings.from_section(densify.DensifyParams, config.train.densify)
+  snapshot_steps(config)
   optimizer.means_decay_steps(config.train.lr, config.train.iterations)
   evaluate.validate(config)
   if config.init.kind not in INIT_KINDS:
     raise ValueError(f"init.kind must be one of {INIT_KINDS}, got {config.init.kind!r}")
   if config.init.num_random_points < 1 or not config.init.box_half_extent > 0:
     raise ValueError("init.num_random_points and init.box_half_extent must be positive")
+  if config.init.kind == "ply" and not os.path.isfile(config.init.ply):
+    raise ValueError(f"init.kind='ply' needs init.ply, a 3D-GS .ply file; got {config.init.ply!r}")
+
+
+def snapshot_steps(config: ml_collections.ConfigDict) -> tuple[int, ...]:
+  """config.train.snapshots: steps after which the scene is also saved as point_cloud_<step>.ply; each a
+  multiple of train.log_every (where the loop hands the state out) within the run."""
+  steps = tuple(int(s) for s in config.train.snapshots)
+  bad = [s for s in steps if s < 1 or s > config.train.iterations or s % config.train.log_every]
+  if bad:
+    raise ValueError(f"train.snapshots {bad}: each must be a multiple of train.log_every "
+                     f"({config.train.log_every}) in 1..train.iterations ({config.train.iterations})")
+  return steps
+
+
+def snapshot_name(step: int) -> str:
+  return f"point_cloud_{step:06d}.ply"
 
 
 def loop_settings(config: ml_collections.ConfigDict) -> loop.LoopSettings:
@@ -100,10 +122,13 @@ def loop_settings(config: ml_collections.ConfigDict) -> loop.LoopSettings:
 
 
 def initial_gaussians(config: ml_collections.ConfigDict, scene, rng: np.random.Generator) -> Gaussians:
-  """init.kind 'points' (SfM / point file), 'random' (uniform in a box) or 'auto' (points when the
-  dataset has them). The box is the cube of half extent init.box_half_extent (synthetic scenes), or for
-  an LLFF capture the box around its cameras' near..far frustums."""
+  """init.kind 'points' (SfM / point file), 'random' (uniform in a box), 'auto' (points when the
+  dataset has them) or 'ply' (a trained scene, init.ply, to train further: fine-tuning). The box is the
+  cube of half extent init.box_half_extent (synthetic scenes), or for an LLFF capture the box around its
+  cameras' near..far frustums."""
   kind = config.init.kind
+  if kind == "ply":
+    return scene_from_ply(config.init.ply, config.train.sh_degree)
   if kind == "points" and scene.points is None:
     raise ValueError("init.kind='points' but the dataset has no point cloud")
   if kind == "random" or (kind == "auto" and scene.points is None):
@@ -115,6 +140,16 @@ def initial_gaussians(config: ml_collections.ConfigDict, scene, rng: np.random.G
     points, colors = scene.points, scene.point_colors
     colors = np.full_like(points, 0.5) if colors is None else colors
   return init.gaussians_from_points(points, colors, config.train.sh_degree)
+
+
+def scene_from_ply(path: str, sh_degree: int) -> Gaussians:
+  """A .ply scene as numpy Gaussians with `sh_degree` bands (missing bands zero: they add nothing)."""
+  gaussians = jax.tree.map(np.asarray, ply.load_ply(path))
+  if gaussians.sh_degree > sh_degree:
+    raise ValueError(f"{path} has SH degree {gaussians.sh_degree}, above train.sh_degree {sh_degree}")
+  sh = np.zeros((gaussians.num, (sh_degree + 1) ** 2, 3), np.float32)
+  sh[:, :gaussians.sh.shape[1]] = gaussians.sh
+  return gaussians.replace(sh=sh)
 
 
 def pad_to_capacity(live: Gaussians, capacity: int) -> Gaussians:
@@ -246,6 +281,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   cameras = camera_lib.stack(scene.train_cameras)
   base_options = evaluate.render_options(config, scene.background)
   white = tuple(scene.background) == (1.0, 1.0, 1.0)
+  snapshots = set(snapshot_steps(config))
   traces = loop.TraceCounter()
   variants = set()  # (SH degree, buffer capacity, pair capacity): each compiles the step once
   # One jitted step per SH degree and pair capacity; the pair capacity grows when a render needs more. It
@@ -260,12 +296,14 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
     degree = t.sh_degree_at(iteration)
     num_views = len(scene.train_images)
     view = view_order(config.seed, (iteration - 1) // num_views, num_views)[(iteration - 1) % num_views]
-    variants.add((degree, int(state.alive.shape[0]), steps.capacity))
+    buffer = int(state.alive.shape[0])
     state, stats = steps(degree, state, images, cameras, view)
-    variants.add((degree, int(state.alive.shape[0]), steps.capacity))  # a re-run compiled a new one
+    variants.update((degree, buffer, tried) for tried in steps.last_capacities)  # an overflowed try compiled too
     return density_control(state, iteration, schedule, params, extent, white, config.seed), stats
 
-  def quick_test_psnr(state, iteration):
+  def after_window(state, iteration):
+    if iteration in snapshots:  # e.g. the states of a fine-tuning attack after 1k and 3k steps
+      ply.save_ply(os.path.join(workdir, snapshot_name(iteration)), live_gaussians(state))
     if not t.eval_every or iteration % t.eval_every or iteration == config.train.iterations:
       return None
     options = dataclasses.replace(base_options, sh_degree=t.sh_degree_at(iteration))
@@ -282,7 +320,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
     return create_train_state(Gaussians.empty(t.sh_degree), tx, meta["capacity"])
 
   result = loop.run("train", loop_settings(config), workdir, init_state=fresh, restore_template=template,
-                    step=step, after_window=quick_test_psnr, postfix_keys=("num_gaussians",),
+                    step=step, after_window=after_window, postfix_keys=("num_gaussians",),
                     checkpoint_meta=lambda state: dict(capacity=int(state.alive.shape[0]),
                                                        pair_capacity=steps.capacity), max_steps=max_steps)
   if not result.finished:
