@@ -14,13 +14,15 @@ from ml_collections import config_flags
 from conceal_jax.conceal import conceal, reveal
 from conceal_jax.core import fileio
 from conceal_jax.gs import evaluate, render_views, train
+from conceal_jax.robust import ownership
 
 # mode -> (validate, job): validate checks every value the job reads before anything is written.
 MODES = {"render": (render_views.validate, render_views.render_and_save),
          "train": (train.validate, train.train_and_evaluate),
          "eval": (evaluate.validate, evaluate.evaluate),
          "conceal": (conceal.validate, conceal.conceal_and_evaluate),
-         "reveal": (reveal.validate, reveal.reveal)}
+         "reveal": (reveal.validate, reveal.reveal),
+         "verify": (ownership.validate, ownership.verify)}
 
 FLAGS = flags.FLAGS
 flags.DEFINE_string("workdir", None, "Directory for outputs, checkpoints and the saved config.")

@@ -8,6 +8,13 @@ Each run is a conceal workdir (student.ply, decoder.msgpack, key.json and the co
 Writes robust_bench.json (per run: the unattacked hidden PSNR / SSIM, one row per image-attack level
 with its SSIM drop, one row per model-attack level with the attacked scene's test PSNR, and the pose
 curve) and robust_bench.png to --out. Runs whose workdir is missing are skipped with a note.
+
+It also writes ownership_calibration.json for `--config.mode=verify`: scores (SSIM of the revealed image
+to the run's hidden image I) of `marked` trials, the student under every mild and medium attack, and of
+`clean` trials, scenes never marked with I at that key: the clean teacher at the key and at --poses
+random orbit poses, the student at those poses and at every test view, and every other run's student and
+teacher seen through this run's decoder at their own keys and test views. The chosen threshold keeps the
+measured false-positive rate below 1%.
 """
 from __future__ import annotations
 
@@ -22,12 +29,16 @@ import numpy as np
 from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, reveal
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
-from conceal_jax.gs import evaluate
-from conceal_jax.robust import image_attacks, robustness
+from conceal_jax.gs import evaluate, metrics, train
+from conceal_jax.robust import image_attacks, ownership, robustness
+from conceal_jax.splat.render import render
 
 DEFAULT_RUNS = "workdirs/demo/conceal,workdirs/bench/lego/conceal_full_w16"
 # The paper's mild levels (blur sigma <= 1, JPEG quality >= 70) and its finding: mean SSIM drop ~0.02.
 PAPER_MILD = (("blur", lambda s: s <= 1.0), ("jpeg", lambda q: q >= 70))
+
+
+MARKED_SEVERITIES = (image_attacks.MILD, image_attacks.MEDIUM)
 
 
 def load_run(run: pathlib.Path):
@@ -53,6 +64,80 @@ def bench_run(run: pathlib.Path, test_views: int) -> dict:
   return dict(run=str(run), num_gaussians=int(student.num), test_views=len(cameras), **base,
               paper_mild_mean_ssim_drop=float(np.mean(mild)), image_attacks=image_rows,
               model_attacks=model_rows, pose=pose_rows)
+
+
+def finetune_rows(run: pathlib.Path, lengths: list[int], densify: bool, test_views: int) -> list[dict]:
+  """The fine-tuning attack (ConcealGS's research question 3): 3D-GS training continued from the student
+  on the scene's training views (with the run's own recipe, with or without densification), scored after
+  each of `lengths` steps (snapshots of one run of max(lengths) steps, resumable in run/finetune_*)."""
+  config, student, owner = load_run(run)
+  config.mode = "train"
+  config.init.kind, config.init.ply = "ply", str(run / "student.ply")
+  config.train.iterations = max(lengths)
+  config.train.snapshots = tuple(sorted(set(lengths) - {max(lengths)}))
+  config.train.sh_degree_start = config.train.sh_degree  # the student is trained: every band from the start
+  config.train.eval_every = 0
+  config.eval.max_views = test_views
+  if not densify:
+    config.train.densify.until = 0  # no densification and no opacity reset
+  workdir = run / f"finetune_{'densify' if densify else 'fixed'}"
+  workdir.mkdir(exist_ok=True)
+  fileio.write_json(workdir / "config.json", config.to_dict())
+  train.train_and_evaluate(config, str(workdir))
+  scene = evaluate.load_scene_data(config)
+  cameras, targets, _ = evaluate.held_out_views(scene, test_views)
+  rows = []
+  for length in sorted(lengths):
+    name = "point_cloud.ply" if length == max(lengths) else train.snapshot_name(length)
+    attacked = jax.tree.map(jax.numpy.asarray, ply.load_ply(str(workdir / name)))
+    renders = jax.numpy.clip(evaluate.render_images(attacked, cameras, owner.options), 0, 1)
+    render_psnr = float(np.mean([metrics.psnr(r, t) for r, t in zip(renders, targets)]))
+    scores = owner.scores(owner.reveal_renders(
+        jax.numpy.stack([render(attacked, owner.check_camera, owner.options).rgb])))
+    rows.append(dict(steps=length, densify=densify, num_gaussians=int(attacked.num), render_psnr=render_psnr,
+                     hidden_psnr=float(scores["psnr"][0]), hidden_ssim=float(scores["ssim"][0])))
+  return rows
+
+
+def views_of(run: pathlib.Path, poses: int, test_views: int) -> dict:
+  """What a clean trial renders from run's scene: its teacher and student, its key, its test cameras and
+  `poses` random cameras on its training orbit (wrong keys)."""
+  config, student, owner = load_run(run)
+  scene = evaluate.load_scene_data(config)
+  cameras, _, _ = evaluate.held_out_views(scene, test_views)
+  orbit = [key_lib.orbit_camera(scene.train_cameras, 1000 + seed) for seed in range(poses)]
+  return dict(student=student, teacher=ply.load_ply(config.conceal.teacher), owner=owner, test=cameras,
+              orbit=orbit)
+
+
+def scores_of(owner: robustness.Owner, gaussians, cameras) -> list[float]:
+  renders = evaluate.render_images(jax.tree.map(jax.numpy.asarray, gaussians), list(cameras), owner.options)
+  return owner.scores(owner.reveal_renders(renders))["ssim"].tolist()
+
+
+def calibration_trials(runs: list[pathlib.Path], results: list[dict], poses: int, test_views: int) -> dict:
+  """Labelled clean and marked scores over every run (see the module doc)."""
+  views = {run: views_of(run, poses, test_views) for run in runs}
+  clean, marked = [], []
+  for run, result in zip(runs, results):
+    mine = views[run]
+    owner = mine["owner"]
+    for rows in (result["image_attacks"], result["model_attacks"]):
+      marked += [dict(run=str(run), trial=f"{r['attack']} {r['level']}", score=r["hidden_ssim"]) for r in rows
+                 if r["severity"] in MARKED_SEVERITIES]
+    trials = [("teacher at the key", mine["teacher"], [owner.check_camera]),
+              ("teacher at orbit poses", mine["teacher"], mine["orbit"]),
+              ("student at orbit poses", mine["student"], mine["orbit"]),
+              ("student at test views", mine["student"], mine["test"])]
+    for other, theirs in views.items():
+      if other != run:
+        cameras = [theirs["owner"].check_camera] + list(theirs["test"])
+        trials += [(f"{other} student", theirs["student"], cameras), (f"{other} teacher", theirs["teacher"], cameras)]
+    for name, gaussians, cameras in trials:
+      clean += [dict(run=str(run), trial=name, score=s) for s in scores_of(owner, gaussians, cameras)]
+  choice = ownership.choose_threshold([t["score"] for t in clean], [t["score"] for t in marked])
+  return dict(choice, clean=[t["score"] for t in clean], marked=[t["score"] for t in marked],
+              clean_trials=clean, marked_trials=marked)
 
 
 def plot(results, path: pathlib.Path):
@@ -97,13 +182,21 @@ def main():
   parser.add_argument("--out", default="experiments/results")
   parser.add_argument("--runs", default=DEFAULT_RUNS, help="comma-separated conceal workdirs")
   parser.add_argument("--test-views", type=int, default=10, help="test views scored per attacked scene")
+  parser.add_argument("--poses", type=int, default=50, help="random orbit poses per scene for clean trials")
+  parser.add_argument("--finetune", default="1000,3000,10000",
+                      help="fine-tuning attack lengths (steps), with and without densification; empty: skip")
   args = parser.parse_args()
-  results = []
+  results, runs = [], []
   for run in (pathlib.Path(r) for r in args.runs.split(",") if r):
     if not (run / "student.ply").is_file() or not (run / "config.json").is_file():
       print(f"skipping {run}: no finished conceal run with a config.json there")
       continue
+    runs.append(run)
     results.append(bench_run(run, args.test_views))
+    lengths = [int(n) for n in args.finetune.split(",") if n]
+    if lengths:
+      results[-1]["finetune"] = [row for densify in (False, True)
+                                 for row in finetune_rows(run, lengths, densify, args.test_views)]
     print(json.dumps({k: v for k, v in results[-1].items() if not isinstance(v, list)}))
   if not results:
     return
@@ -111,6 +204,9 @@ def main():
   fileio.write_json(out / "robust_bench.json", dict(device=str(jax.devices()[0]), image_attack_levels=[
       list(level) for level in image_attacks.LEVELS], runs=results))
   plot(results, out / "robust_bench.png")
+  calibration = calibration_trials(runs, results, args.poses, 0)
+  fileio.write_json(out / "ownership_calibration.json", calibration)
+  print(json.dumps({k: v for k, v in calibration.items() if not isinstance(v, list)}))
 
 
 if __name__ == "__main__":

@@ -73,7 +73,8 @@ def test_bad_input_gives_one_clear_error_and_nonzero_exit(tmp_path, override, me
     ("train", "train.sh_degree", 5, "train.sh_degree"), ("train", "train.densify.every", 0, "densify"),
     ("train", "render.tile_size", 0, "tile_size"), ("eval", "eval.lpips_net", "squeeze", "squeeze"),
     ("conceal", "conceal.variant", "mine", "conceal.variant"), ("conceal", "conceal.key_kind", "x", "key_kind"),
-    ("render", "scene.num_views", 0, "num_views"), ("reveal", "reveal.key", "", "reveal.ply")])
+    ("render", "scene.num_views", 0, "num_views"), ("reveal", "reveal.key", "", "reveal.ply"),
+    ("verify", "reveal.hidden", "", "reveal.ply"), ("verify", "train.iterations", 1, "reveal.ply")])
 def test_each_mode_validates_before_writing_anything(tmp_path, mode, field, value, message):
   """main.run checks the whole config for the mode first: a bad value leaves the workdir untouched."""
   config = default.get_config()
