@@ -80,11 +80,16 @@ def image_metrics(rendered: jax.Array, targets, names: list[str], lpips_net: str
   return dict(mean=mean, views=views, num_views=len(views), lpips_net=metrics.LPIPS_NET_NAME[lpips_net])
 
 
-def mean_psnr(gaussians: Gaussians, scene: datasets.SceneData, options: RenderOptions, max_views: int) -> float:
-  """Mean test PSNR over the first `max_views` test views (the periodic training check)."""
-  cameras, targets, _ = held_out_views(scene, max_views)
+def views_psnr(gaussians: Gaussians, cameras: list[Camera], targets, options: RenderOptions) -> float:
+  """Mean PSNR of the clipped renders at `cameras` against `targets` ([H, W, 3] each)."""
   rendered = jnp.clip(render_images(gaussians, cameras, options), 0, 1)
   return float(jnp.mean(jax.vmap(metrics.psnr)(rendered, jnp.asarray(np.stack(targets)))))
+
+
+def mean_psnr(gaussians: Gaussians, scene: datasets.SceneData, options: RenderOptions, max_views: int) -> float:
+  """Mean test PSNR over `max_views` evenly spaced test views (the periodic training check)."""
+  cameras, targets, _ = held_out_views(scene, max_views)
+  return views_psnr(gaussians, cameras, targets, options)
 
 
 def write_images(folder: str, names: list[str], images) -> None:

@@ -24,6 +24,7 @@ from conceal_jax.core import fileio, loop, settings
 from conceal_jax.data import datasets, ply
 from conceal_jax.gs import capacity, densify, evaluate, init, losses, metrics, optimizer
 from conceal_jax.splat import camera as camera_lib
+from conceal_jax.splat import gaussians as gaussians_lib
 from conceal_jax.splat.gaussians import Gaussians
 from conceal_jax.splat import render as render_lib
 from conceal_jax.splat.render import RenderOptions, render
@@ -128,7 +129,10 @@ def initial_gaussians(config: ml_collections.ConfigDict, scene, rng: np.random.G
   cameras' near..far frustums."""
   kind = config.init.kind
   if kind == "ply":
-    return scene_from_ply(config.init.ply, config.train.sh_degree)
+    try:
+      return gaussians_lib.with_sh_degree(ply.load_ply(config.init.ply), config.train.sh_degree)
+    except ValueError as error:
+      raise ValueError(f"init.ply {config.init.ply}: {error} (train.sh_degree)") from error
   if kind == "points" and scene.points is None:
     raise ValueError("init.kind='points' but the dataset has no point cloud")
   if kind == "random" or (kind == "auto" and scene.points is None):
@@ -140,16 +144,6 @@ def initial_gaussians(config: ml_collections.ConfigDict, scene, rng: np.random.G
     points, colors = scene.points, scene.point_colors
     colors = np.full_like(points, 0.5) if colors is None else colors
   return init.gaussians_from_points(points, colors, config.train.sh_degree)
-
-
-def scene_from_ply(path: str, sh_degree: int) -> Gaussians:
-  """A .ply scene as numpy Gaussians with `sh_degree` bands (missing bands zero: they add nothing)."""
-  gaussians = jax.tree.map(np.asarray, ply.load_ply(path))
-  if gaussians.sh_degree > sh_degree:
-    raise ValueError(f"{path} has SH degree {gaussians.sh_degree}, above train.sh_degree {sh_degree}")
-  sh = np.zeros((gaussians.num, (sh_degree + 1) ** 2, 3), np.float32)
-  sh[:, :gaussians.sh.shape[1]] = gaussians.sh
-  return gaussians.replace(sh=sh)
 
 
 def pad_to_capacity(live: Gaussians, capacity: int) -> Gaussians:

@@ -80,6 +80,15 @@ def covariance_3d(gaussians: Gaussians) -> jax.Array:
   return rs @ jnp.swapaxes(rs, -1, -2)
 
 
+def with_sh_degree(gaussians: Gaussians, degree: int) -> Gaussians:
+  """The same scene storing `degree` SH bands: missing bands are zero, which add nothing to a render.
+  ValueError if the scene stores more bands than that (dropping bands changes its colours)."""
+  if gaussians.sh_degree > degree:
+    raise ValueError(f"the scene has SH degree {gaussians.sh_degree}, above {degree}")
+  missing = (degree + 1) ** 2 - gaussians.sh.shape[1]
+  return gaussians.replace(sh=jnp.pad(jnp.asarray(gaussians.sh), ((0, 0), (0, missing), (0, 0))))
+
+
 def concatenate(parts: list[Gaussians]) -> Gaussians:
   """Joins several Gaussian sets along N."""
   return jax.tree.map(lambda *xs: jnp.concatenate(xs, axis=0), *parts)

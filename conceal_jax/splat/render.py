@@ -200,8 +200,7 @@ def _render(gaussians: Gaussians, camera: Camera, options: RenderOptions,
   num_tiles = grid[0] * grid[1]
   pairs = binning.bin_pairs(splats.means2d, splats.cov2d, splats.depths, splats.opacities, splats.radii, ts,
                             grid, capacity)
-  block = max(1, _BLOCK_PIXEL_PAIRS // (ts * ts * length))
-  slots = segments_lib.segment_capacity(capacity, num_tiles, length, block, options.max_per_tile)
+  block, slots = segment_blocks(options, num_tiles)
   segs, overflow_tiles = segments_lib.segment_layout(pairs, gaussians.num, length, slots, options.max_per_tile)
   values = splats.colors
   if options.with_depth:
@@ -216,6 +215,14 @@ def _render(gaussians: Gaussians, camera: Camera, options: RenderOptions,
   return RenderOutput(rgb=untile(rgb), alpha=untile(alpha) if options.with_alpha else None,
                       depth=untile(depth), num_overflow_tiles=overflow_tiles, radii=splats.radii,
                       num_pairs=pairs.num_pairs, pair_capacity=capacity)
+
+
+def segment_blocks(options: RenderOptions, num_tiles: int) -> tuple[int, int]:
+  """(segments per compositing loop iteration, static segment slots) for `options` (with a pair capacity)
+  on an image of `num_tiles` tiles."""
+  length = options.segment_size
+  block = max(1, _BLOCK_PIXEL_PAIRS // (options.tile_size ** 2 * length))
+  return block, segments_lib.segment_capacity(options.pair_capacity, num_tiles, length, block, options.max_per_tile)
 
 
 def _untile(per_tile: jax.Array, grid: tuple[int, int], tile_size: int, camera: Camera) -> jax.Array:
