@@ -29,9 +29,8 @@ import numpy as np
 from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, reveal
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
-from conceal_jax.gs import evaluate, metrics, train
+from conceal_jax.gs import evaluate, train
 from conceal_jax.robust import image_attacks, ownership, robustness
-from conceal_jax.splat.render import render
 
 DEFAULT_RUNS = "workdirs/demo/conceal,workdirs/bench/lego/conceal_full_w16"
 # The paper's mild levels (blur sigma <= 1, JPEG quality >= 70) and its finding: mean SSIM drop ~0.02.
@@ -90,12 +89,8 @@ def finetune_rows(run: pathlib.Path, lengths: list[int], densify: bool, test_vie
   for length in sorted(lengths):
     name = "point_cloud.ply" if length == max(lengths) else train.snapshot_name(length)
     attacked = jax.tree.map(jax.numpy.asarray, ply.load_ply(str(workdir / name)))
-    renders = jax.numpy.clip(evaluate.render_images(attacked, cameras, owner.options), 0, 1)
-    render_psnr = float(np.mean([metrics.psnr(r, t) for r, t in zip(renders, targets)]))
-    scores = owner.scores(owner.reveal_renders(
-        jax.numpy.stack([render(attacked, owner.check_camera, owner.options).rgb])))
-    rows.append(dict(steps=length, densify=densify, num_gaussians=int(attacked.num), render_psnr=render_psnr,
-                     hidden_psnr=float(scores["psnr"][0]), hidden_ssim=float(scores["ssim"][0])))
+    rows.append(dict(steps=length, densify=densify, num_gaussians=int(attacked.num),
+                     **robustness.scene_scores(attacked, owner, cameras, targets)))
   return rows
 
 

@@ -43,7 +43,7 @@ def test_padding_an_attacked_scene_leaves_its_image_unchanged():
   camera = make_camera(40, 32)
   for name, level in (("prune_transparent", 0.5), ("sh_degree", 0), ("subsample", 0.7)):
     attacked = model_attacks.attack(g, name, level)
-    padded = robustness.pad_like(attacked, g.num, g.sh.shape[1])
+    padded = robustness.pad_like(attacked, g.num, g.sh_degree)
     assert padded.means.shape == (400, 3) and padded.sh.shape == g.sh.shape
     expected = render(jax.tree.map(jnp.asarray, attacked), camera, OPTIONS).rgb
     np.testing.assert_allclose(render(jax.tree.map(jnp.asarray, padded), camera, OPTIONS).rgb, expected,

@@ -232,17 +232,10 @@ def evaluate_concealment(config, workdir, scene, teacher, student, decoder, sett
   fileio.write_image(os.path.join(workdir, "teacher_revealed.png"), teacher_revealed)
   # Leakage is scored on the student's own test renders, as a viewer of the shared scene would see them,
   # and at poses near the key, as someone guessing it would.
-  decoded_tests = reveal.reveal_renders(decoder, student_renders, width, size)
-  hidden_batch = jnp.broadcast_to(jnp.asarray(hidden), decoded_tests.shape)
-  ssim_to_hidden = np.asarray(metrics.batched_ssim(decoded_tests, hidden_batch))
-  near = key_lib.nearby_cameras(check_camera, scene.scene_extent(), NEAR_TRANSLATIONS, NEAR_ROTATIONS_DEG,
-                                NEAR_DIRECTIONS)
-  decoded_near = reveal.reveal_renders(decoder, evaluate.render_images(student, [c for _, _, c in near], options),
-                                       width, size)
-  ssim_near = np.asarray(metrics.batched_ssim(decoded_near, jnp.broadcast_to(jnp.asarray(hidden), decoded_near.shape)))
-  near_check = [dict(kind=kind, value=value, max_ssim=float(max(s for (k, v, _), s in zip(near, ssim_near)
-                                                                if (k, v) == (kind, value))))
-                for kind, value in dict.fromkeys((k, v) for k, v, _ in near)]
+  ssim_to_hidden = reveal.scores_to_hidden(reveal.reveal_renders(decoder, student_renders, width, size),
+                                           hidden)["ssim"]
+  near_check = reveal.near_key_rows(student, check_camera, options, decoder, width, hidden, scene.scene_extent(),
+                                    NEAR_TRANSLATIONS, NEAR_ROTATIONS_DEG, NEAR_DIRECTIONS)
   result = dict(
       student_vs_ground_truth=evaluate.image_metrics(student_renders, targets, names, net)["mean"],
       teacher_vs_ground_truth=evaluate.image_metrics(teacher_renders, targets, names, net)["mean"],
@@ -250,7 +243,7 @@ def evaluate_concealment(config, workdir, scene, teacher, student, decoder, sett
       hidden=dict(psnr=float(metrics.psnr(revealed, hidden)), ssim=float(metrics.ssim(revealed, hidden))),
       leakage=dict(max_ssim_student_test_views=float(ssim_to_hidden.max()),
                    ssim_teacher_check_view=float(metrics.ssim(teacher_revealed, hidden)),
-                   max_ssim_near_check=float(ssim_near.max())),
+                   max_ssim_near_check=max(row["max_ssim"] for row in near_check)),
       near_check=near_check,
       num_test_views=len(names), lpips_net=metrics.LPIPS_NET_NAME[net], eval_render_options=repr(eval_opts))
   fileio.write_json(os.path.join(workdir, evaluate.METRICS_FILE), result)

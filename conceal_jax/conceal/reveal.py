@@ -18,7 +18,7 @@ import numpy as np
 from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, unet
 from conceal_jax.core import fileio, settings
 from conceal_jax.data import ply
-from conceal_jax.gs import metrics
+from conceal_jax.gs import evaluate, metrics
 from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.gaussians import Gaussians
 from conceal_jax.splat.render import RenderOptions, render
@@ -54,6 +54,31 @@ def reveal_image(gaussians: Gaussians, camera: Camera, options: RenderOptions, d
   return reveal_renders(decoder_params, render(gaussians, camera, options).rgb, base_channels, size)
 
 
+def scores_to_hidden(revealed, hidden) -> dict[str, np.ndarray]:
+  """PSNR and SSIM [V] of revealed images [V, S, S, 3] to the hidden image I [S, S, 3]."""
+  revealed = jnp.asarray(revealed)
+  hidden = jnp.broadcast_to(jnp.asarray(hidden), revealed.shape)
+  return dict(psnr=np.asarray(jax.vmap(metrics.psnr)(revealed, hidden), np.float64),
+              ssim=np.asarray(metrics.batched_ssim(revealed, hidden), np.float64))
+
+
+def near_key_rows(gaussians: Gaussians, check_camera: Camera, options: RenderOptions, decoder_params,
+                  base_channels: int, hidden, extent: float, translations, rotations_deg,
+                  directions: int) -> list[dict]:
+  """What the decoder reveals at poses near the key (key.nearby_cameras): per (kind, value), the mean and
+  max SSIM and the mean PSNR to I over the random directions."""
+  poses = key_lib.nearby_cameras(check_camera, extent, translations, rotations_deg, directions)
+  renders = evaluate.render_images(gaussians, [camera for _, _, camera in poses], options)
+  scores = scores_to_hidden(reveal_renders(decoder_params, renders, base_channels, hidden.shape[0]), hidden)
+  rows = []
+  for kind, value in dict.fromkeys((kind, value) for kind, value, _ in poses):
+    mine = np.array([(k, v) == (kind, value) for k, v, _ in poses])
+    rows.append(dict(kind=kind, value=value, unit="fraction of extent" if kind == "translation" else "degrees",
+                     mean_ssim=float(scores["ssim"][mine].mean()), max_ssim=float(scores["ssim"][mine].max()),
+                     mean_psnr=float(scores["psnr"][mine].mean())))
+  return rows
+
+
 def save_decoder(path: str, params) -> None:
   fileio.write_bytes(path, flax.serialization.msgpack_serialize(
       jax.tree.map(np.asarray, flax.serialization.to_state_dict(params))))
@@ -83,22 +108,26 @@ def validate(config: ml_collections.ConfigDict) -> None:
       raise ValueError(f"reveal.{name} is required")
 
 
-def reveal(config: ml_collections.ConfigDict, workdir: str) -> dict:
-  """The reveal job: writes revealed.png and reveal.json (similarity to config.reveal.hidden if set)."""
-  validate(config)
-  r = config.reveal
+def reveal_from_files(r: ml_collections.ConfigDict) -> np.ndarray:
+  """[S, S, 3] image revealed from the scene r.ply at the key r.key with the decoder r.decoder (a
+  `reveal` config section); S is the key's hidden size."""
   camera, info = key_lib.load_key(r.key)
   if info.get("uses_decoder", True) and not r.decoder:
     raise ValueError("reveal.decoder is required: this key was made with a decoder")
   decoder = load_decoder(r.decoder) if info.get("uses_decoder", True) else None
-  gaussians = ply.load_ply(r.ply)
-  size = int(info["hidden_size"])
-  revealed = np.asarray(reveal_image(gaussians, camera, options_from_key(info), decoder,
-                                     int(info.get("decoder_width", 0)), size))
+  return np.asarray(reveal_image(ply.load_ply(r.ply), camera, options_from_key(info), decoder,
+                                 int(info.get("decoder_width", 0)), int(info["hidden_size"])))
+
+
+def reveal(config: ml_collections.ConfigDict, workdir: str) -> dict:
+  """The reveal job: writes revealed.png and reveal.json (similarity to config.reveal.hidden if set)."""
+  validate(config)
+  r = config.reveal
+  revealed = reveal_from_files(r)
   fileio.write_image(os.path.join(workdir, "revealed.png"), revealed)
   result = dict(ply=r.ply, key=r.key, decoder=r.decoder)
   if r.hidden:
-    reference = hidden_lib.load_hidden_image(r.hidden, size)
+    reference = hidden_lib.load_hidden_image(r.hidden, revealed.shape[0])
     result.update(psnr=float(metrics.psnr(revealed, reference)), ssim=float(metrics.ssim(revealed, reference)))
   fileio.write_json(os.path.join(workdir, REVEAL_FILE), result)
   return result

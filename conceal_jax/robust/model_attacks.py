@@ -7,22 +7,18 @@ float16 or 8 bits, or keep a random subset. (Fine-tuning, the other model attack
 """
 from __future__ import annotations
 
+import jax
 import numpy as np
 
+from conceal_jax.gs import densify
+from conceal_jax.robust.image_attacks import MEDIUM, MILD, STRONG  # one set of severity classes
 from conceal_jax.splat.gaussians import Gaussians
 
-MILD, MEDIUM, STRONG = "mild", "medium", "strong"
 FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 
 
 def _numpy(gaussians: Gaussians) -> Gaussians:
-  return Gaussians(**{f: np.asarray(getattr(gaussians, f), np.float32) for f in FIELDS})
-
-
-def keep_rows(gaussians: Gaussians, rows: np.ndarray) -> Gaussians:
-  """The Gaussians at `rows` (indices or a boolean mask)."""
-  g = _numpy(gaussians)
-  return Gaussians(**{f: getattr(g, f)[rows] for f in FIELDS})
+  return jax.tree.map(lambda x: np.asarray(x, np.float32), gaussians)
 
 
 def parameter_noise(gaussians: Gaussians, relative_sigma: float, seed: int = 0) -> Gaussians:
@@ -47,7 +43,7 @@ def prune_lowest(gaussians: Gaussians, score: np.ndarray, fraction: float) -> Ga
   drop = np.argsort(score, kind="stable")[:int(round(fraction * n))]
   keep = np.ones(n, bool)
   keep[drop] = False
-  return keep_rows(gaussians, keep)
+  return densify.take(_numpy(gaussians), keep)
 
 
 def prune_transparent(gaussians: Gaussians, fraction: float) -> Gaussians:
@@ -70,8 +66,7 @@ def truncate_sh(gaussians: Gaussians, degree: int) -> Gaussians:
 
 def to_float16(gaussians: Gaussians) -> Gaussians:
   """Every attribute stored as float16 and read back as float32."""
-  g = _numpy(gaussians)
-  return Gaussians(**{f: getattr(g, f).astype(np.float16).astype(np.float32) for f in FIELDS})
+  return jax.tree.map(lambda x: x.astype(np.float16).astype(np.float32), _numpy(gaussians))
 
 
 def quantize(gaussians: Gaussians, bits: int) -> Gaussians:
@@ -95,7 +90,7 @@ def subsample(gaussians: Gaussians, keep_fraction: float, seed: int = 0) -> Gaus
     raise ValueError(f"keep fraction must be in [0, 1], got {keep_fraction}")
   n = int(np.asarray(gaussians.means).shape[0])
   rows = np.sort(np.random.default_rng(seed).permutation(n)[:int(round(keep_fraction * n))])
-  return keep_rows(gaussians, rows)
+  return densify.take(_numpy(gaussians), rows)
 
 
 ATTACKS = {"noise": parameter_noise, "prune_transparent": prune_transparent, "prune_small": prune_smallest,

@@ -16,9 +16,8 @@ from typing import Sequence
 import ml_collections
 import numpy as np
 
-from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, reveal
+from conceal_jax.conceal import hidden as hidden_lib, reveal
 from conceal_jax.core import fileio
-from conceal_jax.data import ply
 from conceal_jax.gs import metrics
 
 VERIFY_FILE = "verify.json"
@@ -76,15 +75,8 @@ def verify(config: ml_collections.ConfigDict, workdir: str) -> dict:
   validate(config)
   r = config.reveal
   calibration = load_calibration(config.verify.calibration)
-  camera, info = key_lib.load_key(r.key)
-  uses_decoder = info.get("uses_decoder", True)
-  if uses_decoder and not r.decoder:
-    raise ValueError("reveal.decoder is required: this key was made with a decoder")
-  decoder = reveal.load_decoder(r.decoder) if uses_decoder else None
-  size = int(info["hidden_size"])
-  revealed = np.asarray(reveal.reveal_image(ply.load_ply(r.ply), camera, reveal.options_from_key(info), decoder,
-                                            int(info.get("decoder_width", 0)), size))
-  score = float(metrics.ssim(revealed, hidden_lib.load_hidden_image(r.hidden, size)))
+  revealed = reveal.reveal_from_files(r)
+  score = float(metrics.ssim(revealed, hidden_lib.load_hidden_image(r.hidden, revealed.shape[0])))
   result = dict(ply=r.ply, key=r.key, decoder=r.decoder, hidden=r.hidden, score=score,
                 owned=bool(score >= calibration["threshold"]), calibration=calibration)
   fileio.write_image(os.path.join(workdir, "revealed.png"), revealed)

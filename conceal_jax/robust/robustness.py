@@ -13,9 +13,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from conceal_jax.conceal import key as key_lib, reveal
-from conceal_jax.gs import evaluate, metrics
+from conceal_jax.conceal import reveal
+from conceal_jax.gs import evaluate, train
 from conceal_jax.robust import image_attacks, model_attacks
+from conceal_jax.splat import gaussians as gaussians_lib
 from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.gaussians import Gaussians
 from conceal_jax.splat.render import RenderOptions, render
@@ -41,10 +42,18 @@ class Owner:
 
   def scores(self, revealed) -> dict[str, np.ndarray]:
     """PSNR and SSIM [V] of revealed images [V, S, S, 3] to I."""
-    revealed = jnp.asarray(revealed)
-    hidden = jnp.broadcast_to(jnp.asarray(self.hidden), revealed.shape)
-    return dict(psnr=np.asarray(jax.vmap(metrics.psnr)(revealed, hidden), np.float64),
-                ssim=np.asarray(metrics.batched_ssim(revealed, hidden), np.float64))
+    return reveal.scores_to_hidden(revealed, self.hidden)
+
+  def check_scores(self, gaussians: Gaussians) -> dict[str, float]:
+    """hidden_psnr and hidden_ssim of what `gaussians` reveal at the key."""
+    scores = self.scores(self.reveal_renders(render(gaussians, self.check_camera, self.options).rgb[None]))
+    return dict(hidden_psnr=float(scores["psnr"][0]), hidden_ssim=float(scores["ssim"][0]))
+
+
+def scene_scores(gaussians: Gaussians, owner: Owner, test_cameras: Sequence[Camera], test_images) -> dict:
+  """An (attacked) scene's mean test PSNR and what it reveals at the key."""
+  return dict(render_psnr=evaluate.views_psnr(gaussians, list(test_cameras), test_images, owner.options),
+              **owner.check_scores(gaussians))
 
 
 def image_attack_rows(gaussians: Gaussians, owner: Owner,
@@ -62,42 +71,28 @@ def image_attack_rows(gaussians: Gaussians, owner: Owner,
   return base, rows
 
 
-def pad_like(gaussians: Gaussians, num: int, sh_coeffs: int) -> Gaussians:
-  """[M <= num] Gaussians as [num] rows with `sh_coeffs` SH coefficients: extra rows have NaN centres
-  (culled by the projection) and missing SH bands are zero (they add nothing), so the image is the same
-  and every attacked scene shares one compiled render."""
-  m, coeffs = int(np.asarray(gaussians.means).shape[0]), int(np.asarray(gaussians.sh).shape[1])
-  if m > num or coeffs > sh_coeffs:
-    raise ValueError(f"cannot pad {m} Gaussians with {coeffs} SH coefficients to {num} and {sh_coeffs}")
-
-  def pad(x, fill, width=None):
-    x = np.asarray(x, np.float32)
-    shape = (num,) + ((width,) + x.shape[2:] if width else x.shape[1:])
-    out = np.full(shape, fill, np.float32)
-    out[(slice(0, m),) + tuple(slice(0, n) for n in x.shape[1:])] = x
-    return out
-  return Gaussians(means=pad(gaussians.means, np.nan), log_scales=pad(gaussians.log_scales, 0.0),
-                   quats=pad(gaussians.quats, 0.0), opacity_logits=pad(gaussians.opacity_logits, 0.0),
-                   sh=pad(gaussians.sh, 0.0, sh_coeffs))
+def pad_like(gaussians: Gaussians, num: int, sh_degree: int) -> Gaussians:
+  """[M <= num] Gaussians as a [num] buffer with `sh_degree` bands, the way training holds a scene: dead
+  rows get NaN centres (culled) and missing SH bands are zero, so the image is the same and every
+  attacked scene shares one compiled render."""
+  m = int(np.asarray(gaussians.means).shape[0])
+  if m > num:
+    raise ValueError(f"cannot pad {m} Gaussians to {num}")
+  buffer = train.pad_to_capacity(gaussians_lib.with_sh_degree(gaussians, sh_degree), num)
+  return train.masked(buffer, jnp.arange(num) < m)
 
 
 def model_attack_rows(gaussians: Gaussians, owner: Owner, test_cameras: Sequence[Camera], test_images,
                       levels: Sequence[tuple] = model_attacks.LEVELS) -> list[dict]:
   """Render PSNR on the test views and hidden PSNR / SSIM of the attacked scene, per (attack, level);
   the first row ("none") is the scene as shared."""
-  num, coeffs = int(np.asarray(gaussians.means).shape[0]), int(np.asarray(gaussians.sh).shape[1])
-  targets = jnp.asarray(np.stack(test_images))
+  num = int(np.asarray(gaussians.means).shape[0])
   rows = []
   for name, level, severity in [("none", None, "none")] + list(levels):
     attacked = gaussians if name == "none" else model_attacks.attack(gaussians, name, level)
-    kept = int(np.asarray(attacked.means).shape[0])
-    padded = jax.tree.map(jnp.asarray, pad_like(attacked, num, coeffs))
-    renders = jnp.clip(evaluate.render_images(padded, list(test_cameras), owner.options), 0, 1)
-    render_psnr = float(jnp.mean(jax.vmap(metrics.psnr)(renders, targets)))
-    check = render(padded, owner.check_camera, owner.options).rgb
-    scores = owner.scores(owner.reveal_renders(check[None]))
-    rows.append(dict(attack=name, level=level, severity=severity, num_gaussians=kept, render_psnr=render_psnr,
-                     hidden_psnr=float(scores["psnr"][0]), hidden_ssim=float(scores["ssim"][0])))
+    padded = pad_like(attacked, num, gaussians.sh_degree)
+    rows.append(dict(attack=name, level=level, severity=severity, num_gaussians=int(np.asarray(attacked.means).shape[0]),
+                     **scene_scores(padded, owner, test_cameras, test_images)))
   return rows
 
 
@@ -108,13 +103,5 @@ def pose_tolerance_rows(gaussians: Gaussians, owner: Owner, extent: float,
   """Hidden SSIM / PSNR with the check camera moved by fractions of the scene `extent` (rotation 0) and
   turned by a few degrees (translation 0), each over `directions` random directions or axes: how
   precisely the key must be kept, and how much a guessed nearby pose reveals."""
-  poses = key_lib.nearby_cameras(owner.check_camera, extent, translations, rotations_deg, directions)
-  renders = evaluate.render_images(gaussians, [camera for _, _, camera in poses], owner.options)
-  scores = owner.scores(owner.reveal_renders(renders))
-  rows = []
-  for kind, value in dict.fromkeys((kind, value) for kind, value, _ in poses):
-    mine = np.array([(k, v) == (kind, value) for k, v, _ in poses])
-    rows.append(dict(kind=kind, value=value, unit="fraction of extent" if kind == "translation" else "degrees",
-                     mean_ssim=float(scores["ssim"][mine].mean()), max_ssim=float(scores["ssim"][mine].max()),
-                     mean_psnr=float(scores["psnr"][mine].mean())))
-  return rows
+  return reveal.near_key_rows(gaussians, owner.check_camera, owner.options, owner.decoder, owner.decoder_width,
+                              owner.hidden, extent, translations, rotations_deg, directions)
