@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 WORKDIR ?= workdirs/demo
 JOBS ?= 2
 
-.PHONY: venv demo test test-slow bench-render bench-train profile-train bench-conceal profile-conceal bench-robust clean
+.PHONY: venv demo test test-slow bench-render bench-train profile-train bench-conceal profile-conceal bench-robust reproduce clean
 
 venv: $(STAMP)
 
@@ -54,6 +54,14 @@ profile-conceal: $(STAMP)
 # attacks on the check render and on the student, check-pose tolerance (the demo run and bench-conceal's lego run)
 bench-robust: $(STAMP)
 	$(PY) -m experiments.bench_robust --out=experiments/results $(BENCH_ARGS)
+
+# the paper's tables beside ours (experiments/results/REPRODUCTION.md); REUSE=1 only reads the benchmarks' JSON
+REUSE ?= 0
+reproduce: $(STAMP)
+ifneq ($(REUSE),1)
+	$(MAKE) bench-train bench-conceal bench-robust
+endif
+	$(PY) -m experiments.reproduce --results=experiments/results --workdir=workdirs/bench
 
 clean:
 	rm -rf workdirs .pytest_cache

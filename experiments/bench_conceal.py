@@ -1,78 +1,177 @@
-"""ConcealGS benchmark on lego (200x200) with the teacher of `make bench-train`, hidden image astronaut
-at 64x64: the full method and the paper's three ablations, at one or more decoder widths.
+"""ConcealGS benchmark on lego (200x200; or beer at 1/4, --scenes) with the teacher of `make bench-train`,
+hidden image astronaut at 64x64: the paper's method, its ablations (paper Table 3), the released code's choices and the leakage
+control, at one or more decoder widths.
 
-  make bench-conceal                                   # 10k iterations, widths 64 and 16
+  make bench-conceal                                            # every row, 10k steps, widths 16 and 64
+  make bench-conceal BENCH_ARGS="--rows=full,full_leakfix --widths=16"
   make bench-conceal BENCH_ARGS="--iterations=1000 --widths=16 --rows=full --eval-views=20"
+  make bench-conceal BENCH_ARGS=--reuse                         # rebuild the JSON, table and plot
 
-Each run goes to <workdir>/lego/conceal_<row>_w<width> (resumable). Writes conceal_bench.json (render
-PSNR/SSIM/LPIPS vs ground truth and vs teacher, hidden PSNR/SSIM, leakage, wall time, median step
-time) and conceal_bench.png to --out.
+Each run goes to <workdir>/<scene>/conceal_<row>_w<width> (resumable; a killed bench picks up where it
+stopped). Writes conceal_bench.json (per row: render PSNR / SSIM / LPIPS of student and teacher against
+ground truth and of the student against the teacher, hidden PSNR / SSIM at the check view, leakage, wall
+time, median step time, and the curves of hidden PSNR / SSIM and student test PSNR against minutes),
+conceal_bench.md and conceal_bench.png to --out. Rows of earlier invocations stay in the JSON.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import pathlib
+import platform
 
 import jax
 
 from conceal_jax.conceal import conceal
 from conceal_jax.core import fileio
+from conceal_jax.gs import evaluate
 from experiments.bench_train import scene_config
 
-ROWS = {"full": {}, "no_decoder": dict(use_decoder=False), "no_consistency": dict(consistency=False),
-        "no_guidance": dict(guidance=False)}
+# Leakage control of conceal.py: L_d^- on the student's normal renders, and 64 decoy poses near the key
+# (1-10 % of the scene extent, 1-10 degrees) drawn as a quarter of the normal views.
+LEAK_FIX = dict(identity_on_student=True, decoy_views=64, decoy_fraction=0.25)
+ROWS = {
+    "full": {},
+    "no_decoder": dict(use_decoder=False),
+    "no_consistency": dict(consistency=False),
+    "no_guidance": dict(guidance=False),
+    "released": dict(variant="released", granularity="tensor"),
+    "tensor": dict(granularity="tensor"),
+    "full_leakfix": LEAK_FIX,
+}
+WIDTH_FREE_ROWS = ("no_decoder",)  # without a decoder the width does not matter: run once
+# The concealment issue's targets (lego: widths 16 and 64; the time for width 16).
+TARGETS = dict(lego=dict(hidden_psnr=34.0, hidden_ssim=0.99, student_psnr_loss=0.3, leakage=0.2, minutes_width16=60.0),
+               beer=dict(hidden_psnr=37.5, hidden_ssim=0.99, student_psnr_loss=0.2))
+CURVE_EVERY, CURVE_VIEWS = 500, 10
 
 
-def run(rows, widths, iterations, eval_views, workdir: pathlib.Path, out: pathlib.Path) -> list[dict]:
-  """Runs every (width, row); rewrites the JSON and plot after each, so a stopped bench keeps its rows."""
-  teacher = workdir / "lego" / "teacher" / "point_cloud.ply"
+def run_config(scene: str, teacher: pathlib.Path, row: str, width: int, iterations: int, eval_views: int):
+  config = scene_config(scene, None)  # the teacher's data and render settings
+  config.mode = "conceal"
+  c = config.conceal
+  c.teacher, c.hidden, c.decoder_width, c.decoder_vgg_init = str(teacher), "astronaut", width, width == 64
+  c.eval_every, c.eval_views = CURVE_EVERY, CURVE_VIEWS
+  if iterations:
+    c.iterations = iterations
+  config.eval.max_views = eval_views
+  for name, value in ROWS[row].items():
+    c[name] = value
+  return config
+
+
+def finished_run(run_dir: pathlib.Path) -> dict | None:
+  """conceal_and_evaluate's result of a finished run, from its conceal.json and metrics.json."""
+  try:
+    summary = json.loads((run_dir / conceal.SUMMARY_FILE).read_text())
+    return dict(summary, metrics=json.loads((run_dir / evaluate.METRICS_FILE).read_text()))
+  except (OSError, ValueError):
+    return None
+
+
+def summary_row(scene: str, row: str, width: int, result: dict) -> dict:
+  m = result["metrics"]
+  history = result["history"]
+  return dict(scene=scene, row=row, decoder_width=width, overrides=ROWS[row], iterations=result["iterations"],
+              wall_time_s=result["wall_time_s"], median_step_s=result["median_step_s"],
+              num_decoys=result.get("num_decoys", 0), **m,
+              student_psnr_loss=m["teacher_vs_ground_truth"]["psnr"] - m["student_vs_ground_truth"]["psnr"],
+              max_leakage=max(m["leakage"].values()),
+              curve=[(h["step"], h["elapsed_s"], h["hidden_psnr"], h["hidden_ssim"], h["test_psnr"])
+                     for h in history if "hidden_psnr" in h])
+
+
+def run(scene, rows, widths, iterations, eval_views, workdir: pathlib.Path, out: pathlib.Path,
+        reuse: bool) -> list[dict]:
+  """Runs (or resumes, or with `reuse` reads) every (row, width) on `scene`; rewrites the JSON, table and
+  plot after each, so a stopped bench keeps its rows."""
+  teacher = workdir / scene / "teacher" / "point_cloud.ply"
   if not teacher.is_file():
-    print(f"skipping: no teacher at {teacher}; run `make bench-train` first")
+    print(f"skipping {scene}: no teacher at {teacher}; run `make bench-train` first")
     return []
   results = []
   for width in widths:
     for row in rows:
-      if row == "no_decoder" and width != widths[0]:
-        continue  # no decoder: the width does not matter
-      config = scene_config("lego", None)  # the teacher's data and render settings
-      config.mode = "conceal"
-      c = config.conceal
-      c.teacher, c.hidden, c.decoder_width, c.decoder_vgg_init = str(teacher), "astronaut", width, width == 64
-      if iterations:
-        c.iterations = iterations
-      config.eval.max_views = eval_views
-      for name, value in ROWS[row].items():
-        c[name] = value
-      run_dir = workdir / "lego" / f"conceal_{row}_w{width}"
-      run_dir.mkdir(parents=True, exist_ok=True)
-      fileio.write_json(run_dir / "config.json", config.to_dict())  # as the command line would (bench-robust reads it)
-      result = conceal.conceal_and_evaluate(config, str(run_dir))
-      results.append(dict(row=row, decoder_width=width, iterations=result["iterations"],
-                          wall_time_s=result["wall_time_s"], median_step_s=result["median_step_s"],
-                          **result["metrics"]))
-      print(json.dumps(results[-1]))
-      fileio.write_json(out / "conceal_bench.json", dict(device=str(jax.devices()[0]), rows=results))
-      plot(results, out / "conceal_bench.png")
+      if row in WIDTH_FREE_ROWS and width != widths[0]:
+        continue
+      run_dir = workdir / scene / f"conceal_{row}_w{width}"
+      result = finished_run(run_dir) if reuse else None
+      if result is None:
+        if reuse:
+          print(f"skipping {scene} {row} w{width}: no finished run in {run_dir}")
+          continue
+        config = run_config(scene, teacher, row, width, iterations, eval_views)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        fileio.write_json(run_dir / "config.json", config.to_dict())  # as the command line would (bench-robust reads it)
+        result = conceal.conceal_and_evaluate(config, str(run_dir))
+      results.append(summary_row(scene, row, width, result))
+      print(json.dumps({k: v for k, v in results[-1].items() if k not in ("curve", "near_check")}))
+      merged = merged_rows(out / "conceal_bench.json", results)
+      fileio.write_json(out / "conceal_bench.json", dict(device=str(jax.devices()[0]), cpu=platform.processor(),
+                                                         targets=TARGETS, rows=merged))
+      fileio.write_text(out / "conceal_bench.md", table(merged))
+      plot(merged, out / "conceal_bench.png")
   return results
 
 
-def plot(results, path: pathlib.Path):
+def row_key(r: dict) -> tuple:
+  return r.get("scene", "lego"), r.get("row"), r.get("decoder_width")
+
+
+def merged_rows(path: pathlib.Path, rows: list[dict]) -> list[dict]:
+  """`rows` plus the rows of other (scene, row, width) already in `path`."""
+  try:
+    old = json.loads(path.read_text())["rows"]
+  except (OSError, ValueError, KeyError):
+    old = []
+  keys = {row_key(r) for r in rows}
+  return [r for r in old if row_key(r) not in keys and "curve" in r] + rows
+
+
+def table(rows) -> str:
+  lines = ["| scene | row | width | steps | wall time (min) | median step (ms) | student PSNR / SSIM / LPIPS | teacher PSNR | "
+           "loss (dB) | vs teacher PSNR | hidden PSNR / SSIM | leakage: test views / clean teacher / near key |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+  for r in rows:
+    s, t, v, h, k = (r["student_vs_ground_truth"], r["teacher_vs_ground_truth"], r["student_vs_teacher"],
+                     r["hidden"], r["leakage"])
+    lines.append(f"| {r['scene']} | {r['row']} | {r['decoder_width']} | {r['iterations']} | {r['wall_time_s'] / 60:.1f} | "
+                 f"{1e3 * r['median_step_s']:.0f} | {s['psnr']:.2f} / {s['ssim']:.4f} / {s['lpips']:.4f} | "
+                 f"{t['psnr']:.2f} | {r['student_psnr_loss']:.2f} | {v['psnr']:.2f} | {h['psnr']:.2f} / {h['ssim']:.4f} | "
+                 f"{k['max_ssim_student_test_views']:.3f} / {k['ssim_teacher_check_view']:.3f} / "
+                 f"{k.get('max_ssim_near_check', float('nan')):.3f} |")
+  return "\n".join(lines) + "\n"
+
+
+def plot(rows, path: pathlib.Path):
+  """Hidden PSNR and student test PSNR (quick subset) against minutes, and the final leakage per row."""
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
-  fig, axes = plt.subplots(1, 2, figsize=(10, 4))
-  labels = [f"{r['row']}\nw{r['decoder_width']}" for r in results]
-  axes[0].bar(labels, [r["student_vs_ground_truth"]["psnr"] for r in results], label="student")
-  axes[0].plot(labels, [r["teacher_vs_ground_truth"]["psnr"] for r in results], "k_", markersize=30,
-               label="teacher")
-  axes[0].set_ylabel("test PSNR vs ground truth (dB)")
-  axes[0].legend()
-  axes[1].bar(labels, [r["hidden"]["psnr"] for r in results])
-  axes[1].set_ylabel("hidden image PSNR at the check view (dB)")
+  fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+  for r in rows:
+    label = f"{r['scene']} {r['row']} w{r['decoder_width']}"
+    minutes = [t / 60 for _, t, *_ in r["curve"]]
+    axes[0].plot(minutes, [p for *_, p, _, _ in r["curve"]], marker=".", label=label)
+    axes[1].plot(minutes, [p for *_, p in r["curve"]], marker=".", label=label)
+  for scene in sorted({r["scene"] for r in rows} & set(TARGETS)):
+    axes[0].axhline(TARGETS[scene]["hidden_psnr"], color="k", linestyle=":", alpha=0.6)
+  axes[0].set_ylabel("hidden PSNR at the check view (dB)")
+  axes[1].set_ylabel(f"student test PSNR, {CURVE_VIEWS} views (dB)")
+  for ax in axes[:2]:
+    ax.set_xlabel("training wall time (min)")
+  labels = [f"{r['scene']}\n{r['row']}\nw{r['decoder_width']}" for r in rows]
+  kinds = (("max_ssim_student_test_views", "student test views"), ("ssim_teacher_check_view", "clean teacher"),
+           ("max_ssim_near_check", "near the key"))
+  for j, (key, name) in enumerate(kinds):
+    axes[2].bar([i + 0.27 * (j - 1) for i in range(len(rows))], [r["leakage"].get(key, 0.0) for r in rows],
+                width=0.27, label=name)
+  axes[2].axhline(TARGETS["lego"]["leakage"], color="k", linestyle=":", alpha=0.6)
+  axes[2].set_xticks(range(len(rows)), labels, fontsize=7)
+  axes[2].set_ylabel("leakage: max SSIM of F(view) to I")
   for ax in axes:
-    ax.tick_params(axis="x", labelsize=7)
-    ax.grid(alpha=0.3, axis="y")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7)
   fileio.save_figure(fig, path)
 
 
@@ -80,16 +179,19 @@ def main():
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--out", default="experiments/results")
   parser.add_argument("--workdir", default="workdirs/bench")
+  parser.add_argument("--scenes", default="lego", help="comma-separated bench-train scenes (lego, beer)")
   parser.add_argument("--rows", default=",".join(ROWS))
-  parser.add_argument("--widths", default="64,16")
+  parser.add_argument("--widths", default="16,64")
   parser.add_argument("--iterations", type=int, default=0, help="0: the config's 10k")
   parser.add_argument("--eval-views", type=int, default=0, help="test views scored per run; 0: all 200")
+  parser.add_argument("--reuse", action="store_true", help="read finished runs instead of running them")
   args = parser.parse_args()
   rows = [r for r in args.rows.split(",") if r]
   if set(rows) - set(ROWS):
     parser.error(f"unknown rows {sorted(set(rows) - set(ROWS))}; choose from {sorted(ROWS)}")
-  run(rows, [int(w) for w in args.widths.split(",")], args.iterations, args.eval_views, pathlib.Path(args.workdir),
-      pathlib.Path(args.out))
+  for scene in (s for s in args.scenes.split(",") if s):
+    run(scene, rows, [int(w) for w in args.widths.split(",")], args.iterations, args.eval_views,
+        pathlib.Path(args.workdir), pathlib.Path(args.out), args.reuse)
 
 
 if __name__ == "__main__":

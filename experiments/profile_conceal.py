@@ -1,13 +1,14 @@
 """Where a ConcealGS step spends its time, on the lego teacher of `make bench-train`.
 
   make profile-conceal                                   # decoder widths 16 and 64
-  make profile-conceal BENCH_ARGS="--widths=16 --repeats=9"
+  make profile-conceal BENCH_ARGS="--widths=16 --repeats=9 --row=full"
 
-For each decoder width, times (median of --repeats, each part jitted on its own): the student's render of
+With the settings of a bench-conceal row (default full_leakfix), for each decoder width, times (median of --repeats, each part jitted on its own): the student's render of
 a normal view with L_kd and its gradient, `student_objective` with its gradient (the normal render, the
 check render and the decoder on it), the decoder alone (forward, forward+backward, for one image and for
 a batch of two), `decoder_identity_objective` with its gradient, the guided combination of the two
-decoder gradients, the two Adam updates, and the whole step. Writes conceal_step_profile.json to --out.
+decoder gradients, the two Adam updates, the decoder's two passes run separately or fused into one
+batch, and the whole step. Writes conceal_step_profile.json to --out.
 Run it on a quiet machine.
 """
 from __future__ import annotations
@@ -23,25 +24,42 @@ import numpy as np
 import optax
 
 from conceal_jax.conceal import conceal, guidance, hidden as hidden_lib, key as key_lib, reveal
-from conceal_jax.conceal.objective import decoder_identity_objective, student_objective
+from conceal_jax.conceal.objective import decoder_identity_objective, identity_inputs, student_objective
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, losses, optimizer
 from conceal_jax.splat import render as render_lib
-from experiments.bench_train import scene_config
+from experiments.bench_conceal import ROWS, run_config
 from experiments.profile_step import median_ms
 
 
-def conceal_config(teacher: pathlib.Path, width: int):
-  config = scene_config("lego", None)
-  config.mode = "conceal"
-  c = config.conceal
-  c.teacher, c.hidden, c.decoder_width, c.decoder_vgg_init = str(teacher), "astronaut", width, width == 64
-  return config
+def decoder_pass_times(decoder, width: int, data: dict, settings, repeats: int) -> dict:
+  """The decoder's share of a step, two ways, each giving the two gradient pytrees the guidance compares:
+  `separate`: L_d^+ on the check render (gradients for the decoder and the render) and L_d^- on B identity
+  inputs (decoder gradient), two forward+backward passes as the step runs them; `fused`: one forward of
+  the batch of 1 + B images and the two gradients as the Jacobian rows of (L_d^+, L_d^-) (jax.jacrev, a
+  backward pass batched over the two losses)."""
+  check = data["teacher_small"][0]
+  minus_inputs = jnp.stack([data["teacher_small"][1], data["teacher_small"][2]][:1 + settings.identity_on_student])
+  hidden = data["hidden"]
+  plus_loss = lambda d, x: losses.hidden_image_loss(reveal.decode(d, width, x), hidden)
+  minus_loss = lambda d: losses.decoder_identity_loss(reveal.decode(d, width, minus_inputs), minus_inputs)
+
+  def separate(d, x):
+    plus_grads = jax.grad(plus_loss, argnums=(0, 1))(d, x)
+    return plus_grads, jax.grad(minus_loss)(d)
+
+  def both_losses(d, x):
+    out = reveal.decode(d, width, jnp.concatenate([x[None], minus_inputs]))
+    return jnp.stack([losses.hidden_image_loss(out[0], hidden), losses.decoder_identity_loss(out[1:], minus_inputs)])
+
+  fused = lambda d, x: jax.jacrev(both_losses, argnums=(0, 1))(d, x)
+  return {f"decoder_passes_separate_b{len(minus_inputs)}": median_ms(jax.jit(separate), decoder, check, repeats=repeats),
+          f"decoder_passes_fused_b{len(minus_inputs)}": median_ms(jax.jit(fused), decoder, check, repeats=repeats)}
 
 
-def profile(width: int, teacher: pathlib.Path, repeats: int) -> dict:
-  config = conceal_config(teacher, width)
+def profile(row: str, width: int, teacher: pathlib.Path, repeats: int) -> dict:
+  config = run_config("lego", teacher, row, width, 0, 0)
   c = config.conceal
   settings = conceal.settings_from_config(config)
   gaussians = jax.tree.map(jnp.asarray, ply.load_ply(c.teacher))
@@ -70,8 +88,11 @@ def profile(width: int, teacher: pathlib.Path, repeats: int) -> dict:
     times[f"decoder_fwd_batch{batch}"] = median_ms(jax.jit(apply), decoder, images, repeats=repeats)
     times[f"decoder_fwd_bwd_batch{batch}"] = median_ms(
         jax.jit(jax.grad(lambda d, x: jnp.sum(apply(d, x)))), decoder, images, repeats=repeats)
-  identity = jax.jit(jax.value_and_grad(lambda d: decoder_identity_objective(d, data, 1, settings)))
+  inputs = identity_inputs(data, 1, settings)
+  identity = jax.jit(jax.value_and_grad(lambda d: decoder_identity_objective(d, inputs, settings)))
   times["decoder_identity_fwd_bwd"] = median_ms(identity, decoder, repeats=repeats)
+
+  times.update(decoder_pass_times(decoder, width, data, settings, repeats))
 
   (_, _), (_, plus_grad) = student(gaussians, decoder)
   _, minus_grad = identity(decoder)
@@ -94,7 +115,7 @@ def profile(width: int, teacher: pathlib.Path, repeats: int) -> dict:
     jax.block_until_ready(stats)
     step_times.append(time.perf_counter() - start)
   times["conceal_step"] = 1e3 * float(np.median(step_times))
-  return dict(decoder_width=width, num_gaussians=int(gaussians.num), pair_capacity=options.pair_capacity,
+  return dict(row=row, decoder_width=width, num_gaussians=int(gaussians.num), pair_capacity=options.pair_capacity,
               tile_size=options.tile_size, image_size=[camera.width, camera.height],
               hidden_size=settings.hidden_size, settings=dataclasses.asdict(settings), repeats=repeats,
               median_ms=times)
@@ -106,13 +127,14 @@ def main():
   parser.add_argument("--out", default="experiments/results")
   parser.add_argument("--widths", default="16,64")
   parser.add_argument("--repeats", type=int, default=7)
+  parser.add_argument("--row", default="full_leakfix", choices=sorted(ROWS), help="a bench-conceal row's settings")
   args = parser.parse_args()
   teacher = pathlib.Path(args.workdir) / "lego" / "teacher" / "point_cloud.ply"
   if not teacher.is_file():
     raise SystemExit(f"no teacher at {teacher}: run make bench-train first")
   rows = []
   for width in (int(w) for w in args.widths.split(",") if w):
-    rows.append(profile(width, teacher, args.repeats))
+    rows.append(profile(args.row, width, teacher, args.repeats))
     print(f"decoder width {width}:")
     for name, ms in rows[-1]["median_ms"].items():
       print(f"  {name:28s} {ms:8.1f} ms")

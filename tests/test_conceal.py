@@ -97,16 +97,71 @@ def test_decoder_identity_objective_reads_only_the_decoder():
   _, decoder, data = _objective_inputs()
   for variant, teacher in (("paper", data["teacher_small"][2]), ("released", data["teacher_check_small"])):
     s = objective.ConcealSettings(variant=variant, decoder_width=4, hidden_size=16, weight_minus=3.0)
-    value = objective.decoder_identity_objective(decoder, data, 2, s)
+    inputs = objective.identity_inputs(data, 2, s)
+    np.testing.assert_array_equal(inputs, teacher[None])
+    value = objective.decoder_identity_objective(decoder, inputs, s)
     expected = 3.0 * jnp.mean(jnp.abs(reveal.decode(decoder, 4, teacher) - teacher))
     np.testing.assert_allclose(float(value), float(expected), rtol=1e-6)
-  grads = jax.grad(objective.decoder_identity_objective)(decoder, data, 2, s)
+  grads = jax.grad(objective.decoder_identity_objective)(decoder, inputs, s)
   assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(grads))
   assert any(float(jnp.abs(g).sum()) > 0 for g in jax.tree.leaves(grads))
 
 
+def test_identity_on_student_adds_the_students_render_as_a_constant():
+  """With identity_on_student, L_d^- is the mean of the teacher's and the student's identity errors, and
+  no gradient reaches the student through it."""
+  student, decoder, data = _objective_inputs()
+  s = objective.ConcealSettings(decoder_width=4, hidden_size=16, identity_on_student=True)
+  options = RenderOptions(max_per_tile=None)
+  camera = jax.tree.map(lambda x: x[1], data["cameras"])
+
+  def minus_of_student(g):
+    rgb = render(g, camera, options).rgb
+    return objective.decoder_identity_objective(decoder, objective.identity_inputs(data, 2, s, rgb), s)
+
+  small = reveal.resize_for_decoder(render(student, camera, options).rgb, 16)
+  teacher = data["teacher_small"][2]
+  expected = 0.5 * (jnp.mean(jnp.abs(reveal.decode(decoder, 4, teacher) - teacher))
+                    + jnp.mean(jnp.abs(reveal.decode(decoder, 4, small) - small)))
+  np.testing.assert_allclose(float(minus_of_student(student)), float(expected), rtol=1e-5)
+  grads = jax.grad(minus_of_student)(student)
+  assert all(float(jnp.abs(g).max()) == 0 for g in jax.tree.leaves(grads))
+
+
+def test_decoys_lie_near_the_key_within_their_ranges():
+  check = Camera.from_intrinsics(look_at([0.0, -4.0, 1.0], [0.0, 0.0, 0.0]), 40.0, 40.0, 16.0, 16.0, 32, 32)
+  decoys = key.decoy_cameras(check, 2.0, 9, (0.05, 0.1), (3.0, 6.0), seed=1)
+  center = camera_centers([check])[0]
+  forward = np.asarray(check.world_to_camera)[2, :3]
+  for k, decoy in enumerate(decoys):
+    moved = np.linalg.norm(camera_centers([decoy])[0] - center) / 2.0
+    turned = np.degrees(np.arccos(np.clip(np.asarray(decoy.world_to_camera)[2, :3] @ forward, -1, 1)))
+    if k % 3 == 1:
+      assert moved < 1e-6
+    else:
+      assert 0.05 - 1e-6 <= moved <= 0.1 + 1e-6
+    if k % 3 == 0:  # moved only: the same orientation
+      np.testing.assert_allclose(np.asarray(decoy.world_to_camera)[:3, :3], np.asarray(check.world_to_camera)[:3, :3],
+                                 atol=1e-6)
+    else:  # the optical axis turns by at most the rotation angle (less when the axis is near the view direction)
+      assert 0.1 < turned <= 6.0 + 1e-3
+  near = key.nearby_cameras(check, 2.0, (0.05,), (), 4)
+  assert not any(np.allclose(np.asarray(d.world_to_camera), np.asarray(n.world_to_camera))
+                 for d in decoys for _, _, n in near)
+  again = key.decoy_cameras(check, 2.0, 9, (0.05, 0.1), (3.0, 6.0), seed=1)
+  np.testing.assert_array_equal(np.asarray(again[4].world_to_camera), np.asarray(decoys[4].world_to_camera))
+
+
+def test_normal_views_draw_decoys_at_their_rate():
+  rng = np.random.default_rng(0)
+  views = np.array([conceal.normal_view(rng, 10, 5, 0.3) for _ in range(4000)])
+  assert views.min() == 0 and views.max() == 14
+  np.testing.assert_allclose(np.mean(views >= 10), 0.3, atol=0.03)
+  assert all(conceal.normal_view(rng, 10, 0, 0.3) < 10 for _ in range(100))
+
+
 def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
-  config = tiny_config(tiny)
+  config = tiny_config(tiny, eval_every=20)
   straight = conceal.conceal_and_evaluate(config, str(tmp_path / "a"))
   assert conceal.conceal_and_evaluate(config, str(tmp_path / "b"), max_steps=20) == dict(stopped_at=20)
   resumed = conceal.conceal_and_evaluate(config, str(tmp_path / "b"))
@@ -116,7 +171,7 @@ def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
     assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
 
   a = tmp_path / "a"
-  for name in ("key.json", "hidden.png", "revealed.png", "teacher_revealed.png", "metrics.json"):
+  for name in ("key.json", "hidden.png", "revealed.png", "teacher_revealed.png", "normal_revealed.png", "metrics.json"):
     assert (a / name).is_file(), name
   metrics = json.loads((a / "metrics.json").read_text())
   assert set(metrics["leakage"]) == {"max_ssim_student_test_views", "ssim_teacher_check_view", "max_ssim_near_check"}
@@ -124,7 +179,11 @@ def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
       ("translation", 0.02), ("translation", 0.05), ("rotation", 2.0), ("rotation", 5.0)]
   assert metrics["leakage"]["max_ssim_near_check"] == max(r["max_ssim"] for r in metrics["near_check"])
   assert np.isfinite(metrics["hidden"]["psnr"]) and "VGG16" in metrics["lpips_net"]
-  assert all(np.isfinite(h["loss"]) and 0 < h["mean_guidance_weight"] < 1 for h in straight["history"])
+  windows = [h for h in straight["history"] if "loss" in h]
+  assert all(np.isfinite(h["loss"]) and 0 < h["mean_guidance_weight"] < 1 for h in windows)
+  curve = [h for h in straight["history"] if "hidden_psnr" in h]
+  assert [h["step"] for h in curve] == [20, 40] and all(np.isfinite(h["test_psnr"]) for h in curve)
+  np.testing.assert_allclose(curve[-1]["hidden_psnr"], metrics["hidden"]["psnr"], rtol=1e-4)
   assert ply.load_ply(a / "student.ply").num == 1200
 
   # the reveal job reproduces the concealment's revealed image from the shared files alone
@@ -138,7 +197,8 @@ def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
 
 
 @pytest.mark.parametrize("overrides", [dict(use_decoder=False), dict(consistency=False, guidance=False),
-                                       dict(variant="released", granularity="tensor", key_kind="orbit")])
+                                       dict(variant="released", granularity="tensor", key_kind="orbit"),
+                                       dict(identity_on_student=True, decoy_views=3, decoy_fraction=0.5)])
 def test_ablations_and_variants_run(tiny, tmp_path, overrides):
   result = conceal.conceal_and_evaluate(tiny_config(tiny, iterations=3, **overrides), str(tmp_path))
   assert np.isfinite(result["metrics"]["hidden"]["psnr"])
@@ -151,7 +211,11 @@ def test_ablations_and_variants_run(tiny, tmp_path, overrides):
     (dict(teacher=""), "conceal.teacher"), (dict(teacher="/no/such.ply"), "no such file"),
     (dict(variant="mine"), "conceal.variant"), (dict(hidden="no_such_sample"), "no_such_sample"),
     (dict(key_index=99), "key_index"), (dict(key_kind="random"), "key_kind"),
-    (dict(granularity="model"), "granularity"), (dict(hidden_size=20), "hidden_size")])
+    (dict(granularity="model"), "granularity"), (dict(hidden_size=20), "hidden_size"),
+    (dict(decoy_views=4), "decoy_fraction"), (dict(decoy_views=4, decoy_fraction=1.0), "decoy_fraction"),
+    (dict(decoy_views=4, decoy_fraction=0.2, variant="released"), "decoy_fraction"),
+    (dict(decoy_translation=(0.2, 0.1)), "decoy_translation"), (dict(eval_views=0), "eval_views"),
+    (dict(identity_on_student=True, consistency=False), "identity_on_student")])
 def test_bad_conceal_config_is_named(tiny, tmp_path, overrides, message):
   with pytest.raises((ValueError, OSError), match=message):
     conceal.conceal_and_evaluate(tiny_config(tiny, **overrides), str(tmp_path))

@@ -17,9 +17,21 @@ Ablations (the paper's Table 3): conceal.use_decoder=False (the resized check re
 I), conceal.consistency=False (no consistency strategy of Sec. 2.2: no L_kd, the student is supervised
 by ground truth, and no L_d^-), conceal.guidance=False (plain summed decoder gradient).
 
+Leakage control, an option beyond the paper (off by default, so `variant=paper` is the method as written):
+  conceal.identity_on_student  L_d^- also on the student's own render of the step's normal view: F learns
+                               to be the identity on what a viewer of the shared scene sees, not only on
+                               the teacher's renders.
+  conceal.decoy_views / decoy_fraction / decoy_translation / decoy_rotation_deg
+                               decoy_views cameras near the key (moved by a fraction of the scene extent,
+                               turned by degrees, within the given ranges) join the normal views with the
+                               teacher's renders cached: a step draws a decoy as its normal view with
+                               probability decoy_fraction, so L_kd holds the student to the teacher there
+                               and L_d^- keeps F the identity there. Only the exact key reveals.
+
 The number of Gaussians is fixed (no densification): the student is the teacher's set, refined. The
 objective is in objective.py, the guidance in guidance.py; this module builds the step and runs the job
-through the shared loop (core.loop).
+through the shared loop (core.loop). With conceal.eval_every, the history records the hidden image's
+PSNR / SSIM at the check view and the student's test PSNR over time (the accuracy-vs-time curves).
 """
 from __future__ import annotations
 
@@ -35,7 +47,8 @@ import optax
 from flax import struct
 
 from conceal_jax.conceal import guidance, hidden as hidden_lib, key as key_lib, reveal, unet
-from conceal_jax.conceal.objective import ConcealSettings, decoder_identity_objective, student_objective
+from conceal_jax.conceal.objective import (ConcealSettings, decoder_identity_objective, identity_inputs,
+                                           student_objective)
 from conceal_jax.core import fileio, loop, settings as settings_lib
 from conceal_jax.data import ply
 from conceal_jax.gs import capacity, evaluate, metrics, optimizer
@@ -83,6 +96,15 @@ def validate(config: ml_collections.ConfigDict) -> None:
     raise ValueError(f"conceal.key_kind must be one of {key_lib.KEY_KINDS}, got {c.key_kind!r}")
   if not (c.lr.means_init > 0 and c.decoder_lr > 0):
     raise ValueError("conceal.lr.means_init and conceal.decoder_lr must be positive")
+  if c.decoy_views < 0 or (c.decoy_fraction > 0) != (c.decoy_views > 0):
+    raise ValueError("conceal.decoy_views must be positive exactly when conceal.decoy_fraction is, got "
+                     f"{c.decoy_views} and {c.decoy_fraction}")
+  for name in ("decoy_translation", "decoy_rotation_deg"):
+    lo, hi = tuple(c[name])
+    if not 0 <= lo <= hi:
+      raise ValueError(f"conceal.{name} must be a range (lo, hi) with 0 <= lo <= hi, got {tuple(c[name])}")
+  if c.eval_every < 0 or c.eval_views < 1:
+    raise ValueError(f"conceal.eval_every must be >= 0 and conceal.eval_views >= 1")
   if not c.teacher:
     raise ValueError("conceal.teacher (the teacher's .ply) is required")
   if not os.path.isfile(c.teacher):
@@ -111,7 +133,8 @@ def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student
                                    data["teacher"][view] if s.distill else data["images"][view]))
     if s.use_decoder:
       if s.identity_loss:
-        minus, minus_grad = jax.value_and_grad(decoder_identity_objective)(state.decoder, data, normal_view, s)
+        inputs = identity_inputs(data, normal_view, s, aux["rgb"])
+        minus, minus_grad = jax.value_and_grad(decoder_identity_objective)(state.decoder, inputs, s)
       else:
         minus, minus_grad = jnp.zeros(()), jax.tree.map(jnp.zeros_like, plus_grad)
       if s.guidance:  # plus_grad and minus_grad already carry their loss weights; cosines ignore scale
@@ -146,14 +169,27 @@ def initial_decoder(config: ml_collections.ConfigDict, settings: ConcealSettings
 
 
 def build_data(scene, teacher, options: RenderOptions, check_camera, check_image, hidden: np.ndarray,
-               size: int) -> dict:
-  """The device-resident inputs of the step; the teacher renders are computed here once, on the device."""
-  teacher_renders = evaluate.render_images(teacher, scene.train_cameras, options)
+               size: int, decoys=()) -> dict:
+  """The device-resident inputs of the step; the teacher renders are computed here once, on the device.
+
+  Normal views are the V training cameras followed by the D `decoys` (cameras, see key.decoy_cameras):
+  cameras and teacher renders [V + D, ...], ground-truth images [V, H, W, 3] of the training views only.
+  """
+  normal_cameras = list(scene.train_cameras) + list(decoys)
+  teacher_renders = evaluate.render_images(teacher, normal_cameras, options)
   teacher_check = render(teacher, check_camera, options).rgb
   return dict(images=jnp.asarray(np.stack(scene.train_images)), teacher=teacher_renders,
               teacher_small=reveal.resize_for_decoder(teacher_renders, size),
-              cameras=camera_lib.stack(scene.train_cameras), check_camera=check_camera, check_image=check_image,
+              cameras=camera_lib.stack(normal_cameras), check_camera=check_camera, check_image=check_image,
               teacher_check_small=reveal.resize_for_decoder(teacher_check, size), hidden=jnp.asarray(hidden))
+
+
+def normal_view(rng: np.random.Generator, num_views: int, num_decoys: int, decoy_fraction: float) -> int:
+  """A step's normal view: a decoy (index num_views + k) with probability decoy_fraction, else a training
+  view, each uniformly."""
+  if num_decoys and rng.random() < decoy_fraction:
+    return num_views + int(rng.integers(num_decoys))
+  return int(rng.integers(num_views))
 
 
 def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_steps: int | None = None) -> dict:
@@ -171,7 +207,9 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   options = evaluate.render_options(config, scene.background)
   check_image = (jnp.asarray(scene.train_images[key_info["index"]]) if c.key_kind == "train_index"
                  else render(teacher, check_camera, options).rgb)
-  data = build_data(scene, teacher, options, check_camera, check_image, hidden, settings.hidden_size)
+  decoys = key_lib.decoy_cameras(check_camera, scene.scene_extent(), c.decoy_views, tuple(c.decoy_translation),
+                                 tuple(c.decoy_rotation_deg), c.key_seed)
+  data = build_data(scene, teacher, options, check_camera, check_image, hidden, settings.hidden_size, decoys)
 
   student_tx = optimizer.gaussian_optimizer(c.lr, scene.scene_extent(), c.iterations)
   decoder_tx = optax.adam(c.decoder_lr, eps=optimizer.ADAM_EPS)
@@ -187,10 +225,22 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
 
   def step(state, iteration):
     rng = np.random.default_rng([config.seed, iteration])
-    return steps(None, state, data, rng.integers(num_views), rng.integers(num_views))
+    views = [normal_view(rng, num_views, len(decoys), settings.decoy_fraction) for _ in range(2)]
+    return steps(None, state, data, *views)
+
+  eval_cameras, eval_targets, _ = evaluate.held_out_views(scene, c.eval_views)
+
+  def after_window(state, iteration):
+    if not c.eval_every or iteration % c.eval_every:
+      return None
+    decoder = state.decoder if settings.use_decoder else None
+    revealed = reveal.reveal_image(state.student, check_camera, options, decoder, settings.decoder_width,
+                                   settings.hidden_size)
+    return dict(hidden_psnr=float(metrics.psnr(revealed, hidden)), hidden_ssim=float(metrics.ssim(revealed, hidden)),
+                test_psnr=evaluate.views_psnr(state.student, eval_cameras, eval_targets, options))
 
   result = loop.run("conceal", loop_settings(config), workdir, init_state=fresh, restore_template=lambda _: fresh(),
-                    step=step, postfix_keys=("plus",), max_steps=max_steps)
+                    step=step, after_window=after_window, postfix_keys=("plus",), max_steps=max_steps)
   if not result.finished:
     return dict(stopped_at=int(result.state.step))
 
@@ -204,43 +254,51 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   key_lib.save_key(os.path.join(workdir, KEY_FILE), check_camera, key_info)
   fileio.write_image(os.path.join(workdir, "hidden.png"), hidden)
   summary = dict(iterations=c.iterations, resumed_from=result.start, settings=dataclasses.asdict(settings),
-                 num_gaussians=int(teacher.num), **result.timing(), traces=dict(traces.counts),
+                 num_gaussians=int(teacher.num), num_decoys=len(decoys), **result.timing(), traces=dict(traces.counts),
                  pair_capacity=steps.capacity, capacity_reruns=steps.reruns, capacity_shrinks=steps.shrinks,
                  history=result.history)
   fileio.write_json(os.path.join(workdir, SUMMARY_FILE), summary)
-  scored = evaluate_concealment(config, workdir, scene, teacher, state.student, decoder, settings,
-                                check_camera, options, hidden)
+  reveal_fn = reveal.decoder_reveal(decoder, settings.decoder_width, settings.hidden_size)
+  scored = evaluate_concealment(config, workdir, scene, teacher, state.student, reveal_fn, check_camera, options,
+                                hidden)
   return dict(summary, metrics=scored)
 
 
-def evaluate_concealment(config, workdir, scene, teacher, student, decoder, settings: ConcealSettings,
-                         check_camera, options: RenderOptions, hidden: np.ndarray) -> dict:
+def evaluate_concealment(config, workdir, scene, teacher, student, reveal_fn, check_camera, options: RenderOptions,
+                         hidden: np.ndarray) -> dict:
   """metrics.json: render quality of student and teacher on the test split (vs ground truth, and the
   student vs the teacher), hidden-image recovery at the check view, and leakage: the best SSIM to the
   hidden image of the decoder output over the student's test views, at the clean teacher's check view
-  and at the student's poses near the check view (near_check: the best SSIM per distance)."""
+  and at the student's poses near the check view (near_check: the best SSIM per distance). `reveal_fn`
+  maps renders [V, H, W, 3] to revealed images [V, S, S, 3] (reveal.decoder_reveal; baselines have their
+  own). Images:
+  revealed.png (student, check view), teacher_revealed.png (clean teacher, check view) and
+  normal_revealed.png (student, the test view of the highest SSIM)."""
   eval_opts = evaluate.eval_options(config, scene.background)
   cameras, targets, names = evaluate.held_out_views(scene, config.eval.max_views)
   student_renders = evaluate.render_images(student, cameras, eval_opts)
   teacher_renders = evaluate.render_images(teacher, cameras, eval_opts)
   evaluate.write_images(os.path.join(workdir, "test_renders"), names, student_renders)
   net = config.eval.lpips_net
-  size, width = settings.hidden_size, settings.decoder_width
-  revealed = np.asarray(reveal.reveal_image(student, check_camera, options, decoder, width, size))
+  # The key view is rendered alone, exactly as the reveal job renders it.
+  revealed = np.asarray(reveal_fn(render(student, check_camera, options).rgb[None])[0])
   fileio.write_image(os.path.join(workdir, "revealed.png"), revealed)
-  teacher_revealed = np.asarray(reveal.reveal_image(teacher, check_camera, options, decoder, width, size))
+  teacher_revealed = np.asarray(reveal_fn(render(teacher, check_camera, options).rgb[None])[0])
   fileio.write_image(os.path.join(workdir, "teacher_revealed.png"), teacher_revealed)
   # Leakage is scored on the student's own test renders, as a viewer of the shared scene would see them,
   # and at poses near the key, as someone guessing it would.
-  ssim_to_hidden = reveal.scores_to_hidden(reveal.reveal_renders(decoder, student_renders, width, size),
-                                           hidden)["ssim"]
-  near_check = reveal.near_key_rows(student, check_camera, options, decoder, width, hidden, scene.scene_extent(),
+  normal_revealed = reveal_fn(student_renders)
+  ssim_to_hidden = reveal.scores_to_hidden(normal_revealed, hidden)["ssim"]
+  worst = int(np.argmax(ssim_to_hidden))  # the test view whose decoder output looks most like I
+  fileio.write_image(os.path.join(workdir, "normal_revealed.png"), np.asarray(normal_revealed[worst]))
+  near_check = reveal.near_key_rows(student, check_camera, options, reveal_fn, hidden, scene.scene_extent(),
                                     NEAR_TRANSLATIONS, NEAR_ROTATIONS_DEG, NEAR_DIRECTIONS)
   result = dict(
       student_vs_ground_truth=evaluate.image_metrics(student_renders, targets, names, net)["mean"],
       teacher_vs_ground_truth=evaluate.image_metrics(teacher_renders, targets, names, net)["mean"],
       student_vs_teacher=evaluate.image_metrics(student_renders, teacher_renders, names, net)["mean"],
       hidden=dict(psnr=float(metrics.psnr(revealed, hidden)), ssim=float(metrics.ssim(revealed, hidden))),
+      leakage_worst_test_view=names[worst],
       leakage=dict(max_ssim_student_test_views=float(ssim_to_hidden.max()),
                    ssim_teacher_check_view=float(metrics.ssim(teacher_revealed, hidden)),
                    max_ssim_near_check=max(row["max_ssim"] for row in near_check)),

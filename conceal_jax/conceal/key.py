@@ -75,6 +75,28 @@ def nearby_cameras(camera: Camera, extent: float, translations: Sequence[float],
           for kind, value in poses for seed in range(directions if value else 1)]
 
 
+# Decoy directions come from seeds far from the 0 .. directions-1 that `nearby_cameras` scores leakage
+# with, so the near-key leakage is measured at poses no decoy trained on.
+DECOY_SEED_BASE = 1_000_000
+
+
+def decoy_cameras(camera: Camera, extent: float, count: int, translation: Sequence[float],
+                  rotation_deg: Sequence[float], seed: int = 0) -> list[Camera]:
+  """`count` cameras near the key, for training the decoder to stay the identity there (conceal.decoy_*).
+
+  Each is moved by a fraction of `extent` drawn uniformly from `translation` (lo, hi), turned by degrees
+  drawn from `rotation_deg` (lo, hi), or both, the three kinds in turn; directions are random.
+  """
+  cameras = []
+  for k in range(count):
+    rng = np.random.default_rng([seed, k])
+    kind = k % 3  # 0: moved, 1: turned, 2: both
+    moved = rng.uniform(*translation) * extent if kind in (0, 2) else 0.0
+    turned = rng.uniform(*rotation_deg) if kind in (1, 2) else 0.0
+    cameras.append(nearby_camera(camera, moved, turned, DECOY_SEED_BASE + seed * count + k))
+  return cameras
+
+
 def check_camera(cameras: Sequence[Camera], kind: str, index: int, seed: int) -> tuple[Camera, dict]:
   """The check view and a description of how it was chosen."""
   if kind == "train_index":

@@ -42,6 +42,10 @@ class ConcealSettings:
   weight_plus: float = 1.0
   weight_minus: float = 1.0
   weight_check: float = 1.0
+  # Leakage control (an option beyond the paper, see conceal.py): L_d^- also on the student's own render
+  # of the step's normal view, and the share of steps whose normal views are decoy poses near the key.
+  identity_on_student: bool = False
+  decoy_fraction: float = 0.0
 
   def __post_init__(self):
     if self.variant not in VARIANTS:
@@ -53,6 +57,13 @@ class ConcealSettings:
                        f"{unet.DOWNSAMPLE} (at least 8)")
     if min(self.weight_kd, self.weight_plus, self.weight_minus, self.weight_check) < 0 or not self.weight_plus > 0:
       raise ValueError("conceal weights must be non-negative and weight_plus positive")
+    if not 0.0 <= self.decoy_fraction < 1.0:
+      raise ValueError(f"conceal.decoy_fraction must be in [0, 1), got {self.decoy_fraction}")
+    if self.decoy_fraction and not self.distill:
+      raise ValueError("conceal.decoy_fraction needs L_kd (variant 'paper' with consistency): decoy poses have "
+                       "no ground truth, only the teacher's renders")
+    if self.identity_on_student and not self.identity_loss:
+      raise ValueError("conceal.identity_on_student needs L_d^- (a decoder and consistency)")
 
   @property
   def distill(self) -> bool:
@@ -96,9 +107,20 @@ def student_objective(student, decoder, data: dict, view, settings: ConcealSetti
                      overflowed=normal_out.overflowed | check_out.overflowed)
 
 
-def decoder_identity_objective(decoder, data: dict, normal_view, settings: ConcealSettings) -> jax.Array:
-  """lambda- L_d^- (eq. 4): F is the identity on the teacher's render of normal view `normal_view` (the
-  paper), or on the teacher's check-view render (the released code)."""
+def identity_inputs(data: dict, normal_view, settings: ConcealSettings, student_rgb=None) -> jax.Array:
+  """[B, S, S, 3] the renders on which L_d^- asks F to be the identity: the teacher's render of normal view
+  `normal_view` (the paper) or of the check view (the released code); with `identity_on_student`, also the
+  student's render `student_rgb` [H, W, 3] of the step's normal view, as a constant (L_d^- trains F only)."""
   s = settings
   teacher = data["teacher_small"][normal_view] if s.variant == "paper" else data["teacher_check_small"]
-  return s.weight_minus * losses.decoder_identity_loss(reveal.decode(decoder, s.decoder_width, teacher), teacher)
+  inputs = [teacher]
+  if s.identity_on_student:
+    inputs.append(jax.lax.stop_gradient(reveal.resize_for_decoder(student_rgb, s.hidden_size)))
+  return jnp.stack(inputs)
+
+
+def decoder_identity_objective(decoder, inputs: jax.Array, settings: ConcealSettings) -> jax.Array:
+  """lambda- L_d^- (eq. 4): F is the identity on `inputs` [B, S, S, 3] (see `identity_inputs`), the L1
+  averaged over them."""
+  s = settings
+  return s.weight_minus * losses.decoder_identity_loss(reveal.decode(decoder, s.decoder_width, inputs), inputs)

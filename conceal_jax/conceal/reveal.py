@@ -62,14 +62,21 @@ def scores_to_hidden(revealed, hidden) -> dict[str, np.ndarray]:
               ssim=np.asarray(metrics.batched_ssim(revealed, hidden), np.float64))
 
 
-def near_key_rows(gaussians: Gaussians, check_camera: Camera, options: RenderOptions, decoder_params,
-                  base_channels: int, hidden, extent: float, translations, rotations_deg,
-                  directions: int) -> list[dict]:
-  """What the decoder reveals at poses near the key (key.nearby_cameras): per (kind, value), the mean and
-  max SSIM and the mean PSNR to I over the random directions."""
+def decoder_reveal(decoder_params, base_channels: int, size: int):
+  """The reveal function of a ConcealGS decoder: renders [V, H, W, 3] -> revealed images [V, size, size, 3]
+  (decoder_params None: the resized renders). Scoring code takes such a function, so that a baseline with
+  another way of reading the image out of a render is scored the same way."""
+  return functools.partial(reveal_renders, decoder_params, base_channels=base_channels, size=size)
+
+
+def near_key_rows(gaussians: Gaussians, check_camera: Camera, options: RenderOptions, reveal_fn, hidden,
+                  extent: float, translations, rotations_deg, directions: int) -> list[dict]:
+  """What `reveal_fn` (renders -> revealed images, see `decoder_reveal`) reveals at poses near the key
+  (key.nearby_cameras): per (kind, value), the mean and max SSIM and the mean PSNR to I over the random
+  directions."""
   poses = key_lib.nearby_cameras(check_camera, extent, translations, rotations_deg, directions)
   renders = evaluate.render_images(gaussians, [camera for _, _, camera in poses], options)
-  scores = scores_to_hidden(reveal_renders(decoder_params, renders, base_channels, hidden.shape[0]), hidden)
+  scores = scores_to_hidden(reveal_fn(renders), hidden)
   rows = []
   for kind, value in dict.fromkeys((kind, value) for kind, value, _ in poses):
     mine = np.array([(k, v) == (kind, value) for k, v, _ in poses])

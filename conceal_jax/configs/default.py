@@ -114,11 +114,19 @@ def get_config() -> ml_collections.ConfigDict:
   config.conceal.weight_plus = 1.0
   config.conceal.weight_minus = 1.0
   config.conceal.weight_check = 1.0    # released variant's check-view L1
+  # leakage control beyond the paper (see conceal_jax/conceal/conceal.py); off = the method as written
+  config.conceal.identity_on_student = False  # L_d^- on the student's normal render too
+  config.conceal.decoy_views = 0       # cameras near the key trained as normal views (0: none)
+  config.conceal.decoy_fraction = 0.0  # share of steps whose normal views are decoys
+  config.conceal.decoy_translation = (0.01, 0.1)  # decoy moves, fractions of the scene extent (lo, hi)
+  config.conceal.decoy_rotation_deg = (1.0, 10.0)  # decoy turns, degrees (lo, hi)
   # student learning rates: the 3D-GS schedule continued from step 10k of 30k, as the released run does
   config.conceal.lr = ml_collections.ConfigDict(config.train.lr.to_dict())
   config.conceal.lr.means_init = 3.45e-5
   config.conceal.lr.means_steps = 20_000
   config.conceal.log_every = 10
+  config.conceal.eval_every = 0        # steps between hidden PSNR/SSIM + student test PSNR records (0: none)
+  config.conceal.eval_views = 4        # test views of that student PSNR
   config.conceal.checkpoint_every = 1000
   config.conceal.progress_bar = True
 

@@ -103,5 +103,5 @@ def pose_tolerance_rows(gaussians: Gaussians, owner: Owner, extent: float,
   """Hidden SSIM / PSNR with the check camera moved by fractions of the scene `extent` (rotation 0) and
   turned by a few degrees (translation 0), each over `directions` random directions or axes: how
   precisely the key must be kept, and how much a guessed nearby pose reveals."""
-  return reveal.near_key_rows(gaussians, owner.check_camera, owner.options, owner.decoder, owner.decoder_width,
-                              owner.hidden, extent, translations, rotations_deg, directions)
+  return reveal.near_key_rows(gaussians, owner.check_camera, owner.options, owner.reveal_renders, owner.hidden,
+                              extent, translations, rotations_deg, directions)

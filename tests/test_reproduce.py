@@ -1,0 +1,43 @@
+"""REPRODUCTION.md: the paper's numbers beside ours, read from the benchmarks' JSON; missing rows say so."""
+import json
+
+import numpy as np
+
+from conceal_jax.core import fileio
+from experiments import reproduce
+
+
+def _conceal_row(row, width, psnr, hidden_psnr):
+  scores = lambda p: dict(psnr=p, ssim=0.97, lpips=0.03)
+  return dict(scene="lego", row=row, decoder_width=width, iterations=10_000, student_vs_ground_truth=scores(psnr),
+              teacher_vs_ground_truth=scores(33.1), student_vs_teacher=scores(40.0),
+              hidden=dict(psnr=hidden_psnr, ssim=0.995), curve=[],
+              leakage=dict(max_ssim_student_test_views=0.11, ssim_teacher_check_view=0.12, max_ssim_near_check=0.13))
+
+
+def test_report_puts_ours_beside_the_paper_and_names_missing_rows(tmp_path):
+  results, workdir = tmp_path / "results", tmp_path / "bench"
+  fileio.write_json(results / "train_bench.json", dict(rows=[dict(scene="lego", test=dict(psnr=33.11, ssim=0.983,
+                                                                                          lpips=0.0188))]))
+  fileio.write_json(results / "conceal_bench.json", dict(rows=[_conceal_row("full", 16, 32.95, 35.25),
+                                                               _conceal_row("no_guidance", 16, 32.5, 34.0)]))
+  run = workdir / "lego" / "conceal_full_w16"
+  for name in ("hidden.png", "revealed.png", "teacher_revealed.png", "normal_revealed.png"):
+    fileio.write_image(str(run / name), np.full((8, 8, 3), 0.5, np.float32))
+
+  text = reproduce.report(results, workdir)
+  table1 = text[text.index("Table 1"):text.index("Table 2")]
+  assert "| 3D-GS | 34.45 / 0.9732 / 0.0220 | - / - | 33.11 / 0.9830 / 0.0188 |" in table1
+  assert "| ConcealGS | 33.14 / 0.9717 / 0.0240 | 33.98 / 0.9942 | 32.95 / 0.9700 / 0.0300 | 35.25 / 0.9950 |" in table1
+  assert table1.count(reproduce.NOT_RUN) == 3  # the three baselines
+  table3 = text[text.index("Table 3"):text.index("Leakage")]
+  assert "| no_guidance | 26.93" in table3 and "| no_decoder | 26.25 / 0.8965 / 0.0884 | 37.56 / 0.9948 | - | - |" in table3
+  assert "| lego | full | 16 | 0.110 | 0.120 | 0.130 |" in text
+  assert "![lego](reproduction_lego.png)" in text and "beer: not run yet" in text
+  assert (results / "reproduction_lego.png").is_file()
+
+
+def test_report_without_any_benchmark_says_not_run(tmp_path):
+  text = reproduce.report(tmp_path, tmp_path)
+  assert "ConcealGS" in text and text.count(reproduce.NOT_RUN) >= 10
+  assert json.dumps(reproduce.PAPER_TABLE1["ConcealGS"]) == "[33.14, 0.9717, 0.024, 33.98, 0.9942]"
