@@ -4,6 +4,8 @@ errors)."""
 from __future__ import annotations
 
 import json
+import pathlib
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -15,7 +17,9 @@ from conceal_jax import main as main_lib
 from conceal_jax.baselines import baseline, containers, deepstega, deepstega_train, lsb
 from conceal_jax.conceal import hidden as hidden_lib
 from conceal_jax.configs import demo
+from conceal_jax.core import fileio
 from conceal_jax.data import datasets
+from experiments import bench_baselines, reproduce
 from tests.test_conceal import tiny  # noqa: F401  (the 32x32 demo scene and random teacher)
 
 
@@ -195,9 +199,60 @@ def test_lsb_job_trains_on_containers_scores_and_resumes(lsb_run):
   assert metrics["hidden"]["psnr"] < check["psnr"] - 10
 
 
-def test_deepstega_job_trains_saves_and_reuses_its_networks(tiny, tmp_path):
+def test_bench_rows_feed_the_reproduction(lsb_run, deepstega_run, tiny, tmp_path, capsys):
+  """bench-baselines reads finished runs into baseline_bench.json (keeping another method's rows), and
+  make reproduce puts them beside the paper's numbers; a row without a run or a scene without a teacher is
+  skipped, and a row's config is the one the job validates."""
+  workdir, _, _ = lsb_run
+  bench, out = tmp_path / "bench", tmp_path / "results"
+  shutil.copytree(workdir, bench / "lego" / "baseline_lsb4")
+  shutil.copytree(deepstega_run[1], bench / "lego" / "baseline_deepstega")
+  (bench / "lego" / "teacher").mkdir()
+  shutil.copy(tiny[1], bench / "lego" / "teacher" / "point_cloud.ply")
+  metrics = json.loads((workdir / "metrics.json").read_text())
+  other = dict(metrics, method="StegaNeRF", scene="lego", protocol="theirs", wall_time_s=1.0, revealed="")
+  fileio.write_json(out / "baseline_bench.json", dict(rows=[other]))
+
+  rows = bench_baselines.run("lego", ["lsb1", "lsb4", "deepstega"], 0, 0, bench, out, reuse=True)
+  assert [r["row"] for r in rows] == ["lsb4", "deepstega"] and "no finished run" in capsys.readouterr().out
+  saved = json.loads((out / "baseline_bench.json").read_text())["rows"]
+  assert [r["method"] for r in saved] == ["StegaNeRF", "LSB", "DeepStega"]
+  assert saved[2]["protocol"].startswith("networks width 2, layers 1/1/1, held-out cover")
+  assert saved[2]["deepstega"]["held_out"] == deepstega_run[2]["deepstega"]["held_out"]
+  row = saved[1]
+  for key in ("student_vs_ground_truth", "teacher_vs_ground_truth", "student_vs_teacher", "hidden", "leakage"):
+    assert row[key] == metrics[key], key
+  assert row["scene"] == "lego" and row["label"] == "LSB 4 bits" and row["protocol"].startswith("4 low bit")
+  assert row["wall_time_s"] > 0 and pathlib.Path(row["revealed"]).is_file()
+  assert (out / "baseline_bench.md").is_file() and (out / "baseline_bench.png").is_file()
+
+  table1 = reproduce.report(out, bench)
+  table1 = table1[table1.index("Table 1"):table1.index("Table 2")]
+  h = metrics["hidden"]
+  assert "| LSB | 33.05 / 0.9704 / 0.0253 | 6.13 / 0.1218 | " in table1
+  assert f"{h['psnr']:.2f} / {h['ssim']:.4f} | {row['protocol']} |" in table1
+  assert f"| DeepStega | 33.06 / 0.9702 / 0.0253 | 11.13 / 0.2265 | " in table1 and reproduce.NOT_RUN not in \
+      table1[table1.index("| DeepStega"):table1.index("| StegaNeRF")]
+  assert "| StegaNeRF | 30.33" in table1 and "| theirs |" in table1
+
+  assert bench_baselines.run("lego", ["lsb1"], 0, 0, tmp_path / "empty", out, reuse=False) == []
+  assert "no teacher" in capsys.readouterr().out
+  config = bench_baselines.run_config("lego", tiny[1], "lsb3", 100, 5)
+  baseline.validate(config)
+  assert (config.mode, config.baseline.method, config.baseline.lsb_bits) == ("baseline", "lsb", 3)
+  assert (config.baseline.iterations, config.eval.max_views, config.conceal.hidden) == (100, 5, "astronaut")
+
+
+@pytest.fixture(scope="module")
+def deepstega_run(tiny, tmp_path_factory):
+  """A DeepStega run (4 network steps, 6 scene steps): (config, workdir, result)."""
+  workdir = tmp_path_factory.mktemp("deepstega")
   config = tiny_config(tiny, "deepstega")
-  result = main_lib.run(config, str(tmp_path))
+  return config, workdir, main_lib.run(config, str(workdir))
+
+
+def test_deepstega_job_trains_saves_and_reuses_its_networks(deepstega_run):
+  config, tmp_path, result = deepstega_run
   saved, _ = _check_outputs(tmp_path, result, "DeepStega")
   report = saved["deepstega"]
   assert report["reused"] is False and report["training"]["timed_steps"] == 4
