@@ -6,7 +6,8 @@ STAMP := $(VENV)/.installed
 WORKDIR ?= workdirs/demo
 JOBS ?= 2
 
-.PHONY: venv demo test test-slow bench-render bench-train profile-train bench-conceal profile-conceal bench-robust reproduce clean
+.PHONY: venv demo test test-slow bench-render bench-train profile-train bench-conceal profile-conceal bench-baselines \
+        bench-robust reproduce clean
 
 venv: $(STAMP)
 
@@ -47,6 +48,10 @@ profile-train: $(STAMP)
 bench-conceal: $(STAMP)
 	$(PY) -m experiments.bench_conceal --out=experiments/results --workdir=workdirs/bench $(BENCH_ARGS)
 
+# LSB (1-4 bits) and DeepStega on bench-train's lego teacher, scored like bench-conceal's runs
+bench-baselines: $(STAMP)
+	$(PY) -m experiments.bench_baselines --out=experiments/results --workdir=workdirs/bench $(BENCH_ARGS)
+
 # where a ConcealGS step spends its time, on bench-train's lego teacher
 profile-conceal: $(STAMP)
 	$(PY) -m experiments.profile_conceal --out=experiments/results --workdir=workdirs/bench $(BENCH_ARGS)
@@ -59,7 +64,7 @@ bench-robust: $(STAMP)
 REUSE ?= 0
 reproduce: $(STAMP)
 ifneq ($(REUSE),1)
-	$(MAKE) bench-train bench-conceal bench-robust
+	$(MAKE) bench-train bench-conceal bench-baselines bench-robust
 endif
 	$(PY) -m experiments.reproduce --results=experiments/results --workdir=workdirs/bench
 

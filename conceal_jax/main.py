@@ -11,6 +11,7 @@ import sys
 from absl import app, flags
 from ml_collections import config_flags
 
+from conceal_jax.baselines import baseline
 from conceal_jax.conceal import conceal, reveal
 from conceal_jax.core import fileio
 from conceal_jax.gs import evaluate, render_views, train
@@ -21,6 +22,7 @@ MODES = {"render": (render_views.validate, render_views.render_and_save),
          "train": (train.validate, train.train_and_evaluate),
          "eval": (evaluate.validate, evaluate.evaluate),
          "conceal": (conceal.validate, conceal.conceal_and_evaluate),
+         "baseline": (baseline.validate, baseline.baseline_and_evaluate),
          "reveal": (reveal.validate, reveal.reveal),
          "verify": (ownership.validate, ownership.verify)}
 

@@ -1,6 +1,6 @@
 """`make reproduce`: the paper's tables with its numbers beside ours, as experiments/results/REPRODUCTION.md.
 
-  make reproduce            # runs bench-train, bench-conceal, bench-robust, then this
+  make reproduce            # runs bench-train, bench-conceal, bench-baselines, bench-robust, then this
   make reproduce REUSE=1    # only this: reads the JSON those benchmarks wrote
 
 Ours are read from train_bench.json, conceal_bench.json, baseline_bench.json and robust_bench.json in
@@ -152,7 +152,7 @@ def figure_grid(scene: str, conceal_bench: dict, baseline_bench: dict, workdir: 
     run = workdir / scene / f"conceal_{r['row']}_w{r['decoder_width']}"
     files = [("hidden", run / "hidden.png"), ("student, key", run / "revealed.png"),
              ("clean teacher, key", run / "teacher_revealed.png"), ("student, test view", run / "normal_revealed.png")]
-    files += [(b["method"], pathlib.Path(b["revealed"])) for b in baseline_bench.get("rows", [])
+    files += [(b.get("label", b["method"]), pathlib.Path(b["revealed"])) for b in baseline_bench.get("rows", [])
               if b.get("scene", "lego") == scene and b.get("revealed")]
     files = [(name, f) for name, f in files if f.is_file()]
     if files:

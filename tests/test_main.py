@@ -59,11 +59,13 @@ def _cli(tmp_path, *overrides):
     ("--config.scene.ply=/does/not/exist.ply", "no such file"),
     ("--config.scene.fov_deg=0", "fov_deg"),
     ("--config.mode=conceal", "conceal.teacher"),
+    ("--config.mode=baseline", "conceal.teacher"),
+    ("--config.mode=baseline --config.baseline.lsb_bits=9", "baseline.lsb_bits"),
     ("--config.mode=reveal", "reveal.ply is required"),
     ("--config.mode=eval", "point_cloud.ply: no such file"),
 ])
 def test_bad_input_gives_one_clear_error_and_nonzero_exit(tmp_path, override, message):
-  result = _cli(tmp_path, override)
+  result = _cli(tmp_path, *override.split())
   assert result.returncode != 0
   assert message in result.stderr
   assert "Traceback" not in result.stderr

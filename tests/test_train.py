@@ -2,6 +2,7 @@
 the step (learning rates, densification statistic, optimizer bookkeeping)."""
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import jax
@@ -9,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conceal_jax.data import demo_scene, ply
+from conceal_jax.data import datasets, demo_scene, ply
 from conceal_jax.gs import densify, optimizer, train
 from conceal_jax.configs import demo
 from conceal_jax.splat.render import RenderOptions, render
@@ -66,6 +67,24 @@ def test_train_writes_scene_metrics_and_resumes_exactly(tiny_scene, tmp_path):
   assert sorted({d for d, *_ in summary["compiled_step_variants"]}) == [0, 1, 2]
   # one trace per compiled variant, none silently repeated
   assert summary["traces"] == dict(train_step=len(summary["compiled_step_variants"]))
+
+
+def test_train_on_a_given_scene(tiny_scene, tmp_path):
+  """scene= replaces the scene of config.data (a baseline's containers): its training views are fitted and
+  its test split is scored."""
+  config = tiny_config(tiny_scene, iterations=2)
+  config.eval.max_views = 0
+  scene = datasets.load_scene(str(tiny_scene))
+  given = dataclasses.replace(scene, train_images=[1.0 - image for image in scene.train_images],
+                              test_images=scene.test_images[:1], test_cameras=scene.test_cameras[:1],
+                              test_names=["given_view"])
+  loaded = train.train_and_evaluate(config, str(tmp_path / "loaded"))
+  trained = train.train_and_evaluate(config, str(tmp_path / "given"), scene=given)
+  assert loaded["test"] != trained["test"]
+  assert [h["psnr"] for h in loaded["history"] if "psnr" in h][0] != \
+      [h["psnr"] for h in trained["history"] if "psnr" in h][0]
+  views = json.loads((tmp_path / "given" / "metrics.json").read_text())["views"]
+  assert [v["name"] for v in views] == ["given_view"]
 
 
 @pytest.mark.parametrize("field,value,message", [

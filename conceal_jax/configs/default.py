@@ -130,6 +130,29 @@ def get_config() -> ml_collections.ConfigDict:
   config.conceal.checkpoint_every = 1000
   config.conceal.progress_bar = True
 
+  # baseline mode: a way to hide an image that the paper compares with (see conceal_jax/baselines/baseline.py),
+  # on the conceal section's teacher, hidden image (hidden, hidden_size) and key (key_kind, key_index, key_seed)
+  config.baseline = ml_collections.ConfigDict()
+  config.baseline.method = "lsb"       # 'lsb' or 'deepstega'
+  config.baseline.iterations = 0       # 3D-GS steps on the containers; 0: conceal.iterations (the same length)
+  config.baseline.lsb_bits = 1         # low bits of each 8-bit channel that carry the image (1-4)
+  config.baseline.deepstega = ml_collections.ConfigDict()
+  config.baseline.deepstega.networks = ""  # saved networks to reuse; empty: <workdir>/deepstega, trained if absent
+  config.baseline.deepstega.width = 8      # filters per kernel size (3, 4, 5) in every layer (Baluja: 50)
+  config.baseline.deepstega.prep_depth = 2
+  config.baseline.deepstega.hide_depth = 4
+  config.baseline.deepstega.reveal_depth = 4
+  config.baseline.deepstega.beta = 1.0     # weight of the secret term of the loss
+  config.baseline.deepstega.noise_std = 0.01  # noise on the container during training
+  config.baseline.deepstega.crop_size = 64    # training crops, at the decoder size
+  config.baseline.deepstega.batch_size = 8
+  config.baseline.deepstega.learning_rate = 1e-3
+  config.baseline.deepstega.held_out_pairs = 16  # held-out (cover, secret) crops of the networks' own report
+  config.baseline.deepstega.iterations = 3000    # training steps of the networks
+  config.baseline.deepstega.log_every = 50
+  config.baseline.deepstega.checkpoint_every = 500
+  config.baseline.deepstega.progress_bar = True
+
   # reveal mode
   config.reveal = ml_collections.ConfigDict()
   config.reveal.ply = ""      # any standard 3D-GS .ply

@@ -21,3 +21,10 @@ def from_section(cls: type[T], section: Any, **overrides) -> T:
 def _plain(value: Any) -> Any:
   """ConfigDict lists come back as lists; a hashable (static) dataclass needs tuples."""
   return tuple(value) if isinstance(value, list) else value
+
+
+def check_count(key: str, value: Any, minimum: int = 1) -> int:
+  """`value` if it is an int (not a bool) >= minimum; otherwise ValueError naming the config `key`."""
+  if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+    raise ValueError(f"{key} must be an integer >= {minimum}, got {value!r}")
+  return value

@@ -258,17 +258,21 @@ def density_control(state: TrainState, iteration: int, schedule: DensifySchedule
   return state
 
 
-def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_steps: int | None = None) -> dict:
+def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_steps: int | None = None,
+                       scene: datasets.SceneData | None = None) -> dict:
   """Trains on config.data, checkpointing into workdir/checkpoints (resumed if present), then writes
   point_cloud.ply, train.json, and the test metrics (metrics.json, test_renders/).
 
   max_steps: stop after this many steps (as if killed there), leaving the checkpoint to resume from.
+  scene: train on this scene instead of loading config.data (None), e.g. a baseline's containers: the
+    training views with a hidden image in them (baselines.containers.container_scene). Its test split is
+    the one scored. A resumed run must be given the same scene.
   """
   validate(config)
   t = settings.from_section(TrainSettings, config.train)
   schedule = settings.from_section(DensifySchedule, config.train.densify)
   params = settings.from_section(densify.DensifyParams, config.train.densify)
-  scene = evaluate.load_scene_data(config)
+  scene = evaluate.load_scene_data(config) if scene is None else scene
   extent = scene.scene_extent()
   tx = optimizer.gaussian_optimizer(config.train.lr, extent, config.train.iterations)
   images = jnp.asarray(np.stack(scene.train_images))

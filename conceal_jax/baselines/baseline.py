@@ -1,0 +1,211 @@
+"""The baseline job, `--config.mode=baseline`: LSB or DeepStega, the ways to hide an image that ConcealGS
+(Yang et al. 2025, arXiv:2501.03605, Tables 1-2) compares with, trained and scored like a concealment run.
+
+1. The hidden image (conceal.hidden) goes into every training view, so also the check view's: the views
+   become containers (lsb.py; deepstega.py, whose networks are first trained on natural-image crops in
+   <workdir>/deepstega, or read from baseline.deepstega.networks).
+2. A 3D-GS scene is trained on the containers from the teacher (conceal.teacher) with the concealment
+   run's recipe (gs.train in <workdir>/train, checkpointed and resumable): its learning rates
+   (conceal.lr), its length (baseline.iterations, 0: conceal.iterations), the teacher's SH degree, and no
+   densification or opacity reset, since the concealment run refines the teacher's Gaussians as they are.
+3. The trained scene is scored by conceal.evaluate_concealment at the conceal section's key (key_kind,
+   key_index, key_seed) with the method's reveal function in the decoder's place, so every row of the
+   paper's table is measured with the same views, key and metrics.
+
+Writes metrics.json, revealed.png, teacher_revealed.png, normal_revealed.png, hidden.png,
+container_revealed.png (what the method reveals from the check view's own container, before any 3D-GS
+training) and baseline.json: method, settings, the training's wall time (from train/train.json), the
+containers' quality and, for DeepStega, the networks' own quality on held-out images.
+"""
+from __future__ import annotations
+
+import copy
+import dataclasses
+import json
+import os
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from conceal_jax.baselines import containers as containers_lib
+from conceal_jax.baselines import deepstega, deepstega_train, lsb
+from conceal_jax.conceal import conceal, hidden as hidden_lib, key as key_lib, reveal
+from conceal_jax.core import fileio, loop, settings as settings_lib
+from conceal_jax.data import datasets, ply
+from conceal_jax.gs import evaluate, metrics, train
+
+METHODS = ("lsb", "deepstega")
+METHOD_NAMES = dict(lsb="LSB", deepstega="DeepStega")  # as the paper's tables name them
+BASELINE_FILE = "baseline.json"
+TRAIN_DIR = "train"
+NETWORKS_DIR = "deepstega"
+NETWORKS_FILE = "networks.msgpack"
+NETWORKS_REPORT = "deepstega.json"
+
+
+@dataclasses.dataclass(frozen=True)
+class BaselineSettings:
+  """The baseline section's choice of method and run length (the rest is the conceal section's)."""
+  method: str = "lsb"
+  iterations: int = 0
+  lsb_bits: int = 1
+
+  def __post_init__(self):
+    if self.method not in METHODS:
+      raise ValueError(f"baseline.method must be one of {METHODS}, got {self.method!r}")
+    settings_lib.check_count("baseline.iterations (0: conceal.iterations)", self.iterations, minimum=0)
+    lsb.check_bits(self.lsb_bits)
+
+
+def settings_from_config(config: ml_collections.ConfigDict) -> BaselineSettings:
+  return settings_lib.from_section(BaselineSettings, config.baseline)
+
+
+def deepstega_settings(config: ml_collections.ConfigDict):
+  """(architecture, training settings, loop settings) of the DeepStega networks, from baseline.deepstega."""
+  d = config.baseline.deepstega
+  return (settings_lib.from_section(deepstega.Architecture, d),
+          settings_lib.from_section(deepstega_train.StegaTrainSettings, d),
+          settings_lib.from_section(loop.LoopSettings, d))
+
+
+def training_config(config: ml_collections.ConfigDict, sh_degree: int) -> ml_collections.ConfigDict:
+  """A copy of `config` whose train and init sections are the concealment run's recipe: start from the
+  teacher, conceal.lr, conceal.iterations unless baseline.iterations, SH degree `sh_degree` (the
+  teacher's) from the first step, no densification or opacity reset (densify.until = 0), no snapshots."""
+  t = copy.deepcopy(config)
+  t.mode = "train"
+  t.init.kind, t.init.ply = "ply", config.conceal.teacher
+  t.train.iterations = settings_from_config(config).iterations or config.conceal.iterations
+  t.train.lr = ml_collections.ConfigDict(config.conceal.lr.to_dict())
+  t.train.sh_degree = t.train.sh_degree_start = sh_degree
+  t.train.densify.until = 0
+  t.train.snapshots = ()
+  return t
+
+
+def validate(config: ml_collections.ConfigDict) -> None:
+  """Every value the baseline job reads, checked before anything runs (ValueError naming the key)."""
+  s = settings_from_config(config)
+  c = config.conceal
+  if s.method == "deepstega":
+    deepstega_settings(config)
+    networks = config.baseline.deepstega.networks
+    if networks and not os.path.isfile(networks):
+      raise ValueError(f"baseline.deepstega.networks: no such file {networks}")
+  if c.key_kind not in key_lib.KEY_KINDS:
+    raise ValueError(f"conceal.key_kind must be one of {key_lib.KEY_KINDS}, got {c.key_kind!r}")
+  settings_lib.check_count("conceal.hidden_size", c.hidden_size)
+  if not c.teacher:
+    raise ValueError("conceal.teacher (the teacher's .ply) is required")
+  if not os.path.isfile(c.teacher):
+    raise ValueError(f"conceal.teacher: no such file {c.teacher}")
+  train.validate(training_config(config, config.train.sh_degree))
+
+
+def view_size(scene: datasets.SceneData) -> tuple[int, int]:
+  """(H, W) of the training views; ValueError if they differ (one hidden image fits them all)."""
+  sizes = sorted({np.shape(image)[:2] for image in scene.train_images})
+  if len(sizes) != 1:
+    raise ValueError(f"the baselines need training views of one size, got sizes {sizes}")
+  return sizes[0]
+
+
+def lsb_containers(config: ml_collections.ConfigDict, scene: datasets.SceneData, secret: np.ndarray,
+                   workdir: str):
+  """(containers [V, H, W, 3], reveal function, report) of LSB with baseline.lsb_bits bits."""
+  del workdir  # LSB has nothing to train or save
+  bits = settings_from_config(config).lsb_bits
+  containers = lsb.embed(np.stack(scene.train_images), secret, bits)
+  return containers, lsb.lsb_reveal(bits, config.conceal.hidden_size), dict(lsb_bits=bits)
+
+
+def deepstega_networks(config: ml_collections.ConfigDict, scene: datasets.SceneData, workdir: str):
+  """(params, architecture, report): the networks of baseline.deepstega.networks, else of
+  <workdir>/deepstega, trained there first (resumable) if that folder holds none yet. The report has the
+  training's (when run here) and the networks' own quality on held-out images, measured here."""
+  arch, train_settings, loop_settings = deepstega_settings(config)
+  path = config.baseline.deepstega.networks or os.path.join(workdir, NETWORKS_DIR, NETWORKS_FILE)
+  training_path = os.path.join(os.path.dirname(path), NETWORKS_REPORT)
+  if os.path.isfile(path):
+    params, arch = deepstega.load_networks(path)
+    report = dict(reused=True)
+    if os.path.isfile(training_path):  # written where the networks were trained
+      with open(training_path) as f:
+        report["training"] = json.load(f)
+  else:
+    params, training = deepstega_train.train_networks(arch, train_settings, loop_settings, os.path.dirname(path),
+                                                      scene.train_images, config.conceal.hidden, config.seed)
+    deepstega.save_networks(path, params, arch)
+    fileio.write_json(training_path, training)
+    report = dict(reused=False, training=training)
+  if "training" in report:
+    report["training"] = {k: v for k, v in report["training"].items() if k != "history"}  # kept in its own file
+  report.update(networks=path, architecture=dataclasses.asdict(arch),
+                held_out=deepstega_train.held_out_quality(params, arch, train_settings, scene.train_images,
+                                                          scene.test_images, config.conceal.hidden, config.seed))
+  return params, arch, report
+
+
+def deepstega_containers(config: ml_collections.ConfigDict, scene: datasets.SceneData, secret: np.ndarray,
+                         workdir: str):
+  """(containers [V, H, W, 3], reveal function, report) of DeepStega: every training view hides `secret`."""
+  params, arch, report = deepstega_networks(config, scene, workdir)
+  containers = deepstega.hide_in_views(params, arch, np.stack(scene.train_images), secret)
+  return containers, deepstega.stega_reveal(params, arch, config.conceal.hidden_size), dict(deepstega=report)
+
+
+CONTAINERS = dict(lsb=lsb_containers, deepstega=deepstega_containers)
+
+
+def container_quality(scene: datasets.SceneData, containers, reveal_fn, hidden: np.ndarray, key_info: dict,
+                      workdir: str) -> dict:
+  """How far the containers are from the training views (mean PSNR / SSIM), and what `reveal_fn` reveals
+  from the check view's own container (PSNR / SSIM to `hidden`, written as container_revealed.png): the
+  method's quality before any 3D-GS training. An orbit key has no container: that part is None."""
+  views = jnp.asarray(np.stack(scene.train_images))
+  result = dict(psnr_to_views=float(np.mean(jax.vmap(metrics.psnr)(containers, views))),
+                ssim_to_views=float(np.mean(metrics.batched_ssim(containers, views))), check_view_hidden=None)
+  if key_info["kind"] == "train_index":
+    revealed = np.asarray(reveal_fn(containers[key_info["index"]][None]))
+    scores = reveal.scores_to_hidden(revealed, hidden)
+    result["check_view_hidden"] = dict(psnr=float(scores["psnr"][0]), ssim=float(scores["ssim"][0]))
+    fileio.write_image(os.path.join(workdir, "container_revealed.png"), revealed[0])
+  return result
+
+
+def baseline_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_steps: int | None = None) -> dict:
+  """Builds the containers, trains 3D-GS on them (max_steps: stop that training there, as if killed, leaving
+  its checkpoint to resume from), scores the result; writes the files the module docstring lists and returns
+  baseline.json's contents with the metrics."""
+  validate(config)
+  s = settings_from_config(config)
+  c = config.conceal
+  teacher = ply.load_ply(c.teacher)
+  hidden = hidden_lib.load_hidden_image(c.hidden, c.hidden_size)
+  scene = evaluate.load_scene_data(config)
+  check_camera, key_info = key_lib.check_camera(scene.train_cameras, c.key_kind, c.key_index, c.key_seed)
+  secret = containers_lib.hidden_at_view(c.hidden, *view_size(scene))
+  containers, reveal_fn, method_report = CONTAINERS[s.method](config, scene, secret, workdir)
+  train_dir = os.path.join(workdir, TRAIN_DIR)
+  trained = train.train_and_evaluate(training_config(config, teacher.sh_degree), train_dir, max_steps,
+                                     scene=containers_lib.container_scene(scene, containers))
+  if "stopped_at" in trained:
+    return trained
+
+  student = ply.load_ply(os.path.join(train_dir, evaluate.SCENE_FILE))
+  fileio.write_image(os.path.join(workdir, "hidden.png"), hidden)
+  quality = container_quality(scene, containers, reveal_fn, hidden, key_info, workdir)
+  options = evaluate.render_options(config, scene.background)
+  scored = conceal.evaluate_concealment(config, workdir, scene, teacher, student, reveal_fn, check_camera, options,
+                                        hidden)
+  summary = dict(method=METHOD_NAMES[s.method], iterations=trained["iterations"],
+                 key=key_info, hidden=c.hidden, hidden_size=c.hidden_size, num_gaussians=trained["num_gaussians"],
+                 wall_time_s=trained["wall_time_s"], median_step_s=trained["median_step_s"],
+                 resumed_from=trained["resumed_from"], containers=quality, student=os.path.join(train_dir,
+                                                                                                  evaluate.SCENE_FILE),
+                 **method_report)
+  fileio.write_json(os.path.join(workdir, BASELINE_FILE), summary)
+  return dict(summary, metrics=scored)
