@@ -48,7 +48,7 @@ profile-train: $(STAMP)
 bench-conceal: $(STAMP)
 	$(PY) -m experiments.bench_conceal --out=experiments/results --workdir=workdirs/bench $(BENCH_ARGS)
 
-# LSB (1-4 bits) and DeepStega on bench-train's lego teacher, scored like bench-conceal's runs
+# LSB (1-4 bits), DeepStega, StegaNeRF (both protocols) on bench-train's lego teacher, scored like bench-conceal
 bench-baselines: $(STAMP)
 	$(PY) -m experiments.bench_baselines --out=experiments/results --workdir=workdirs/bench $(BENCH_ARGS)
 

@@ -1,8 +1,8 @@
-"""LSB and DeepStega, the ConcealGS paper's baselines (its Tables 1-2), on lego (200x200; or beer at 1/4,
---scenes) with the teacher of `make bench-train`, hidden image astronaut at 64x64 and the key, views and
+"""LSB, DeepStega and StegaNeRF, the ConcealGS paper's baselines (its Tables 1-2), on lego (200x200; or beer at
+1/4, --scenes) with the teacher of `make bench-train`, hidden image astronaut at 64x64 and the key, views and
 metrics of bench-conceal's runs, so that their rows sit beside ConcealGS's.
 
-  make bench-baselines                                           # LSB with 1-4 bits and DeepStega, 10k steps
+  make bench-baselines                     # LSB with 1-4 bits, DeepStega, StegaNeRF's two protocols, 10k steps
   make bench-baselines BENCH_ARGS="--rows=lsb1,deepstega --iterations=1000 --eval-views=20"
   make bench-baselines BENCH_ARGS=--reuse                        # rebuild the JSON, table and plot
 
@@ -10,9 +10,12 @@ Each run goes to <workdir>/<scene>/baseline_<row> (resumable: the DeepStega netw
 training both restart from their checkpoints). Writes baseline_bench.json (per row: the run's metrics.json,
 i.e. render PSNR / SSIM / LPIPS of the trained scene and the teacher against ground truth and of the scene
 against the teacher, hidden PSNR / SSIM at the check view and leakage; plus method, scene, protocol,
-training wall time, the revealed image, what the method reveals from the check view's container before
-3D-GS training, and the DeepStega networks' own held-out quality), baseline_bench.md and baseline_bench.png
-to --out. Rows of earlier invocations, and rows of other methods (StegaNeRF), stay in the JSON.
+training wall time, the revealed image, the hidden image's PSNR / SSIM over the test views (each
+baseline's own protocol hides it in every view), what LSB and DeepStega reveal from the check view's
+container before 3D-GS training, the DeepStega networks' own held-out quality and StegaNeRF's settings),
+baseline_bench.md and baseline_bench.png to --out. Rows of earlier invocations and of other rows stay in the
+JSON. StegaNeRF runs once per protocol: all_views (its own: I from every view) and check_view (only the
+check view carries I, as in ConcealGS); both are scored at the check view.
 """
 from __future__ import annotations
 
@@ -31,8 +34,11 @@ from experiments.reproduce import PAPER_TABLE1
 
 ROWS = {f"lsb{bits}": dict(method="lsb", lsb_bits=bits) for bits in range(1, 5)}
 ROWS["deepstega"] = dict(method="deepstega")
-# The baselines issue's target: like the paper (6-11 dB), neither survives 3D-GS training.
-TARGETS = dict(lego=dict(hidden_psnr_below=12.0))
+# baseline config keys, dotted below the baseline section
+ROWS.update({f"steganerf_{p}": {"method": "steganerf", "steganerf.protocol": p} for p in ("all_views", "check_view")})
+# The baselines issue's targets: like the paper (6-11 dB), neither LSB nor DeepStega survives 3D-GS training;
+# StegaNeRF recovers the image at the check view at a measurable render cost.
+TARGETS = dict(lego=dict(hidden_psnr_below=12.0, steganerf_hidden_psnr_at_least=20.0))
 
 
 def run_config(scene: str, teacher: pathlib.Path, row: str, iterations: int, eval_views: int):
@@ -43,7 +49,11 @@ def run_config(scene: str, teacher: pathlib.Path, row: str, iterations: int, eva
   if iterations:
     config.baseline.iterations = iterations
   for name, value in ROWS[row].items():
-    config.baseline[name] = value
+    *sections, key = name.split(".")
+    section = config.baseline
+    for part in sections:
+      section = section[part]
+    section[key] = value
   return config
 
 
@@ -58,6 +68,11 @@ def finished_run(run_dir: pathlib.Path) -> dict | None:
 
 def protocol(result: dict) -> str:
   """How the row was made, in words (REPRODUCTION.md's 'ours: run' column)."""
+  if result["method"] == "StegaNeRF":
+    st, views = result["steganerf"]["settings"], result["test_views_hidden"]
+    return (f"{st['protocol']}: the teacher's SH colour only, decoder width {st['decoder_width']} + classifier width "
+            f"{st['classifier_width']}, SH mask on the {st['mask_at']}, {result['iterations']} steps; over the test "
+            f"views {views['mean_psnr']:.2f} dB / {views['mean_ssim']:.4f}")
   if result["method"] == "LSB":
     hiding = f"{result['lsb_bits']} low bit(s) per channel"
   else:
@@ -68,15 +83,23 @@ def protocol(result: dict) -> str:
   return f"{hiding}; 3D-GS from the teacher on the containers, {result['iterations']} steps, no densification"
 
 
+def label(result: dict) -> str:
+  """The row's name in the table and plot: 'LSB 2 bits', 'DeepStega', 'StegaNeRF (all views)'."""
+  if "lsb_bits" in result:
+    return f"LSB {result['lsb_bits']} bit{'s' if result['lsb_bits'] > 1 else ''}"
+  if "steganerf" in result:
+    return f"StegaNeRF ({result['steganerf']['settings']['protocol'].replace('_', ' ')})"
+  return result["method"]
+
+
 def summary_row(scene: str, row: str, result: dict, run_dir: pathlib.Path) -> dict:
   m = result["metrics"]
-  extra = dict(lsb_bits=result["lsb_bits"]) if "lsb_bits" in result else dict(deepstega=result["deepstega"])
-  label = f"LSB {result['lsb_bits']} bit{'s' if result['lsb_bits'] > 1 else ''}" if "lsb_bits" in result else \
-      result["method"]
-  return dict(m, method=result["method"], scene=scene, row=row, label=label, protocol=protocol(result),
+  extra = {k: result[k] for k in ("lsb_bits", "deepstega", "steganerf") if k in result}
+  return dict(m, method=result["method"], scene=scene, row=row, label=label(result), protocol=protocol(result),
               iterations=result["iterations"], wall_time_s=result["wall_time_s"],
               median_step_s=result["median_step_s"], revealed=str(run_dir / "revealed.png"),
-              containers=result["containers"], targets=TARGETS.get(scene, {}),
+              containers=result.get("containers"), test_views_hidden=result.get("test_views_hidden"),
+              targets=TARGETS.get(scene, {}),
               student_psnr_loss=m["teacher_vs_ground_truth"]["psnr"] - m["student_vs_ground_truth"]["psnr"],
               max_leakage=max(m["leakage"].values()), **extra)
 
@@ -105,7 +128,7 @@ def run(scene, rows, iterations, eval_views, workdir: pathlib.Path, out: pathlib
       fileio.write_json(run_dir / "config.json", config.to_dict())  # as the command line would
       result = baseline.baseline_and_evaluate(config, str(run_dir))
     results.append(summary_row(scene, row, result, run_dir))
-    print(json.dumps({k: v for k, v in results[-1].items() if k not in ("near_check", "deepstega")}))
+    print(json.dumps({k: v for k, v in results[-1].items() if k not in ("near_check", "deepstega", "steganerf")}))
     merged = merged_rows(out / "baseline_bench.json", results)
     fileio.write_json(out / "baseline_bench.json", dict(device=str(jax.devices()[0]), cpu=platform.processor(),
                                                         targets=TARGETS, rows=merged))
@@ -152,6 +175,14 @@ def table(rows) -> str:
                  f"{k.get('max_ssim_student_test_views', float('nan')):.3f} / "
                  f"{k.get('ssim_teacher_check_view', float('nan')):.3f} / "
                  f"{k.get('max_ssim_near_check', float('nan')):.3f} |")
+  own = [r for r in rows if r.get("test_views_hidden")]
+  if own:
+    lines += ["", "Each baseline's own protocol (the image in every view): hidden PSNR / SSIM over the test views", "",
+              "| scene | row | mean | lowest | views |", "|---|---|---|---|---|"]
+    for r in own:
+      v = r["test_views_hidden"]
+      lines.append(f"| {r['scene']} | {r.get('label', r['row'])} | {v['mean_psnr']:.2f} / {v['mean_ssim']:.4f} | "
+                   f"{v['min_psnr']:.2f} / {v['min_ssim']:.4f} | {v['num_views']} |")
   held_out = [r for r in rows if r.get("deepstega")]
   if held_out:
     lines += ["", "DeepStega networks on held-out images (no 3D-GS): cover PSNR / SSIM, secret PSNR / SSIM", "",
@@ -176,10 +207,13 @@ def plot(rows, path: pathlib.Path):
   before = [((r.get("containers") or {}).get("check_view_hidden") or {}).get("psnr", 0.0) for r in rows]
   left.bar(x - 0.2, before, width=0.4, label="from the check view's container (before 3D-GS)")
   left.bar(x + 0.2, [r["hidden"]["psnr"] for r in rows], width=0.4, label="from the trained scene's render")
-  for method, color in (("LSB", "C2"), ("DeepStega", "C3")):
+  for method, color in (("LSB", "C2"), ("DeepStega", "C3"), ("StegaNeRF", "C4")):
     left.axhline(PAPER_TABLE1[method][3], color=color, linestyle="--", alpha=0.7,
                  label=f"paper {method} (NeRF-Synthetic mean)")
-  left.axhline(TARGETS["lego"]["hidden_psnr_below"], color="k", linestyle=":", alpha=0.6, label="target: below this")
+  left.axhline(TARGETS["lego"]["hidden_psnr_below"], color="k", linestyle=":", alpha=0.6,
+               label="target LSB / DeepStega: below this")
+  left.axhline(TARGETS["lego"]["steganerf_hidden_psnr_at_least"], color="C4", linestyle=":", alpha=0.6,
+               label="target StegaNeRF: above this")
   left.set_ylabel("hidden PSNR at the check view (dB)")
   right.bar(x - 0.2, [r["student_vs_ground_truth"]["psnr"] for r in rows], width=0.4, label="trained on containers")
   right.bar(x + 0.2, [r["teacher_vs_ground_truth"]["psnr"] for r in rows], width=0.4, label="teacher")

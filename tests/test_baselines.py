@@ -270,7 +270,7 @@ def test_deepstega_job_trains_saves_and_reuses_its_networks(deepstega_run):
 
 
 @pytest.mark.parametrize("field,value,message", [
-    ("baseline.method", "steganerf", "baseline.method"), ("baseline.lsb_bits", 0, "baseline.lsb_bits"),
+    ("baseline.method", "stega", "baseline.method"), ("baseline.lsb_bits", 0, "baseline.lsb_bits"),
     ("baseline.lsb_bits", 5, "baseline.lsb_bits"), ("baseline.iterations", -1, "baseline.iterations"),
     ("baseline.deepstega.width", 0, "baseline.deepstega.width"),
     ("baseline.deepstega.noise_std", 1.5, "baseline.deepstega.noise_std"),

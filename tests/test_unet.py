@@ -41,10 +41,25 @@ def test_rejects_bad_input_shape(small_params):
   model = unet.UNet(SMALL)
   with pytest.raises(ValueError, match="divisible"):
     model.apply({"params": small_params}, jnp.zeros((1, 60, 64, 3)))
-  with pytest.raises(ValueError, match=r"\[B, H, W, 3\]"):
+  with pytest.raises(ValueError, match=r"\[B, H, W, C\]"):
     model.apply({"params": small_params}, jnp.zeros((64, 64, 3)))
   with pytest.raises(ValueError, match="multiple of 8"):
     unet.init_decoder(jax.random.key(0), SMALL, image_size=60)
+  with pytest.raises(ValueError, match="in_channels"):
+    unet.init_decoder(jax.random.key(0), SMALL, in_channels=0)
+
+
+def test_input_channels_come_from_the_input():
+  """A decoder made for 4 input channels (StegaNeRF: render + classifier score) differs from the 3-channel one
+  only in enc1_1's kernel, and still outputs an image."""
+  three, four = (unet.init_decoder(jax.random.key(0), SMALL, 16, in_channels=c) for c in (3, 4))
+  assert four["enc1_1"]["kernel"].shape == (3, 3, 4, SMALL)
+  assert {k: jax.tree.map(jnp.shape, v) for k, v in three.items() if k != "enc1_1"} == \
+      {k: jax.tree.map(jnp.shape, v) for k, v in four.items() if k != "enc1_1"}
+  y = unet.UNet(SMALL).apply({"params": four}, jnp.ones((2, 16, 16, 4)))
+  assert y.shape == (2, 16, 16, 3) and bool(jnp.all(jnp.isfinite(y)))
+  with pytest.raises(Exception):  # a 3-channel input does not fit the 4-channel kernel
+    unet.UNet(SMALL).apply({"params": four}, jnp.ones((2, 16, 16, 3)))
 
 
 def test_module_names_follow_vgg16():

@@ -1,6 +1,8 @@
-"""The baseline job, `--config.mode=baseline`: LSB or DeepStega, the ways to hide an image that ConcealGS
-(Yang et al. 2025, arXiv:2501.03605, Tables 1-2) compares with, trained and scored like a concealment run.
+"""The baseline job, `--config.mode=baseline`: LSB, DeepStega or StegaNeRF, the ways to hide an image that
+ConcealGS (Yang et al. 2025, arXiv:2501.03605, Tables 1-2) compares with, trained and scored like a
+concealment run.
 
+LSB and DeepStega hide the image in the views, then 3D-GS is trained on them:
 1. The hidden image (conceal.hidden) goes into every training view, so also the check view's: the views
    become containers (lsb.py; deepstega.py, whose networks are first trained on natural-image crops in
    <workdir>/deepstega, or read from baseline.deepstega.networks).
@@ -8,14 +10,20 @@
    run's recipe (gs.train in <workdir>/train, checkpointed and resumable): its learning rates
    (conceal.lr), its length (baseline.iterations, 0: conceal.iterations), the teacher's SH degree, and no
    densification or opacity reset, since the concealment run refines the teacher's Gaussians as they are.
+StegaNeRF hides it in the scene itself (steganerf.py, steganerf_train.py): the teacher's SH colour, a
+decoder and a classifier are trained jointly for the same length, the geometry frozen, checkpointed in
+<workdir>/checkpoints; baseline.steganerf.protocol says whether every view or only the check view carries I.
+
 3. The trained scene is scored by conceal.evaluate_concealment at the conceal section's key (key_kind,
    key_index, key_seed) with the method's reveal function in the decoder's place, so every row of the
-   paper's table is measured with the same views, key and metrics.
+   paper's table is measured with the same views, key and metrics. Each baseline's own protocol hides I
+   in every view, so baseline.json also has the hidden image's PSNR / SSIM over the test views.
 
-Writes metrics.json, revealed.png, teacher_revealed.png, normal_revealed.png, hidden.png,
-container_revealed.png (what the method reveals from the check view's own container, before any 3D-GS
-training) and baseline.json: method, settings, the training's wall time (from train/train.json), the
-containers' quality and, for DeepStega, the networks' own quality on held-out images.
+Writes metrics.json, revealed.png, teacher_revealed.png, normal_revealed.png, hidden.png and baseline.json:
+method, settings, the training's wall time, the hidden scores over the test views and, for LSB and
+DeepStega, container_revealed.png (what the method reveals from the check view's own container, before
+any 3D-GS training) and the containers' quality; for DeepStega the networks' own quality on held-out
+images; for StegaNeRF its run's summary (steganerf.json; student.ply and the networks beside it).
 """
 from __future__ import annotations
 
@@ -30,14 +38,14 @@ import ml_collections
 import numpy as np
 
 from conceal_jax.baselines import containers as containers_lib
-from conceal_jax.baselines import deepstega, deepstega_train, lsb
+from conceal_jax.baselines import deepstega, deepstega_train, lsb, steganerf, steganerf_train
 from conceal_jax.conceal import conceal, hidden as hidden_lib, key as key_lib, reveal
 from conceal_jax.core import fileio, loop, settings as settings_lib
 from conceal_jax.data import datasets, ply
 from conceal_jax.gs import evaluate, metrics, train
 
-METHODS = ("lsb", "deepstega")
-METHOD_NAMES = dict(lsb="LSB", deepstega="DeepStega")  # as the paper's tables name them
+METHODS = ("lsb", "deepstega", "steganerf")
+METHOD_NAMES = dict(lsb="LSB", deepstega="DeepStega", steganerf="StegaNeRF")  # as the paper's tables name them
 BASELINE_FILE = "baseline.json"
 TRAIN_DIR = "train"
 NETWORKS_DIR = "deepstega"
@@ -71,6 +79,12 @@ def deepstega_settings(config: ml_collections.ConfigDict):
           settings_lib.from_section(loop.LoopSettings, d))
 
 
+def run_length(config: ml_collections.ConfigDict) -> int:
+  """Steps of the baseline's training: baseline.iterations, or conceal.iterations where it is 0 (the same
+  length as the concealment run)."""
+  return settings_from_config(config).iterations or config.conceal.iterations
+
+
 def training_config(config: ml_collections.ConfigDict, sh_degree: int) -> ml_collections.ConfigDict:
   """A copy of `config` whose train and init sections are the concealment run's recipe: start from the
   teacher, conceal.lr, conceal.iterations unless baseline.iterations, SH degree `sh_degree` (the
@@ -78,7 +92,7 @@ def training_config(config: ml_collections.ConfigDict, sh_degree: int) -> ml_col
   t = copy.deepcopy(config)
   t.mode = "train"
   t.init.kind, t.init.ply = "ply", config.conceal.teacher
-  t.train.iterations = settings_from_config(config).iterations or config.conceal.iterations
+  t.train.iterations = run_length(config)
   t.train.lr = ml_collections.ConfigDict(config.conceal.lr.to_dict())
   t.train.sh_degree = t.train.sh_degree_start = sh_degree
   t.train.densify.until = 0
@@ -95,6 +109,9 @@ def validate(config: ml_collections.ConfigDict) -> None:
     networks = config.baseline.deepstega.networks
     if networks and not os.path.isfile(networks):
       raise ValueError(f"baseline.deepstega.networks: no such file {networks}")
+  if s.method == "steganerf":
+    steganerf.settings_from_config(config)
+    steganerf_train.loop_settings(config, run_length(config))
   if c.key_kind not in key_lib.KEY_KINDS:
     raise ValueError(f"conceal.key_kind must be one of {key_lib.KEY_KINDS}, got {c.key_kind!r}")
   settings_lib.check_count("conceal.hidden_size", c.hidden_size)
@@ -176,10 +193,42 @@ def container_quality(scene: datasets.SceneData, containers, reveal_fn, hidden: 
   return result
 
 
+def train_on_containers(config: ml_collections.ConfigDict, workdir: str, max_steps: int | None, teacher,
+                        hidden: np.ndarray, scene: datasets.SceneData, key_info: dict) -> dict:
+  """LSB / DeepStega: the containers, then 3D-GS trained on them in <workdir>/train. dict(stopped_at) when
+  max_steps stopped the training; else the trained `gaussians`, their `reveal_fn`, the training's numbers
+  (train.json's), the `student` path, the containers' quality and the method's report."""
+  s = settings_from_config(config)
+  secret = containers_lib.hidden_at_view(config.conceal.hidden, *view_size(scene))
+  containers, reveal_fn, method_report = CONTAINERS[s.method](config, scene, secret, workdir)
+  train_dir = os.path.join(workdir, TRAIN_DIR)
+  trained = train.train_and_evaluate(training_config(config, teacher.sh_degree), train_dir, max_steps,
+                                     scene=containers_lib.container_scene(scene, containers))
+  if "stopped_at" in trained:
+    return trained
+  student = os.path.join(train_dir, evaluate.SCENE_FILE)
+  return dict(gaussians=ply.load_ply(student), reveal_fn=reveal_fn, student=student,
+              containers=container_quality(scene, containers, reveal_fn, hidden, key_info, workdir),
+              **{k: trained[k] for k in ("iterations", "num_gaussians", "wall_time_s", "median_step_s",
+                                         "resumed_from")}, **method_report)
+
+
+def hidden_over_test_views(config: ml_collections.ConfigDict, scene: datasets.SceneData, gaussians, reveal_fn,
+                           hidden: np.ndarray) -> dict:
+  """What `reveal_fn` reveals from the scene's renders of the test views (eval.max_views of them, rendered
+  as evaluate_concealment renders them): mean and lowest PSNR / SSIM to `hidden`, the number a baseline's
+  own protocol (I in every view) reports."""
+  cameras, _, _ = evaluate.held_out_views(scene, config.eval.max_views)
+  renders = evaluate.render_images(gaussians, cameras, evaluate.eval_options(config, scene.background))
+  scores = reveal.scores_to_hidden(reveal_fn(renders), hidden)
+  return dict(mean_psnr=float(scores["psnr"].mean()), mean_ssim=float(scores["ssim"].mean()),
+              min_psnr=float(scores["psnr"].min()), min_ssim=float(scores["ssim"].min()), num_views=len(cameras))
+
+
 def baseline_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_steps: int | None = None) -> dict:
-  """Builds the containers, trains 3D-GS on them (max_steps: stop that training there, as if killed, leaving
-  its checkpoint to resume from), scores the result; writes the files the module docstring lists and returns
-  baseline.json's contents with the metrics."""
+  """Trains the baseline (max_steps: stop that training there, as if killed, leaving its checkpoint to resume
+  from), scores the result; writes the files the module docstring lists and returns baseline.json's
+  contents with the metrics."""
   validate(config)
   s = settings_from_config(config)
   c = config.conceal
@@ -187,25 +236,20 @@ def baseline_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_s
   hidden = hidden_lib.load_hidden_image(c.hidden, c.hidden_size)
   scene = evaluate.load_scene_data(config)
   check_camera, key_info = key_lib.check_camera(scene.train_cameras, c.key_kind, c.key_index, c.key_seed)
-  secret = containers_lib.hidden_at_view(c.hidden, *view_size(scene))
-  containers, reveal_fn, method_report = CONTAINERS[s.method](config, scene, secret, workdir)
-  train_dir = os.path.join(workdir, TRAIN_DIR)
-  trained = train.train_and_evaluate(training_config(config, teacher.sh_degree), train_dir, max_steps,
-                                     scene=containers_lib.container_scene(scene, containers))
-  if "stopped_at" in trained:
-    return trained
-
-  student = ply.load_ply(os.path.join(train_dir, evaluate.SCENE_FILE))
-  fileio.write_image(os.path.join(workdir, "hidden.png"), hidden)
-  quality = container_quality(scene, containers, reveal_fn, hidden, key_info, workdir)
   options = evaluate.render_options(config, scene.background)
-  scored = conceal.evaluate_concealment(config, workdir, scene, teacher, student, reveal_fn, check_camera, options,
+  if s.method == "steganerf":
+    run = steganerf_train.train_steganerf(config, workdir, run_length(config), teacher, hidden, scene, check_camera,
+                                          options, max_steps)
+  else:
+    run = train_on_containers(config, workdir, max_steps, teacher, hidden, scene, key_info)
+  if "stopped_at" in run:
+    return run
+
+  gaussians, reveal_fn = run.pop("gaussians"), run.pop("reveal_fn")
+  fileio.write_image(os.path.join(workdir, "hidden.png"), hidden)
+  scored = conceal.evaluate_concealment(config, workdir, scene, teacher, gaussians, reveal_fn, check_camera, options,
                                         hidden)
-  summary = dict(method=METHOD_NAMES[s.method], iterations=trained["iterations"],
-                 key=key_info, hidden=c.hidden, hidden_size=c.hidden_size, num_gaussians=trained["num_gaussians"],
-                 wall_time_s=trained["wall_time_s"], median_step_s=trained["median_step_s"],
-                 resumed_from=trained["resumed_from"], containers=quality, student=os.path.join(train_dir,
-                                                                                                  evaluate.SCENE_FILE),
-                 **method_report)
+  summary = dict(method=METHOD_NAMES[s.method], key=key_info, hidden=c.hidden, hidden_size=c.hidden_size,
+                 test_views_hidden=hidden_over_test_views(config, scene, gaussians, reveal_fn, hidden), **run)
   fileio.write_json(os.path.join(workdir, BASELINE_FILE), summary)
   return dict(summary, metrics=scored)

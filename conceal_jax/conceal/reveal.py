@@ -33,7 +33,8 @@ def resize_for_decoder(image: jax.Array, size: int) -> jax.Array:
 
 
 def decode(decoder_params, base_channels: int, images: jax.Array) -> jax.Array:
-  """F: [..., S, S, 3] -> [..., S, S, 3] with the U-Net decoder."""
+  """F: [..., S, S, C] -> [..., S, S, 3] with the U-Net decoder (C: the input channels its params were made
+  for, 3 for a render)."""
   batch = images[None] if images.ndim == 3 else images
   out = unet.UNet(base_channels).apply({"params": decoder_params}, batch)
   return out[0] if images.ndim == 3 else out

@@ -1,4 +1,5 @@
-"""The ConcealGS decoder F: a VGG16-style U-Net from a render [B, H, W, 3] to an image [B, H, W, 3].
+"""The ConcealGS decoder F: a VGG16-style U-Net from a render [B, H, W, C] (C = 3; StegaNeRF's decoder takes a
+4th channel) to an image [B, H, W, 3].
 
 Shaped like the decoder of the authors' released ConcealGS code (github.com/zxk1212/ConcealGS): a VGG16
 encoder cut after conv4_3 (stages of base * (1, 2, 4, 8) channels with 2, 2, 3, 3 conv3x3+ReLU, 2x2 max
@@ -37,7 +38,8 @@ def _conv_relu(x: jax.Array, features: int, name: str) -> jax.Array:
 
 
 class UNet(nn.Module):
-  """images [B, H, W, 3] -> [B, H, W, 3], H and W multiples of 8 (64 x 64 in ConcealGS).
+  """images [B, H, W, C] -> [B, H, W, 3], H and W multiples of 8 (64 x 64 in ConcealGS). The input channel
+  count C is the input's (3: a render; the params fix it through enc1_1's kernel [3, 3, C, base]).
 
   Modules: enc{stage}_{conv} (VGG16 conv{stage}_{conv}), up{stage} (transposed conv to that stage's
   resolution), dec{stage}_1, dec{stage}_2, out (the 1x1 conv).
@@ -46,8 +48,8 @@ class UNet(nn.Module):
 
   @nn.compact
   def __call__(self, images: jax.Array) -> jax.Array:
-    if images.ndim != 4 or images.shape[-1] != 3:
-      raise ValueError(f"UNet expects images [B, H, W, 3], got shape {images.shape}")
+    if images.ndim != 4:
+      raise ValueError(f"UNet expects images [B, H, W, C], got shape {images.shape}")
     if images.shape[1] % DOWNSAMPLE or images.shape[2] % DOWNSAMPLE:
       raise ValueError(f"UNet needs H and W divisible by {DOWNSAMPLE}, got {images.shape[1:3]}")
     channels = stage_channels(self.base_channels)
@@ -67,13 +69,17 @@ class UNet(nn.Module):
     return nn.Conv(3, (1, 1), name="out")(x)
 
 
-def init_decoder(rng: jax.Array, base_channels: int = PAPER_WIDTH, image_size: int = 64) -> dict[str, Any]:
-  """Freshly initialised UNet params (the 'params' collection) for [B, image_size, image_size, 3] input."""
+def init_decoder(rng: jax.Array, base_channels: int = PAPER_WIDTH, image_size: int = 64,
+                 in_channels: int = 3) -> dict[str, Any]:
+  """Freshly initialised UNet params (the 'params' collection) for [B, image_size, image_size, in_channels]
+  input (3: a render; 4: StegaNeRF's render and classifier score)."""
   if image_size <= 0 or image_size % DOWNSAMPLE:
     raise ValueError(f"image_size must be a positive multiple of {DOWNSAMPLE}, got {image_size}")
+  if in_channels < 1:
+    raise ValueError(f"in_channels must be positive, got {in_channels}")
   # The params do not depend on the image size, so the smallest valid input keeps init's forward pass
   # cheap.
-  dummy = jnp.zeros((1, DOWNSAMPLE, DOWNSAMPLE, 3), jnp.float32)
+  dummy = jnp.zeros((1, DOWNSAMPLE, DOWNSAMPLE, in_channels), jnp.float32)
   # One jitted program initialises every kernel: much faster than one eager dispatch per initialiser.
   return jax.jit(UNet(base_channels).init)(rng, dummy)["params"]
 

@@ -133,8 +133,8 @@ def get_config() -> ml_collections.ConfigDict:
   # baseline mode: a way to hide an image that the paper compares with (see conceal_jax/baselines/baseline.py),
   # on the conceal section's teacher, hidden image (hidden, hidden_size) and key (key_kind, key_index, key_seed)
   config.baseline = ml_collections.ConfigDict()
-  config.baseline.method = "lsb"       # 'lsb' or 'deepstega'
-  config.baseline.iterations = 0       # 3D-GS steps on the containers; 0: conceal.iterations (the same length)
+  config.baseline.method = "lsb"       # 'lsb', 'deepstega' or 'steganerf'
+  config.baseline.iterations = 0       # training steps (3D-GS on the containers, or StegaNeRF's); 0: conceal.iterations
   config.baseline.lsb_bits = 1         # low bits of each 8-bit channel that carry the image (1-4)
   config.baseline.deepstega = ml_collections.ConfigDict()
   config.baseline.deepstega.networks = ""  # saved networks to reuse; empty: <workdir>/deepstega, trained if absent
@@ -152,6 +152,22 @@ def get_config() -> ml_collections.ConfigDict:
   config.baseline.deepstega.log_every = 50
   config.baseline.deepstega.checkpoint_every = 500
   config.baseline.deepstega.progress_bar = True
+  # StegaNeRF (Li et al. 2023): the teacher's SH colour, a U-Net decoder and a classifier trained jointly, geometry
+  # frozen; the SH learning rates are conceal.lr's (see conceal_jax/baselines/steganerf.py)
+  config.baseline.steganerf = ml_collections.ConfigDict()
+  config.baseline.steganerf.protocol = "all_views"  # 'all_views' (StegaNeRF's: I from every view) or 'check_view'
+  config.baseline.steganerf.weight_render = 1.0     # MSE(render, initial render)
+  config.baseline.steganerf.weight_hidden = 0.5     # MSE(U(render), I)
+  config.baseline.steganerf.weight_clean = 0.5      # MSE(U(initial render), 0)
+  config.baseline.steganerf.weight_classifier = 0.01  # BCE of the watermarked-vs-initial classifier
+  config.baseline.steganerf.decoder_width = 16      # U-Net base channels (4 input channels: render + score)
+  config.baseline.steganerf.classifier_width = 16   # channels of the classifier's first conv (then x2, x4)
+  config.baseline.steganerf.decoder_lr = 1e-3     # fresh networks (no VGG16 start): 1e-4 learns I ~3x slower
+  config.baseline.steganerf.classifier_lr = 1e-3
+  config.baseline.steganerf.mask_at = "gradient"    # adaptive SH mask on the 'gradient' (StegaNeRF) or Adam's 'update'
+  config.baseline.steganerf.log_every = 10
+  config.baseline.steganerf.checkpoint_every = 1000
+  config.baseline.steganerf.progress_bar = True
 
   # reveal mode
   config.reveal = ml_collections.ConfigDict()

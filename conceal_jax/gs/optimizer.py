@@ -35,6 +35,12 @@ def means_decay_steps(lr: ml_collections.ConfigDict, run_steps: int) -> int:
   return steps
 
 
+def sh_learning_rates(lr: ml_collections.ConfigDict, num_bases: int, dtype=jnp.float32) -> jnp.ndarray:
+  """[K] learning rate per SH basis function: lr.sh_dc for the DC term (k = 0), lr.sh_rest for the higher
+  bands (3D-GS trains the view-dependent colour 20x slower)."""
+  return jnp.full((num_bases,), lr.sh_rest, dtype).at[0].set(lr.sh_dc)
+
+
 def scale_by_gaussian_learning_rates(lr: ml_collections.ConfigDict, extent: float,
                                      run_steps: int = 0) -> optax.GradientTransformation:
   """Multiplies each `Gaussians` field's update by minus its learning rate.
@@ -51,7 +57,7 @@ def scale_by_gaussian_learning_rates(lr: ml_collections.ConfigDict, extent: floa
 
   def update(updates: Gaussians, state, params=None):
     del params
-    sh_lr = jnp.full(updates.sh.shape[1:], lr.sh_rest, updates.sh.dtype).at[0].set(lr.sh_dc)
+    sh_lr = sh_learning_rates(lr, updates.sh.shape[1], updates.sh.dtype)[:, None]
     scaled = Gaussians(means=-means_lr(state.count) * updates.means, log_scales=-lr.scales * updates.log_scales,
                        quats=-lr.quats * updates.quats, opacity_logits=-lr.opacity * updates.opacity_logits,
                        sh=-sh_lr * updates.sh)
