@@ -3,11 +3,12 @@
   make profile-conceal                                   # decoder widths 16 and 64
   make profile-conceal BENCH_ARGS="--widths=16 --repeats=9 --row=full"
 
-With the settings of a bench-conceal row (default full_leakfix), for each decoder width, times (median of --repeats, each part jitted on its own): the student's render of
-a normal view with L_kd and its gradient, `student_objective` with its gradient (the normal render, the
-check render and the decoder on it), the decoder alone (forward, forward+backward, for one image and for
-a batch of two), `decoder_identity_objective` with its gradient, the guided combination of the two
-decoder gradients, the two Adam updates, the decoder's two passes run separately or fused into one
+With the settings of a bench-conceal row (default ours), for each decoder width, times (median of
+--repeats, each part jitted on its own): the student's render of a normal view with L_kd and its
+gradient, `student_objective` with its gradient (the normal render, the check render and the decoder on
+it), the decoder alone (forward, forward+backward, for one image and for a batch of two),
+`decoder_identity_objective` with its gradient, the guided combination of the two decoder gradients, the
+two Adam updates, the decoder's two passes run separately or fused into one
 batch, and the whole step. Writes conceal_step_profile.json to --out.
 Run it on a quiet machine.
 """
@@ -40,7 +41,7 @@ def decoder_pass_times(decoder, width: int, data: dict, settings, repeats: int) 
   the batch of 1 + B images and the two gradients as the Jacobian rows of (L_d^+, L_d^-) (jax.jacrev, a
   backward pass batched over the two losses)."""
   check = data["teacher_small"][0]
-  minus_inputs = jnp.stack([data["teacher_small"][1], data["teacher_small"][2]][:1 + settings.identity_on_student])
+  minus_inputs = identity_inputs(data, 1, settings, data["teacher"][0])
   hidden = data["hidden"]
   plus_loss = lambda d, x: losses.hidden_image_loss(reveal.decode(d, width, x), hidden)
   minus_loss = lambda d: losses.decoder_identity_loss(reveal.decode(d, width, minus_inputs), minus_inputs)
@@ -88,7 +89,7 @@ def profile(row: str, width: int, teacher: pathlib.Path, repeats: int) -> dict:
     times[f"decoder_fwd_batch{batch}"] = median_ms(jax.jit(apply), decoder, images, repeats=repeats)
     times[f"decoder_fwd_bwd_batch{batch}"] = median_ms(
         jax.jit(jax.grad(lambda d, x: jnp.sum(apply(d, x)))), decoder, images, repeats=repeats)
-  inputs = identity_inputs(data, 1, settings)
+  inputs = identity_inputs(data, 1, settings, data["teacher"][0])  # a teacher render in the student's place
   identity = jax.jit(jax.value_and_grad(lambda d: decoder_identity_objective(d, inputs, settings)))
   times["decoder_identity_fwd_bwd"] = median_ms(identity, decoder, repeats=repeats)
 
@@ -127,7 +128,7 @@ def main():
   parser.add_argument("--out", default="experiments/results")
   parser.add_argument("--widths", default="16,64")
   parser.add_argument("--repeats", type=int, default=7)
-  parser.add_argument("--row", default="full_leakfix", choices=sorted(ROWS), help="a bench-conceal row's settings")
+  parser.add_argument("--row", default="ours", choices=sorted(ROWS), help="a bench-conceal row's settings")
   args = parser.parse_args()
   teacher = pathlib.Path(args.workdir) / "lego" / "teacher" / "point_cloud.ply"
   if not teacher.is_file():

@@ -86,7 +86,7 @@ def method_table(title: str, paper: dict, scene: str, train_bench: dict, conceal
   teacher = teacher_values(train_bench, scene)
   ours = {"3D-GS": [(teacher, "teacher (bench-train)")] if teacher else []}
   ours["ConcealGS"] = [(conceal_values(r), f"{r['row']}, width {r['decoder_width']}, {r['iterations']} steps")
-                       for r in conceal_rows(conceal_bench, scene) if r["row"] in ("full", "full_leakfix")]
+                       for r in conceal_rows(conceal_bench, scene) if r["row"] in ("full", "ours")]
   for b in BASELINES:
     ours[b] = [(conceal_values(r), r.get("protocol", "")) for r in baseline_bench.get("rows", [])
                if r.get("method") == b and r.get("scene", "lego") == scene]

@@ -38,6 +38,9 @@ def tiny_config(tiny, iterations=40, **conceal_overrides):
   config.render.tile_size = 8
   config.eval.max_views = 1
   c = config.conceal
+  # The paper's method; the demo's additions (configs/conceal_ours.py) are switched on where a test asks.
+  c.identity_on_student = c.identity_on_teacher_check = False
+  c.decoy_views, c.decoy_fraction = 0, 0.0
   c.teacher, c.iterations, c.hidden_size, c.decoder_width = str(teacher), iterations, 16, 4
   c.decoder_vgg_init, c.decoder_lr, c.checkpoint_every, c.log_every, c.progress_bar = False, 1e-3, 20, 5, False
   for name, value in conceal_overrides.items():
@@ -128,6 +131,16 @@ def test_identity_on_student_adds_the_students_render_as_a_constant():
   assert all(float(jnp.abs(g).max()) == 0 for g in jax.tree.leaves(grads))
 
 
+def test_identity_on_teacher_check_adds_the_teachers_check_render():
+  _, _, data = _objective_inputs()
+  s = objective.ConcealSettings(decoder_width=4, hidden_size=16, identity_on_teacher_check=True)
+  np.testing.assert_array_equal(objective.identity_inputs(data, 2, s),
+                                jnp.stack([data["teacher_small"][2], data["teacher_check_small"]]))
+  released = objective.ConcealSettings(variant="released", decoder_width=4, hidden_size=16,
+                                       identity_on_teacher_check=True)
+  np.testing.assert_array_equal(objective.identity_inputs(data, 2, released), data["teacher_check_small"][None])
+
+
 def test_decoys_lie_near_the_key_within_their_ranges():
   check = Camera.from_intrinsics(look_at([0.0, -4.0, 1.0], [0.0, 0.0, 0.0]), 40.0, 40.0, 16.0, 16.0, 32, 32)
   decoys = key.decoy_cameras(check, 2.0, 9, (0.05, 0.1), (3.0, 6.0), seed=1)
@@ -198,7 +211,8 @@ def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
 
 @pytest.mark.parametrize("overrides", [dict(use_decoder=False), dict(consistency=False, guidance=False),
                                        dict(variant="released", granularity="tensor", key_kind="orbit"),
-                                       dict(identity_on_student=True, decoy_views=3, decoy_fraction=0.5)])
+                                       dict(identity_on_student=True, identity_on_teacher_check=True, decoy_views=3,
+                                            decoy_fraction=0.5)])
 def test_ablations_and_variants_run(tiny, tmp_path, overrides):
   result = conceal.conceal_and_evaluate(tiny_config(tiny, iterations=3, **overrides), str(tmp_path))
   assert np.isfinite(result["metrics"]["hidden"]["psnr"])
@@ -215,7 +229,8 @@ def test_ablations_and_variants_run(tiny, tmp_path, overrides):
     (dict(decoy_views=4), "decoy_fraction"), (dict(decoy_views=4, decoy_fraction=1.0), "decoy_fraction"),
     (dict(decoy_views=4, decoy_fraction=0.2, variant="released"), "decoy_fraction"),
     (dict(decoy_translation=(0.2, 0.1)), "decoy_translation"), (dict(eval_views=0), "eval_views"),
-    (dict(identity_on_student=True, consistency=False), "identity_on_student")])
+    (dict(identity_on_student=True, consistency=False), "identity_on_student"),
+    (dict(identity_on_teacher_check=True, use_decoder=False), "identity_on_teacher_check")])
 def test_bad_conceal_config_is_named(tiny, tmp_path, overrides, message):
   with pytest.raises((ValueError, OSError), match=message):
     conceal.conceal_and_evaluate(tiny_config(tiny, **overrides), str(tmp_path))

@@ -208,3 +208,21 @@ def test_densify_state_keeps_moments_with_their_gaussians():
   np.testing.assert_array_equal(mu.means[:6, 0], [1, 2, 3, 4, 5, 0])  # the clone starts from zero
   np.testing.assert_array_equal(out.gaussians.means[5], g.means[1])
   assert float(out.grad_accum.sum()) == 0
+
+
+def test_warmup_ramps_every_update_linearly():
+  """lr.warmup_steps = 4: the t-th update is (t + 1) / 4 of the unwarmed one, then equal to it."""
+  lr = demo.get_config().train.lr
+  g = random_gaussians(0, 4, degree=1)
+  grads = jax.tree.map(lambda x: jnp.full_like(x, 0.7), g)
+  plain = optimizer.gaussian_optimizer(lr, extent=2.0, run_steps=100)
+  lr.warmup_steps = 4
+  warm = optimizer.gaussian_optimizer(lr, extent=2.0, run_steps=100)
+  plain_state, warm_state = plain.init(g), warm.init(g)
+  for t in range(6):
+    expected, plain_state = plain.update(grads, plain_state, g)
+    got, warm_state = warm.update(grads, warm_state, g)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, min(1.0, (t + 1) / 4) * b, rtol=1e-6), got, expected)
+  lr.warmup_steps = -1
+  with pytest.raises(ValueError, match="warmup_steps"):
+    optimizer.gaussian_optimizer(lr, 1.0, run_steps=10)

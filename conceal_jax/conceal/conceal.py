@@ -21,6 +21,9 @@ Leakage control, an option beyond the paper (off by default, so `variant=paper` 
   conceal.identity_on_student  L_d^- also on the student's own render of the step's normal view: F learns
                                to be the identity on what a viewer of the shared scene sees, not only on
                                the teacher's renders.
+  conceal.identity_on_teacher_check
+                               L_d^- also on the clean teacher's check render (the released code's only
+                               L_d^- input): the key reveals only the student's change, not the pose.
   conceal.decoy_views / decoy_fraction / decoy_translation / decoy_rotation_deg
                                decoy_views cameras near the key (moved by a fraction of the scene extent,
                                turned by degrees, within the given ranges) join the normal views with the

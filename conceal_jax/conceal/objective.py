@@ -43,8 +43,10 @@ class ConcealSettings:
   weight_minus: float = 1.0
   weight_check: float = 1.0
   # Leakage control (an option beyond the paper, see conceal.py): L_d^- also on the student's own render
-  # of the step's normal view, and the share of steps whose normal views are decoy poses near the key.
+  # of the step's normal view and on the teacher's check render, and the share of steps whose normal views
+  # are decoy poses near the key.
   identity_on_student: bool = False
+  identity_on_teacher_check: bool = False
   decoy_fraction: float = 0.0
 
   def __post_init__(self):
@@ -62,8 +64,9 @@ class ConcealSettings:
     if self.decoy_fraction and not self.distill:
       raise ValueError("conceal.decoy_fraction needs L_kd (variant 'paper' with consistency): decoy poses have "
                        "no ground truth, only the teacher's renders")
-    if self.identity_on_student and not self.identity_loss:
-      raise ValueError("conceal.identity_on_student needs L_d^- (a decoder and consistency)")
+    if (self.identity_on_student or self.identity_on_teacher_check) and not self.identity_loss:
+      raise ValueError("conceal.identity_on_student and identity_on_teacher_check need L_d^- (a decoder and "
+                       "consistency)")
 
   @property
   def distill(self) -> bool:
@@ -109,11 +112,14 @@ def student_objective(student, decoder, data: dict, view, settings: ConcealSetti
 
 def identity_inputs(data: dict, normal_view, settings: ConcealSettings, student_rgb=None) -> jax.Array:
   """[B, S, S, 3] the renders on which L_d^- asks F to be the identity: the teacher's render of normal view
-  `normal_view` (the paper) or of the check view (the released code); with `identity_on_student`, also the
-  student's render `student_rgb` [H, W, 3] of the step's normal view, as a constant (L_d^- trains F only)."""
+  `normal_view` (the paper) or of the check view (the released code); with `identity_on_teacher_check`,
+  the paper's input and the teacher's check render; with `identity_on_student`, also the student's render
+  `student_rgb` [H, W, 3] of the step's normal view, as a constant (L_d^- trains F only)."""
   s = settings
   teacher = data["teacher_small"][normal_view] if s.variant == "paper" else data["teacher_check_small"]
   inputs = [teacher]
+  if s.identity_on_teacher_check and s.variant == "paper":
+    inputs.append(data["teacher_check_small"])
   if s.identity_on_student:
     inputs.append(jax.lax.stop_gradient(reveal.resize_for_decoder(student_rgb, s.hidden_size)))
   return jnp.stack(inputs)

@@ -66,6 +66,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.train.lr.opacity = 0.05
   config.train.lr.scales = 5e-3
   config.train.lr.quats = 1e-3
+  config.train.lr.warmup_steps = 0       # linear ramp of every update (not in 3D-GS; see gs/optimizer.py)
   config.train.densify = ml_collections.ConfigDict()
   config.train.densify.start = 500
   config.train.densify.until = 15_000
@@ -116,6 +117,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.conceal.weight_check = 1.0    # released variant's check-view L1
   # leakage control beyond the paper (see conceal_jax/conceal/conceal.py); off = the method as written
   config.conceal.identity_on_student = False  # L_d^- on the student's normal render too
+  config.conceal.identity_on_teacher_check = False  # L_d^- on the teacher's check render too (as released)
   config.conceal.decoy_views = 0       # cameras near the key trained as normal views (0: none)
   config.conceal.decoy_fraction = 0.0  # share of steps whose normal views are decoys
   config.conceal.decoy_translation = (0.01, 0.1)  # decoy moves, fractions of the scene extent (lo, hi)
