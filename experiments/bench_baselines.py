@@ -22,13 +22,11 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
-import platform
-
-import jax
 
 from conceal_jax.baselines import baseline
 from conceal_jax.core import fileio
 from conceal_jax.gs import evaluate
+from experiments import results_io
 from experiments.bench_train import scene_config
 from experiments.reproduce import PAPER_TABLE1
 
@@ -129,26 +127,12 @@ def run(scene, rows, iterations, eval_views, workdir: pathlib.Path, out: pathlib
       result = baseline.baseline_and_evaluate(config, str(run_dir))
     results.append(summary_row(scene, row, result, run_dir))
     print(json.dumps({k: v for k, v in results[-1].items() if k not in ("near_check", "deepstega", "steganerf")}))
-    merged = merged_rows(out / "baseline_bench.json", results)
-    fileio.write_json(out / "baseline_bench.json", dict(device=str(jax.devices()[0]), cpu=platform.processor(),
-                                                        targets=TARGETS, rows=merged))
-    fileio.write_text(out / "baseline_bench.md", table(merged))
-    plot(merged, out / "baseline_bench.png")
+    results_io.write_results(out, "baseline_bench", results, row_key, table, plot, targets=TARGETS)
   return results
 
 
 def row_key(r: dict) -> tuple:
   return r.get("scene", "lego"), r.get("method"), r.get("row")
-
-
-def merged_rows(path: pathlib.Path, rows: list[dict]) -> list[dict]:
-  """`rows` plus the rows of `path` with another (scene, method, row), e.g. another method's."""
-  try:
-    old = json.loads(path.read_text())["rows"]
-  except (OSError, ValueError, KeyError):
-    old = []
-  keys = {row_key(r) for r in rows}
-  return [r for r in old if row_key(r) not in keys] + rows
 
 
 def _before_training(r: dict) -> str:
@@ -167,14 +151,11 @@ def table(rows) -> str:
            "containers vs views PSNR | leakage: test views / clean teacher / near key |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
   for r in rows:
-    s, t, v, h, k = (r["student_vs_ground_truth"], r["teacher_vs_ground_truth"], r["student_vs_teacher"],
-                     r["hidden"], r["leakage"])
+    s, t, v, h = r["student_vs_ground_truth"], r["teacher_vs_ground_truth"], r["student_vs_teacher"], r["hidden"]
     lines.append(f"| {r.get('scene', 'lego')} | {r['method']} | {r.get('row', '')} | {r.get('iterations', '')} | "
                  f"{r['wall_time_s'] / 60:.1f} | {s['psnr']:.2f} / {s['ssim']:.4f} / {s['lpips']:.4f} | "
                  f"{t['psnr']:.2f} | {v['psnr']:.2f} | {h['psnr']:.2f} / {h['ssim']:.4f} | {_before_training(r)} | "
-                 f"{k.get('max_ssim_student_test_views', float('nan')):.3f} / "
-                 f"{k.get('ssim_teacher_check_view', float('nan')):.3f} / "
-                 f"{k.get('max_ssim_near_check', float('nan')):.3f} |")
+                 f"{results_io.leakage_cells(r['leakage'])} |")
   own = [r for r in rows if r.get("test_views_hidden")]
   if own:
     lines += ["", "Each baseline's own protocol (the image in every view): hidden PSNR / SSIM over the test views", "",

@@ -1,6 +1,6 @@
 """ConcealGS benchmark on lego (200x200; or beer at 1/4, --scenes) with the teacher of `make bench-train`,
-hidden image astronaut at 64x64: the paper's method, its ablations (paper Table 3), the released code's choices and the leakage
-control, at one or more decoder widths.
+hidden image astronaut at 64x64: the paper's method, its ablations (paper Table 3), the released code's
+choices and the leakage control, at one or more decoder widths.
 
   make bench-conceal                                            # every row, 10k steps, widths 16 and 64
   make bench-conceal BENCH_ARGS="--rows=full,ours --widths=16"
@@ -18,14 +18,12 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
-import platform
-
-import jax
 
 from conceal_jax.conceal import conceal
 from conceal_jax.configs import conceal_ours
 from conceal_jax.core import fileio
 from conceal_jax.gs import evaluate
+from experiments import results_io
 from experiments.bench_train import scene_config
 
 # A row is a dict of conceal.* overrides or a function that edits the config.
@@ -108,15 +106,12 @@ def run(scene, rows, widths, iterations, eval_views, workdir: pathlib.Path, out:
           continue
         config = run_config(scene, teacher, row, width, iterations, eval_views)
         run_dir.mkdir(parents=True, exist_ok=True)
-        fileio.write_json(run_dir / "config.json", config.to_dict())  # as the command line would (bench-robust reads it)
+        # as the command line would write it (bench-robust reads it)
+        fileio.write_json(run_dir / "config.json", config.to_dict())
         result = conceal.conceal_and_evaluate(config, str(run_dir))
       results.append(summary_row(scene, row, width, result))
       print(json.dumps({k: v for k, v in results[-1].items() if k not in ("curve", "near_check")}))
-      merged = merged_rows(out / "conceal_bench.json", results)
-      fileio.write_json(out / "conceal_bench.json", dict(device=str(jax.devices()[0]), cpu=platform.processor(),
-                                                         targets=TARGETS, rows=merged))
-      fileio.write_text(out / "conceal_bench.md", table(merged))
-      plot(merged, out / "conceal_bench.png")
+      results_io.write_results(out, "conceal_bench", results, row_key, table, plot, targets=TARGETS)
   return results
 
 
@@ -124,28 +119,18 @@ def row_key(r: dict) -> tuple:
   return r.get("scene", "lego"), r.get("row"), r.get("decoder_width")
 
 
-def merged_rows(path: pathlib.Path, rows: list[dict]) -> list[dict]:
-  """`rows` plus the rows of other (scene, row, width) already in `path`."""
-  try:
-    old = json.loads(path.read_text())["rows"]
-  except (OSError, ValueError, KeyError):
-    old = []
-  keys = {row_key(r) for r in rows}
-  return [r for r in old if row_key(r) not in keys and "curve" in r] + rows
-
-
 def table(rows) -> str:
-  lines = ["| scene | row | width | steps | wall time (min) | median step (ms) | student PSNR / SSIM / LPIPS | teacher PSNR | "
-           "loss (dB) | vs teacher PSNR | hidden PSNR / SSIM | leakage: test views / clean teacher / near key |",
+  lines = ["| scene | row | width | steps | wall time (min) | median step (ms) | student PSNR / SSIM / LPIPS | "
+           "teacher PSNR | loss (dB) | vs teacher PSNR | hidden PSNR / SSIM | "
+           "leakage: test views / clean teacher / near key |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
   for r in rows:
-    s, t, v, h, k = (r["student_vs_ground_truth"], r["teacher_vs_ground_truth"], r["student_vs_teacher"],
-                     r["hidden"], r["leakage"])
-    lines.append(f"| {r['scene']} | {r['row']} | {r['decoder_width']} | {r['iterations']} | {r['wall_time_s'] / 60:.1f} | "
-                 f"{1e3 * r['median_step_s']:.0f} | {s['psnr']:.2f} / {s['ssim']:.4f} / {s['lpips']:.4f} | "
-                 f"{t['psnr']:.2f} | {r['student_psnr_loss']:.2f} | {v['psnr']:.2f} | {h['psnr']:.2f} / {h['ssim']:.4f} | "
-                 f"{k['max_ssim_student_test_views']:.3f} / {k['ssim_teacher_check_view']:.3f} / "
-                 f"{k.get('max_ssim_near_check', float('nan')):.3f} |")
+    s, t, v, h = r["student_vs_ground_truth"], r["teacher_vs_ground_truth"], r["student_vs_teacher"], r["hidden"]
+    lines.append(f"| {r['scene']} | {r['row']} | {r['decoder_width']} | {r['iterations']} | "
+                 f"{r['wall_time_s'] / 60:.1f} | {1e3 * r['median_step_s']:.0f} | "
+                 f"{s['psnr']:.2f} / {s['ssim']:.4f} / {s['lpips']:.4f} | {t['psnr']:.2f} | "
+                 f"{r['student_psnr_loss']:.2f} | {v['psnr']:.2f} | {h['psnr']:.2f} / {h['ssim']:.4f} | "
+                 f"{results_io.leakage_cells(r['leakage'])} |")
   return "\n".join(lines) + "\n"
 
 

@@ -13,13 +13,12 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
-import platform
 
-import jax
 
 from conceal_jax.core import fileio
 from conceal_jax.gs import evaluate, train
 from conceal_jax.configs import beer, lego
+from experiments import results_io
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 # The benchmark scenes are named config variants (the configs' docstrings say why they differ from the recipe).
@@ -145,21 +144,7 @@ def main():
   if not rows:
     return
   out = pathlib.Path(args.out)
-  rows = merged_rows(out / "train_bench.json", rows)
-  fileio.write_json(out / "train_bench.json", dict(device=str(jax.devices()[0]), cpu=platform.processor(),
-                                                   rows=rows))
-  fileio.write_text(out / "train_bench.md", table(rows))
-  plot(rows, out / "train_bench.png")
-
-
-def merged_rows(path: pathlib.Path, rows: list[dict]) -> list[dict]:
-  """The new rows plus the rows of other scenes already in `path` (so scenes can be run one at a time)."""
-  try:
-    old = json.loads(path.read_text())["rows"]
-  except (OSError, ValueError, KeyError):
-    old = []
-  names = {row["scene"] for row in rows}
-  return [row for row in old if row.get("scene") not in names] + rows
+  results_io.write_results(out, "train_bench", rows, lambda row: row["scene"], table, plot)
 
 
 if __name__ == "__main__":

@@ -55,8 +55,9 @@ def decoder_pass_times(decoder, width: int, data: dict, settings, repeats: int) 
     return jnp.stack([losses.hidden_image_loss(out[0], hidden), losses.decoder_identity_loss(out[1:], minus_inputs)])
 
   fused = lambda d, x: jax.jacrev(both_losses, argnums=(0, 1))(d, x)
-  return {f"decoder_passes_separate_b{len(minus_inputs)}": median_ms(jax.jit(separate), decoder, check, repeats=repeats),
-          f"decoder_passes_fused_b{len(minus_inputs)}": median_ms(jax.jit(fused), decoder, check, repeats=repeats)}
+  batch = len(minus_inputs)
+  return {f"decoder_passes_separate_b{batch}": median_ms(jax.jit(separate), decoder, check, repeats=repeats),
+          f"decoder_passes_fused_b{batch}": median_ms(jax.jit(fused), decoder, check, repeats=repeats)}
 
 
 def profile(row: str, width: int, teacher: pathlib.Path, repeats: int) -> dict:

@@ -18,6 +18,7 @@ import json
 import pathlib
 
 from conceal_jax.core import fileio
+from experiments import results_io
 
 # (render PSNR, SSIM, LPIPS, hidden PSNR, hidden SSIM); None where the paper has no number.
 PAPER_TABLE1 = {  # NeRF-Synthetic
@@ -118,12 +119,11 @@ def ablation_table(conceal_bench: dict) -> list[str]:
 
 def leakage_table(conceal_bench: dict) -> list[str]:
   lines = ["### Leakage (max SSIM of the decoder output to I; the paper reports none)", "",
-           "| scene | row | width | student test views | clean teacher at the key | near the key |", "|---|---|---|---|---|---|"]
+           "| scene | row | width | student test views | clean teacher at the key | near the key |",
+           "|---|---|---|---|---|---|"]
   for r in conceal_bench.get("rows", []):
-    k = r["leakage"]
     lines.append(f"| {r.get('scene', 'lego')} | {r['row']} | {r['decoder_width']} | "
-                 f"{k['max_ssim_student_test_views']:.3f} | {k['ssim_teacher_check_view']:.3f} | "
-                 f"{k.get('max_ssim_near_check', float('nan')):.3f} |")
+                 f"{results_io.leakage_cells(r['leakage'], ' | ')} |")
   if len(lines) == 4:
     lines.append(f"| {NOT_RUN} | | | | | |")
   return lines + [""]

@@ -52,3 +52,11 @@ def assert_finite_tree(tree, what: str = "value"):
     if leaf is None:
       continue
     assert np.all(np.isfinite(np.asarray(leaf))), f"non-finite {what} at {jax.tree_util.keystr(path)}"
+
+
+def set_field(config, field: str, value) -> None:
+  """config.<field> = value for a dotted field such as 'conceal.lr.means_steps'."""
+  *sections, key = field.split(".")
+  for name in sections:
+    config = config[name]
+  config[key] = value

@@ -20,6 +20,7 @@ from conceal_jax.configs import demo
 from conceal_jax.core import fileio
 from conceal_jax.data import datasets
 from experiments import bench_baselines, reproduce
+from tests.helpers import set_field
 from tests.test_conceal import tiny  # noqa: F401  (the 32x32 demo scene and random teacher)
 
 
@@ -282,11 +283,7 @@ def test_deepstega_job_trains_saves_and_reuses_its_networks(deepstega_run):
     ("conceal.lr.means_steps", -1, "means_steps")])
 def test_bad_baseline_config_is_named_before_anything_is_written(tiny, tmp_path, field, value, message):
   config = tiny_config(tiny, "deepstega")
-  *sections, key = field.split(".")
-  section = config
-  for name in sections:
-    section = section[name]
-  section[key] = value
+  set_field(config, field, value)
   with pytest.raises(ValueError, match=message):
     main_lib.run(config, str(tmp_path / "out"))
   assert not (tmp_path / "out").exists()

@@ -13,6 +13,7 @@ from conceal_jax import main as main_lib
 from conceal_jax.data import ply
 from conceal_jax.gs import scene_gen
 from conceal_jax.configs import default
+from tests.helpers import set_field
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
@@ -81,11 +82,7 @@ def test_each_mode_validates_before_writing_anything(tmp_path, mode, field, valu
   """main.run checks the whole config for the mode first: a bad value leaves the workdir untouched."""
   config = default.get_config()
   config.mode = mode
-  *sections, key = field.split(".")
-  section = config
-  for name in sections:
-    section = section[name]
-  section[key] = value
+  set_field(config, field, value)
   with pytest.raises(ValueError, match=message):
     main_lib.run(config, str(tmp_path / "out"))
   assert not (tmp_path / "out").exists()

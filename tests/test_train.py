@@ -85,6 +85,10 @@ def test_train_on_a_given_scene(tiny_scene, tmp_path):
       [h["psnr"] for h in trained["history"] if "psnr" in h][0]
   views = json.loads((tmp_path / "given" / "metrics.json").read_text())["views"]
   assert [v["name"] for v in views] == ["given_view"]
+  unscored = train.train_and_evaluate(config, str(tmp_path / "unscored"), scene=given, score=False)
+  assert "test" not in unscored and not (tmp_path / "unscored" / "metrics.json").exists()
+  scene_file = lambda name: (tmp_path / name / "point_cloud.ply").read_bytes()
+  assert scene_file("unscored") == scene_file("given")
 
 
 @pytest.mark.parametrize("field,value,message", [

@@ -203,7 +203,7 @@ def train_on_containers(config: ml_collections.ConfigDict, workdir: str, max_ste
   containers, reveal_fn, method_report = CONTAINERS[s.method](config, scene, secret, workdir)
   train_dir = os.path.join(workdir, TRAIN_DIR)
   trained = train.train_and_evaluate(training_config(config, teacher.sh_degree), train_dir, max_steps,
-                                     scene=containers_lib.container_scene(scene, containers))
+                                     scene=containers_lib.container_scene(scene, containers), score=False)
   if "stopped_at" in trained:
     return trained
   student = os.path.join(train_dir, evaluate.SCENE_FILE)

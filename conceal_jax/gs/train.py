@@ -259,7 +259,7 @@ def density_control(state: TrainState, iteration: int, schedule: DensifySchedule
 
 
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_steps: int | None = None,
-                       scene: datasets.SceneData | None = None) -> dict:
+                       scene: datasets.SceneData | None = None, score: bool = True) -> dict:
   """Trains on config.data, checkpointing into workdir/checkpoints (resumed if present), then writes
   point_cloud.ply, train.json, and the test metrics (metrics.json, test_renders/).
 
@@ -267,6 +267,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   scene: train on this scene instead of loading config.data (None), e.g. a baseline's containers: the
     training views with a hidden image in them (baselines.containers.container_scene). Its test split is
     the one scored. A resumed run must be given the same scene.
+  score: False leaves out the test metrics (and `test` in the result), for a caller that scores the
+    scene itself (the baselines, through conceal.evaluate_concealment).
   """
   validate(config)
   t = settings.from_section(TrainSettings, config.train)
@@ -331,6 +333,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
                  pair_capacity=steps.capacity, capacity_reruns=steps.reruns, capacity_shrinks=steps.shrinks,
                  history=result.history)
   fileio.write_json(os.path.join(workdir, TRAIN_FILE), summary)
+  if not score:
+    return summary
   scored = evaluate.evaluate_scene(jax.tree.map(jnp.asarray, gaussians), scene,
                                    evaluate.eval_options(config, scene.background), workdir,
                                    config.eval.lpips_net, config.eval.max_views)

@@ -1,0 +1,43 @@
+"""The benchmarks' result files: rows merged into <out>/<name>.json, rewritten with their table and plot,
+so a benchmark can run one scene or row at a time and a stopped benchmark keeps what it finished."""
+from __future__ import annotations
+
+import json
+import pathlib
+import platform
+from typing import Callable
+
+import jax
+
+from conceal_jax.core import fileio
+
+
+def merged_rows(path: pathlib.Path, rows: list[dict], key: Callable[[dict], tuple]) -> list[dict]:
+  """`rows` plus the rows already in `path` whose key(row) none of `rows` has."""
+  try:
+    old = json.loads(path.read_text())["rows"]
+  except (OSError, ValueError, KeyError):
+    old = []
+  keys = {key(r) for r in rows}
+  return [r for r in old if key(r) not in keys] + rows
+
+
+def write_results(out: pathlib.Path, name: str, rows: list[dict], key: Callable[[dict], tuple],
+                  table: Callable[[list[dict]], str], plot: Callable[[list[dict], pathlib.Path], None],
+                  **header) -> list[dict]:
+  """Merges `rows` into <out>/<name>.json (with the device, the CPU and `header`), rewrites <name>.md
+  and <name>.png from all rows; returns them."""
+  merged = merged_rows(out / f"{name}.json", rows, key)
+  fileio.write_json(out / f"{name}.json", dict(device=str(jax.devices()[0]), cpu=platform.processor(), **header,
+                                               rows=merged))
+  fileio.write_text(out / f"{name}.md", table(merged))
+  plot(merged, out / f"{name}.png")
+  return merged
+
+
+LEAKAGE_KEYS = ("max_ssim_student_test_views", "ssim_teacher_check_view", "max_ssim_near_check")
+
+
+def leakage_cells(leakage: dict, sep: str = " / ") -> str:
+  """A metrics.json `leakage` dict as 'test views / clean teacher / near key' (nan where a figure is missing)."""
+  return sep.join(f"{leakage.get(key, float('nan')):.3f}" for key in LEAKAGE_KEYS)
