@@ -2,6 +2,7 @@
 
   make profile-conceal                                   # decoder widths 16 and 64
   make profile-conceal BENCH_ARGS="--widths=16 --repeats=9 --row=full"
+  make profile-conceal BENCH_ARGS="--widths=16 --key-at-decoder-size=0,1"   # the key at 200x200 and at 64x64
 
 With the settings of a bench-conceal row (default ours), for each decoder width, times (median of
 --repeats, each part jitted on its own): the student's render of a normal view with L_kd and its
@@ -60,13 +61,15 @@ def decoder_pass_times(decoder, width: int, data: dict, settings, repeats: int) 
           f"decoder_passes_fused_b{batch}": median_ms(jax.jit(fused), decoder, check, repeats=repeats)}
 
 
-def profile(row: str, width: int, teacher: pathlib.Path, repeats: int) -> dict:
+def profile(row: str, width: int, teacher: pathlib.Path, repeats: int, key_at_decoder_size: bool) -> dict:
   config = run_config("lego", teacher, row, width, 0, 0)
   c = config.conceal
+  c.key_at_decoder_size = key_at_decoder_size
   settings = conceal.settings_from_config(config)
   gaussians = jax.tree.map(jnp.asarray, ply.load_ply(c.teacher))
   scene = evaluate.load_scene_data(config)
-  check_camera, key_info = key_lib.check_camera(scene.train_cameras, c.key_kind, c.key_index, c.key_seed)
+  check_pose, _ = key_lib.check_camera(scene.train_cameras, c.key_kind, c.key_index, c.key_seed)
+  check_camera = conceal.key_camera(check_pose, key_at_decoder_size, settings.hidden_size)
   options = evaluate.render_options(config, scene.background)
   needed = max(int(render_lib.render(gaussians, cam, options).num_pairs)
                for cam in (check_camera, scene.train_cameras[0]))
@@ -117,7 +120,7 @@ def profile(row: str, width: int, teacher: pathlib.Path, repeats: int) -> dict:
     jax.block_until_ready(stats)
     step_times.append(time.perf_counter() - start)
   times["conceal_step"] = 1e3 * float(np.median(step_times))
-  return dict(row=row, decoder_width=width, num_gaussians=int(gaussians.num), pair_capacity=options.pair_capacity,
+  return dict(row=row, key_at_decoder_size=key_at_decoder_size, decoder_width=width, num_gaussians=int(gaussians.num), pair_capacity=options.pair_capacity,
               tile_size=options.tile_size, image_size=[camera.width, camera.height],
               hidden_size=settings.hidden_size, settings=dataclasses.asdict(settings), repeats=repeats,
               median_ms=times)
@@ -130,16 +133,19 @@ def main():
   parser.add_argument("--widths", default="16,64")
   parser.add_argument("--repeats", type=int, default=7)
   parser.add_argument("--row", default="ours", choices=sorted(ROWS), help="a bench-conceal row's settings")
+  parser.add_argument("--key-at-decoder-size", default="0",
+                      help="comma-separated 0/1: profile with the key rendered at the decoder size, or not")
   args = parser.parse_args()
   teacher = pathlib.Path(args.workdir) / "lego" / "teacher" / "point_cloud.ply"
   if not teacher.is_file():
     raise SystemExit(f"no teacher at {teacher}: run make bench-train first")
   rows = []
   for width in (int(w) for w in args.widths.split(",") if w):
-    rows.append(profile(args.row, width, teacher, args.repeats))
-    print(f"decoder width {width}:")
-    for name, ms in rows[-1]["median_ms"].items():
-      print(f"  {name:28s} {ms:8.1f} ms")
+    for small_key in (bool(int(k)) for k in args.key_at_decoder_size.split(",")):
+      rows.append(profile(args.row, width, teacher, args.repeats, small_key))
+      print(f"decoder width {width}, key at the decoder size {small_key}:")
+      for name, ms in rows[-1]["median_ms"].items():
+        print(f"  {name:28s} {ms:8.1f} ms")
   fileio.write_json(pathlib.Path(args.out) / "conceal_step_profile.json", dict(device=str(jax.devices()[0]),
                                                                                 rows=rows))
 

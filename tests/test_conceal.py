@@ -221,6 +221,36 @@ def test_ablations_and_variants_run(tiny, tmp_path, overrides):
   assert (tmp_path / "decoder.msgpack").exists() == overrides.get("use_decoder", True)
 
 
+@pytest.mark.parametrize("variant", ["paper", "released"])
+def test_key_at_decoder_size_renders_the_key_at_the_decoder_input(tiny, tmp_path, variant):
+  config = tiny_config(tiny, iterations=3, key_at_decoder_size=True, variant=variant)
+  metrics = conceal.conceal_and_evaluate(config, str(tmp_path / "conceal"))["metrics"]
+  camera, info = key.load_key(str(tmp_path / "conceal" / "key.json"))
+  assert (camera.width, camera.height) == (16, 16) == (info["hidden_size"],) * 2
+  scene_camera = conceal.evaluate.load_scene_data(config).train_cameras[-2]
+  np.testing.assert_allclose(camera.fx / 16, scene_camera.fx / scene_camera.width, rtol=1e-6)
+  np.testing.assert_allclose(np.asarray(camera.world_to_camera), np.asarray(scene_camera.world_to_camera))
+  reveal_config = demo.get_config()
+  reveal_config.mode = "reveal"
+  reveal_config.reveal.ply = str(tmp_path / "conceal" / "student.ply")
+  reveal_config.reveal.key = str(tmp_path / "conceal" / "key.json")
+  reveal_config.reveal.decoder, reveal_config.reveal.hidden = str(tmp_path / "conceal" / "decoder.msgpack"), "astronaut"
+  result = main_lib.run(reveal_config, str(tmp_path / "reveal"))
+  np.testing.assert_allclose(result["psnr"], metrics["hidden"]["psnr"], rtol=1e-4)
+
+
+def test_resized_camera_keeps_the_field_of_view():
+  camera = Camera.from_intrinsics(look_at([1.0, -3.0, 1.5], [0.0, 0.0, 0.0]), 40.0, 42.0, 15.5, 12.0, 31, 24)
+  small = camera.resized(16, 8)
+  point = np.array([0.2, 0.1, -0.3, 1.0])
+  pixel = lambda cam: (lambda p: np.array([cam.fx * p[0] / p[2] + cam.cx, cam.fy * p[1] / p[2] + cam.cy]))(
+      np.asarray(cam.world_to_camera, np.float64) @ point)
+  np.testing.assert_allclose(pixel(small), pixel(camera) * [16 / 31, 8 / 24], rtol=1e-5)
+  assert (small.width, small.height) == (16, 8)
+  with pytest.raises(ValueError, match="positive"):
+    camera.resized(0, 8)
+
+
 @pytest.mark.parametrize("overrides,message", [
     (dict(teacher=""), "conceal.teacher"), (dict(teacher="/no/such.ply"), "no such file"),
     (dict(variant="mine"), "conceal.variant"), (dict(hidden="no_such_sample"), "no_such_sample"),

@@ -31,6 +31,11 @@ Leakage control, an option beyond the paper (off by default, so `variant=paper` 
                                probability decoy_fraction, so L_kd holds the student to the teacher there
                                and L_d^- keeps F the identity there. Only the exact key reveals.
 
+conceal.key_at_decoder_size (off: as the paper) renders the key directly at the decoder's size (hidden_size
+squared) with the check pose's field of view, instead of rendering it at the training resolution and resizing.
+It is a cheaper key (on lego, 200x200 -> 64x64 cuts the check render's fwd+bwd from 191 to 124 ms); key.json
+stores that camera, so the reveal renders it the same way.
+
 The number of Gaussians is fixed (no densification): the student is the teacher's set, refined. The
 objective is in objective.py, the guidance in guidance.py; this module builds the step and runs the job
 through the shared loop (core.loop). With conceal.eval_every, the history records the hidden image's
@@ -57,6 +62,7 @@ from conceal_jax.data import ply
 from conceal_jax.gs import capacity, evaluate, metrics, optimizer
 from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat import render as render_lib
+from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.render import RenderOptions, render
 
 STUDENT_FILE = "student.ply"
@@ -187,6 +193,13 @@ def build_data(scene, teacher, options: RenderOptions, check_camera, check_image
               teacher_check_small=reveal.resize_for_decoder(teacher_check, size), hidden=jnp.asarray(hidden))
 
 
+def key_camera(check_pose: Camera, at_decoder_size: bool, size: int) -> Camera:
+  """The camera the key renders with: the check pose at its own resolution (the paper: the render is then
+  resized for the decoder), or with `at_decoder_size` (conceal.key_at_decoder_size) the same view rendered
+  directly at size x size, the decoder's input, so that the check render costs fewer splat-tile pairs."""
+  return check_pose.resized(size, size) if at_decoder_size else check_pose
+
+
 def normal_view(rng: np.random.Generator, num_views: int, num_decoys: int, decoy_fraction: float) -> int:
   """A step's normal view: a decoy (index num_views + k) with probability decoy_fraction, else a training
   view, each uniformly."""
@@ -204,13 +217,18 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   teacher = ply.load_ply(c.teacher)
   hidden = hidden_lib.load_hidden_image(c.hidden, settings.hidden_size)
   scene = evaluate.load_scene_data(config)
-  check_camera, key_info = key_lib.check_camera(scene.train_cameras, c.key_kind, c.key_index, c.key_seed)
+  check_pose, key_info = key_lib.check_camera(scene.train_cameras, c.key_kind, c.key_index, c.key_seed)
+  check_camera = key_camera(check_pose, c.key_at_decoder_size, settings.hidden_size)
   # With a training camera the check view has a ground-truth image; an orbit key has none, so the
   # released variant's extra L1 uses the teacher's render there.
   options = evaluate.render_options(config, scene.background)
-  check_image = (jnp.asarray(scene.train_images[key_info["index"]]) if c.key_kind == "train_index"
-                 else render(teacher, check_camera, options).rgb)
-  decoys = key_lib.decoy_cameras(check_camera, scene.scene_extent(), c.decoy_views, tuple(c.decoy_translation),
+  if c.key_kind == "train_index":
+    image = jnp.asarray(scene.train_images[key_info["index"]])
+    check_image = reveal.resize_for_decoder(image, settings.hidden_size) if c.key_at_decoder_size else image
+  else:
+    check_image = render(teacher, check_camera, options).rgb
+  # Decoys are what a viewer near the key sees, so they keep the training views' resolution.
+  decoys = key_lib.decoy_cameras(check_pose, scene.scene_extent(), c.decoy_views, tuple(c.decoy_translation),
                                  tuple(c.decoy_rotation_deg), c.key_seed)
   data = build_data(scene, teacher, options, check_camera, check_image, hidden, settings.hidden_size, decoys)
 

@@ -104,6 +104,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.conceal.key_kind = "train_index"  # 'train_index' or 'orbit' (a secret pose from key_seed)
   config.conceal.key_index = -2        # second to last training camera, as released
   config.conceal.key_seed = 1
+  config.conceal.key_at_decoder_size = False  # render the key at hidden_size^2 directly (cheaper; see conceal.py)
   config.conceal.decoder_width = 64    # U-Net base channels (64 = the released decoder)
   config.conceal.decoder_vgg_init = True  # ImageNet VGG16 conv1_2..conv4_3 (width 64 only)
   config.conceal.decoder_lr = 1e-4

@@ -58,10 +58,16 @@ class Camera:
 
   def rescale(self, factor: float) -> "Camera":
     """The same camera with an image `factor` times smaller (intrinsics and size divided)."""
-    width, height = max(1, round(self.width / factor)), max(1, round(self.height / factor))
+    return self.resized(max(1, round(self.width / factor)), max(1, round(self.height / factor)))
+
+  def resized(self, width: int, height: int) -> "Camera":
+    """The same view on an image of width x height pixels: each axis' intrinsics scaled by its own factor,
+    so the image covers the same field of view (what resizing this camera's image to that size shows)."""
+    if int(width) <= 0 or int(height) <= 0:
+      raise ValueError(f"camera size must be positive, got {width}x{height}")
     sx, sy = width / self.width, height / self.height
     return Camera(self.world_to_camera, self.fx * sx, self.fy * sy, self.cx * sx, self.cy * sy,
-                  width, height)
+                  int(width), int(height))
 
 
 def fov_to_focal(fov: float, pixels: int) -> float:
