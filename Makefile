@@ -56,9 +56,13 @@ bench-baselines: $(STAMP)
 profile-conceal: $(STAMP)
 	$(PY) -m experiments.profile_conceal --out=experiments/results --workdir=workdirs/bench $(BENCH_ARGS)
 
-# attacks on the check render and on the student, check-pose tolerance (the demo run and bench-conceal's lego run)
+# attacks on the check render and on the student, check-pose tolerance (the demo run and bench-conceal's lego run);
+# then 1-4 hidden images at their own keys in one demo student (the demo teacher, trained first if missing)
+MULTIKEY_ARGS ?=
 bench-robust: $(STAMP)
 	$(PY) -m experiments.bench_robust --out=experiments/results $(BENCH_ARGS)
+	$(PY) -m experiments.bench_multikey --out=experiments/results --workdir=workdirs/bench \
+	  --teacher=$(WORKDIR)/teacher/point_cloud.ply $(MULTIKEY_ARGS)
 
 # the paper's tables beside ours (experiments/results/REPRODUCTION.md); REUSE=1 only reads the benchmarks' JSON
 REUSE ?= 0

@@ -15,6 +15,10 @@ to the run's hidden image I) of `marked` trials, the student under every mild an
 random orbit poses, the student at those poses and at every test view, and every other run's student and
 teacher seen through this run's decoder at their own keys and test views. The chosen threshold keeps the
 measured false-positive rate below 1%.
+
+`make bench-robust` then runs experiments/bench_multikey.py (several hidden images at their own keys in
+one demo student: each image's quality at its key, the cross-talk between keys, leakage; arguments in
+MULTIKEY_ARGS, since BENCH_ARGS are this script's).
 """
 from __future__ import annotations
 

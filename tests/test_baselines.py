@@ -280,7 +280,7 @@ def test_deepstega_job_trains_saves_and_reuses_its_networks(deepstega_run):
     ("baseline.deepstega.networks", "/no/such.msgpack", "baseline.deepstega.networks"),
     ("conceal.teacher", "", "conceal.teacher"), ("conceal.teacher", "/no/such.ply", "no such file"),
     ("conceal.key_kind", "random", "conceal.key_kind"), ("conceal.hidden_size", 0, "conceal.hidden_size"),
-    ("conceal.lr.means_steps", -1, "means_steps")])
+    ("conceal.lr.means_steps", -1, "means_steps"), ("conceal.extra_hidden", ("camera",), "conceal.extra_hidden")])
 def test_bad_baseline_config_is_named_before_anything_is_written(tiny, tmp_path, field, value, message):
   config = tiny_config(tiny, "deepstega")
   set_field(config, field, value)

@@ -141,6 +141,52 @@ def test_identity_on_teacher_check_adds_the_teachers_check_render():
   np.testing.assert_array_equal(objective.identity_inputs(data, 2, released), data["teacher_check_small"][None])
 
 
+def test_a_step_trains_the_key_it_is_given():
+  """With several keys, key_data puts key k's check camera, check image, hidden image and teacher check
+  render in the single-key places under jit (one trace for every k), so the objective at key k is the
+  single-key objective of that key; with one key the data is passed through untouched."""
+  student, decoder, data = _objective_inputs()
+  other = dict(check_camera=jax.tree.map(lambda x: x[0], data["cameras"]), check_image=data["images"][0],
+               hidden=1.0 - data["hidden"], teacher_check_small=data["teacher_small"][0])
+  multi = dict(data, keys={name: jax.tree.map(lambda a, b: jnp.stack([a, b]), data[name], other[name])
+                           for name in objective.KEY_FIELDS})
+  options = RenderOptions(max_per_tile=None)
+  traced = []
+  for variant in ("paper", "released"):
+    s = objective.ConcealSettings(variant=variant, decoder_width=4, hidden_size=16, identity_on_teacher_check=True)
+
+    @jax.jit
+    def at_key(k):
+      traced.append(k)
+      keyed = objective.key_data(multi, k)
+      return objective.student_objective(student, decoder, keyed, 1, s, options)[0], objective.identity_inputs(
+          keyed, 2, s)
+
+    for k, single in ((0, data), (1, dict(data, **other))):
+      total, inputs = at_key(k)
+      expected = objective.student_objective(student, decoder, single, 1, s, options)[0]
+      np.testing.assert_allclose(float(total), float(expected), rtol=1e-5)
+      np.testing.assert_array_equal(inputs, objective.identity_inputs(single, 2, s))
+  assert len(traced) == 2  # one trace per variant, none per key
+  assert objective.key_data(data, 0) is data
+
+
+def test_extra_keys_are_further_cameras_of_the_kind():
+  cameras = [Camera.from_intrinsics(look_at([3 * np.cos(a), 3 * np.sin(a), 1.0], [0, 0, 0]), 40.0, 40.0, 16.0,
+                                    16.0, 32, 32) for a in np.linspace(0, 5, 5)]
+  keys = key.key_cameras(cameras, "train_index", -2, 1, 3)
+  assert [info for _, info in keys] == [dict(kind="train_index", index=i) for i in (3, 2, 1, 0)]
+  assert keys[2][0] is cameras[1]
+  orbit = key.key_cameras(cameras, "orbit", 0, 7, 2)
+  assert [info["seed"] for _, info in orbit] == [7, 8, 9]
+  np.testing.assert_array_equal(np.asarray(orbit[2][0].world_to_camera),
+                                np.asarray(key.orbit_camera(cameras, 9).world_to_camera))
+  with pytest.raises(ValueError, match="extra_hidden.*out of range"):
+    key.key_cameras(cameras, "train_index", -4, 1, 2)
+  with pytest.raises(ValueError, match="extra_hidden: keys 0 and 2 are the same pose"):
+    key.key_cameras(cameras[:2], "train_index", 0, 1, 2)
+
+
 def test_decoys_lie_near_the_key_within_their_ranges():
   check = Camera.from_intrinsics(look_at([0.0, -4.0, 1.0], [0.0, 0.0, 0.0]), 40.0, 40.0, 16.0, 16.0, 32, 32)
   decoys = key.decoy_cameras(check, 2.0, 9, (0.05, 0.1), (3.0, 6.0), seed=1)
@@ -209,6 +255,52 @@ def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
   assert (tmp_path / "reveal" / "revealed.png").read_bytes() == (a / "revealed.png").read_bytes()
 
 
+def test_two_hidden_images_each_at_its_own_key(tiny, tmp_path):
+  """Two images, two training-camera keys, one decoder: the steps alternate keys without a retrace,
+  key.json lists the second key, metrics.json scores each image at its key and the cross-talk, leakage
+  covers both images and keys, and the reveal job reproduces the second image from the shared files."""
+  config = tiny_config(tiny, iterations=10, eval_every=10, extra_hidden=("camera",), identity_on_teacher_check=True,
+                       decoy_views=2, decoy_fraction=0.5)
+  result = conceal.conceal_and_evaluate(config, str(tmp_path))
+  assert result["traces"] == dict(conceal_step=1) and result["num_keys"] == 2 and result["num_decoys"] == 4
+  saved = json.loads((tmp_path / "key.json").read_text())
+  assert saved["index"] == 4 and len(saved["camera"]["world_to_camera"]) == 4
+  assert [(k["number"], k["kind"], k["index"], k["hidden"]) for k in saved["extra_keys"]] == [
+      (1, "train_index", 3, "camera")]
+  for name in ("hidden.png", "hidden_key1.png", "revealed.png", "revealed_key1.png"):
+    assert (tmp_path / name).is_file(), name
+
+  m = result["metrics"]
+  keys = m["keys"]
+  assert [sorted(h) for h in keys["hidden"]] == [["max_ssim_near_key", "psnr", "ssim", "ssim_teacher_at_key"]] * 2
+  assert keys["hidden"][0]["psnr"] == m["hidden"]["psnr"] and keys["hidden"][0]["ssim"] == m["hidden"]["ssim"]
+  cross = np.array(keys["cross_talk_ssim"])
+  assert cross.shape == (2, 2) and keys["max_cross_talk"] == max(cross[0, 1], cross[1, 0])
+  np.testing.assert_array_equal(np.diag(cross), [h["ssim"] for h in keys["hidden"]])
+  images = np.array(keys["images_ssim"])
+  np.testing.assert_allclose(np.diag(images), 1.0, atol=1e-4)
+  assert images[0, 1] < 0.9
+  leakage = m["leakage"]
+  assert leakage["ssim_teacher_check_view"] == max(h["ssim_teacher_at_key"] for h in keys["hidden"])
+  assert leakage["max_ssim_near_check"] == max(h["max_ssim_near_key"] for h in keys["hidden"])
+  assert [(r["kind"], r["value"]) for r in m["near_check"]] == [
+      ("translation", 0.02), ("translation", 0.05), ("rotation", 2.0), ("rotation", 5.0)]
+  curve = [h for h in result["history"] if "hidden_psnr_keys" in h]
+  np.testing.assert_allclose(curve[-1]["hidden_psnr_keys"], [h["psnr"] for h in keys["hidden"]], rtol=1e-4)
+
+  reveal_config = demo.get_config()
+  reveal_config.mode = "reveal"
+  reveal_config.reveal.ply, reveal_config.reveal.key = str(tmp_path / "student.ply"), str(tmp_path / "key.json")
+  reveal_config.reveal.decoder, reveal_config.reveal.hidden = str(tmp_path / "decoder.msgpack"), "camera"
+  reveal_config.reveal.key_number = 1
+  revealed = main_lib.run(reveal_config, str(tmp_path / "reveal"))
+  np.testing.assert_allclose(revealed["psnr"], keys["hidden"][1]["psnr"], rtol=1e-4)
+  assert (tmp_path / "reveal" / "revealed.png").read_bytes() == (tmp_path / "revealed_key1.png").read_bytes()
+  reveal_config.reveal.key_number = 2
+  with pytest.raises(ValueError, match="no key number 2"):
+    main_lib.run(reveal_config, str(tmp_path / "reveal"))
+
+
 @pytest.mark.parametrize("overrides", [dict(use_decoder=False), dict(consistency=False, guidance=False),
                                        dict(variant="released", granularity="tensor", key_kind="orbit"),
                                        dict(identity_on_student=True, identity_on_teacher_check=True, decoy_views=3,
@@ -221,12 +313,14 @@ def test_ablations_and_variants_run(tiny, tmp_path, overrides):
   assert (tmp_path / "decoder.msgpack").exists() == overrides.get("use_decoder", True)
 
 
-@pytest.mark.parametrize("variant", ["paper", "released"])
-def test_key_at_decoder_size_renders_the_key_at_the_decoder_input(tiny, tmp_path, variant):
-  config = tiny_config(tiny, iterations=3, key_at_decoder_size=True, variant=variant)
+@pytest.mark.parametrize("overrides", [dict(extra_hidden=("camera",)), dict(variant="released")])
+def test_key_at_decoder_size_renders_the_key_at_the_decoder_input(tiny, tmp_path, overrides):
+  config = tiny_config(tiny, iterations=3, key_at_decoder_size=True, **overrides)
   metrics = conceal.conceal_and_evaluate(config, str(tmp_path / "conceal"))["metrics"]
   camera, info = key.load_key(str(tmp_path / "conceal" / "key.json"))
   assert (camera.width, camera.height) == (16, 16) == (info["hidden_size"],) * 2
+  for number in range(1, 1 + len(overrides.get("extra_hidden", ()))):
+    assert key.load_key(str(tmp_path / "conceal" / "key.json"), number)[0].width == 16
   scene_camera = conceal.evaluate.load_scene_data(config).train_cameras[-2]
   np.testing.assert_allclose(camera.fx / 16, scene_camera.fx / scene_camera.width, rtol=1e-6)
   np.testing.assert_allclose(np.asarray(camera.world_to_camera), np.asarray(scene_camera.world_to_camera))
@@ -260,7 +354,11 @@ def test_resized_camera_keeps_the_field_of_view():
     (dict(decoy_views=4, decoy_fraction=0.2, variant="released"), "decoy_fraction"),
     (dict(decoy_translation=(0.2, 0.1)), "decoy_translation"), (dict(eval_views=0), "eval_views"),
     (dict(identity_on_student=True, consistency=False), "identity_on_student"),
-    (dict(identity_on_teacher_check=True, use_decoder=False), "identity_on_teacher_check")])
+    (dict(identity_on_teacher_check=True, use_decoder=False), "identity_on_teacher_check"),
+    (dict(extra_hidden=("camera", "coffee", "chelsea", "moon")), "extra_hidden holds at most 3"),
+    (dict(extra_hidden=("camera",), use_decoder=False), "extra_hidden needs a decoder"),
+    (dict(extra_hidden=("",)), "extra_hidden must be"), (dict(extra_hidden=("no_such_sample",)), "no_such_sample"),
+    (dict(extra_hidden=("camera", "coffee"), key_index=-5), "extra_hidden.*out of range")])
 def test_bad_conceal_config_is_named(tiny, tmp_path, overrides, message):
   with pytest.raises((ValueError, OSError), match=message):
     conceal.conceal_and_evaluate(tiny_config(tiny, **overrides), str(tmp_path))

@@ -115,6 +115,8 @@ def validate(config: ml_collections.ConfigDict) -> None:
   if c.key_kind not in key_lib.KEY_KINDS:
     raise ValueError(f"conceal.key_kind must be one of {key_lib.KEY_KINDS}, got {c.key_kind!r}")
   settings_lib.check_count("conceal.hidden_size", c.hidden_size)
+  if c.extra_hidden:
+    raise ValueError("conceal.extra_hidden: the baselines hide one image (conceal.hidden); leave it empty")
   if not c.teacher:
     raise ValueError("conceal.teacher (the teacher's .ply) is required")
   if not os.path.isfile(c.teacher):

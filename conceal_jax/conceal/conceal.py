@@ -36,6 +36,14 @@ squared) with the check pose's field of view, instead of rendering it at the tra
 It is a cheaper key (on lego, 200x200 -> 64x64 cuts the check render's fwd+bwd from 191 to 124 ms); key.json
 stores that camera, so the reveal renders it the same way.
 
+Several hidden images, an option beyond the paper: conceal.extra_hidden holds up to MAX_EXTRA_HIDDEN
+more images, each at its own key of key_kind's kind (key.key_cameras: the next training cameras down
+from key_index, or the orbit poses of the next seeds after key_seed), all read by the one decoder. Step t
+trains key (t - 1) mod K (round-robin: each key gets the same number of L_d^+ steps, and a step still
+renders one check view, so K keys cost no more per step than one); with identity_on_teacher_check, L_d^-
+sees the teacher's render at that same key, and decoy_views are made around every key. key.json lists the
+extra keys, metrics.json scores each image at its key and the cross-talk (see evaluate_concealment).
+
 The number of Gaussians is fixed (no densification): the student is the teacher's set, refined. The
 objective is in objective.py, the guidance in guidance.py; this module builds the step and runs the job
 through the shared loop (core.loop). With conceal.eval_every, the history records the hidden image's
@@ -55,7 +63,7 @@ import optax
 from flax import struct
 
 from conceal_jax.conceal import guidance, hidden as hidden_lib, key as key_lib, reveal, unet
-from conceal_jax.conceal.objective import (ConcealSettings, decoder_identity_objective, identity_inputs,
+from conceal_jax.conceal.objective import (ConcealSettings, decoder_identity_objective, identity_inputs, key_data,
                                            student_objective)
 from conceal_jax.core import fileio, loop, settings as settings_lib
 from conceal_jax.data import ply
@@ -74,6 +82,8 @@ SUMMARY_FILE = "conceal.json"
 NEAR_TRANSLATIONS = (0.02, 0.05)
 NEAR_ROTATIONS_DEG = (2.0, 5.0)
 NEAR_DIRECTIONS = 4
+# conceal.extra_hidden: 2-4 hidden images in all
+MAX_EXTRA_HIDDEN = 3
 
 
 @struct.dataclass
@@ -118,12 +128,22 @@ def validate(config: ml_collections.ConfigDict) -> None:
     raise ValueError("conceal.teacher (the teacher's .ply) is required")
   if not os.path.isfile(c.teacher):
     raise ValueError(f"conceal.teacher: no such file {c.teacher}")
+  extra = c.extra_hidden
+  if isinstance(extra, str) or not all(isinstance(source, str) and source for source in extra):
+    raise ValueError(f"conceal.extra_hidden must be a tuple of image paths or sample names, got {extra!r}")
+  if len(extra) > MAX_EXTRA_HIDDEN:
+    raise ValueError(f"conceal.extra_hidden holds at most {MAX_EXTRA_HIDDEN} images ({MAX_EXTRA_HIDDEN + 1} "
+                     f"hidden images in all), got {len(extra)}")
+  if extra and not c.use_decoder:
+    raise ValueError("conceal.extra_hidden needs a decoder (conceal.use_decoder): one decoder reads every key's "
+                     "image")
 
 
 def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student_tx, decoder_tx,
                       traces: loop.TraceCounter | None = None):
-  """Builds step(state, data, view, normal_view) -> (state, stats), jitted with the state donated. `options`
-  carry a pair capacity; a step whose renders overflowed it returns the state unchanged (gs.capacity).
+  """Builds step(state, data, view, normal_view, key) -> (state, stats), jitted with the state donated; `key`
+  picks the check view (and its hidden image) of a run with several (objective.key_data; unused with one).
+  `options` carry a pair capacity; a step whose renders overflowed it returns the state unchanged (gs.capacity).
 
   The student and the decoder share one backward pass of `student_objective` (its decoder half is
   lambda+ grad L_d^+); `decoder_identity_objective` has its own. The decoder update is the guided one
@@ -131,7 +151,8 @@ def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student
   """
   s = settings
 
-  def step(state: ConcealState, data, view, normal_view):
+  def step(state: ConcealState, data, view, normal_view, key=0):
+    data = key_data(data, key)
     (total, aux), (student_grad, plus_grad) = jax.value_and_grad(student_objective, argnums=(0, 1), has_aux=True)(
         state.student, state.decoder, data, view, s, options)
     updates, student_opt = student_tx.update(student_grad, state.student_opt, state.student)
@@ -178,19 +199,29 @@ def initial_decoder(config: ml_collections.ConfigDict, settings: ConcealSettings
 
 
 def build_data(scene, teacher, options: RenderOptions, check_camera, check_image, hidden: np.ndarray,
-               size: int, decoys=()) -> dict:
+               size: int, decoys=(), extra_keys=()) -> dict:
   """The device-resident inputs of the step; the teacher renders are computed here once, on the device.
 
   Normal views are the V training cameras followed by the D `decoys` (cameras, see key.decoy_cameras):
   cameras and teacher renders [V + D, ...], ground-truth images [V, H, W, 3] of the training views only.
+  `extra_keys`: (camera, check image, hidden image [S, S, 3]) of further keys (conceal.extra_hidden); with
+  any, data["keys"] stacks objective.KEY_FIELDS over all K keys, this check view first (check_camera [K],
+  check_image [K, H, W, 3] or None, hidden and teacher_check_small [K, S, S, 3]).
   """
   normal_cameras = list(scene.train_cameras) + list(decoys)
   teacher_renders = evaluate.render_images(teacher, normal_cameras, options)
-  teacher_check = render(teacher, check_camera, options).rgb
-  return dict(images=jnp.asarray(np.stack(scene.train_images)), teacher=teacher_renders,
+  keys = [(check_camera, check_image, hidden)] + list(extra_keys)
+  teacher_checks = [reveal.resize_for_decoder(render(teacher, camera, options).rgb, size) for camera, _, _ in keys]
+  data = dict(images=jnp.asarray(np.stack(scene.train_images)), teacher=teacher_renders,
               teacher_small=reveal.resize_for_decoder(teacher_renders, size),
               cameras=camera_lib.stack(normal_cameras), check_camera=check_camera, check_image=check_image,
-              teacher_check_small=reveal.resize_for_decoder(teacher_check, size), hidden=jnp.asarray(hidden))
+              teacher_check_small=teacher_checks[0], hidden=jnp.asarray(hidden))
+  if extra_keys:
+    data["keys"] = dict(check_camera=camera_lib.stack([camera for camera, _, _ in keys]),
+                        check_image=None if check_image is None else jnp.stack([image for _, image, _ in keys]),
+                        hidden=jnp.stack([jnp.asarray(image) for _, _, image in keys]),
+                        teacher_check_small=jnp.stack(teacher_checks))
+  return data
 
 
 def key_camera(check_pose: Camera, at_decoder_size: bool, size: int) -> Camera:
@@ -210,27 +241,37 @@ def normal_view(rng: np.random.Generator, num_views: int, num_decoys: int, decoy
 
 def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_steps: int | None = None) -> dict:
   """Trains student + decoder (checkpointed, resumable), then writes student.ply, decoder.msgpack,
-  key.json, hidden.png, revealed.png, conceal.json and metrics.json into workdir."""
+  key.json, hidden.png, revealed.png, conceal.json and metrics.json into workdir; with extra hidden images
+  also hidden_key<k>.png and revealed_key<k>.png for the k-th extra key (k = 1 .. K-1)."""
   validate(config)
   c = config.conceal
   settings = settings_from_config(config)
   teacher = ply.load_ply(c.teacher)
-  hidden = hidden_lib.load_hidden_image(c.hidden, settings.hidden_size)
+  sources = [c.hidden] + list(c.extra_hidden)
+  hiddens = [hidden_lib.load_hidden_image(source, settings.hidden_size) for source in sources]
   scene = evaluate.load_scene_data(config)
-  check_pose, key_info = key_lib.check_camera(scene.train_cameras, c.key_kind, c.key_index, c.key_seed)
-  check_camera = key_camera(check_pose, c.key_at_decoder_size, settings.hidden_size)
-  # With a training camera the check view has a ground-truth image; an orbit key has none, so the
-  # released variant's extra L1 uses the teacher's render there.
+  poses = key_lib.key_cameras(scene.train_cameras, c.key_kind, c.key_index, c.key_seed, len(c.extra_hidden))
+  keys = [(key_camera(pose, c.key_at_decoder_size, settings.hidden_size), info) for pose, info in poses]
+  check_camera, key_info = keys[0]
   options = evaluate.render_options(config, scene.background)
-  if c.key_kind == "train_index":
-    image = jnp.asarray(scene.train_images[key_info["index"]])
-    check_image = reveal.resize_for_decoder(image, settings.hidden_size) if c.key_at_decoder_size else image
-  else:
-    check_image = render(teacher, check_camera, options).rgb
-  # Decoys are what a viewer near the key sees, so they keep the training views' resolution.
-  decoys = key_lib.decoy_cameras(check_pose, scene.scene_extent(), c.decoy_views, tuple(c.decoy_translation),
-                                 tuple(c.decoy_rotation_deg), c.key_seed)
-  data = build_data(scene, teacher, options, check_camera, check_image, hidden, settings.hidden_size, decoys)
+
+  def key_image(camera, info):
+    """What the released variant's extra L1 holds the check render to: the training image at a training
+    camera key, the teacher's render at an orbit key (which has no image)."""
+    if c.key_kind != "train_index":
+      return render(teacher, camera, options).rgb
+    image = jnp.asarray(scene.train_images[info["index"]])
+    return reveal.resize_for_decoder(image, settings.hidden_size) if c.key_at_decoder_size else image
+
+  check_images = [key_image(camera, info) for camera, info in keys]
+  # Decoys surround every key, each key's from its own seed (the first key's is key_seed, as with one image),
+  # at the training views' resolution: what a viewer near the key sees.
+  decoys = [decoy for k, (pose, _) in enumerate(poses)
+            for decoy in key_lib.decoy_cameras(pose, scene.scene_extent(), c.decoy_views, tuple(c.decoy_translation),
+                                               tuple(c.decoy_rotation_deg), c.key_seed + k)]
+  extra_keys = [(camera, image, hidden) for (camera, _), image, hidden in zip(keys[1:], check_images[1:], hiddens[1:])]
+  data = build_data(scene, teacher, options, check_camera, check_images[0], hiddens[0], settings.hidden_size, decoys,
+                    extra_keys)
 
   student_tx = optimizer.gaussian_optimizer(c.lr, scene.scene_extent(), c.iterations)
   decoder_tx = optax.adam(c.decoder_lr, eps=optimizer.ADAM_EPS)
@@ -238,7 +279,7 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   steps = capacity.GrowingSteps(lambda _, opts: make_conceal_step(settings, opts, student_tx, decoder_tx, traces),
                                 options)
   steps.grow(render_lib.initial_capacity(teacher.num, options))
-  num_views = len(scene.train_cameras)
+  num_views, num_keys = len(scene.train_cameras), len(keys)
 
   def fresh():
     student = jax.tree.map(lambda x: jnp.array(x, copy=True), teacher)  # the step donates the student's buffers
@@ -247,7 +288,7 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   def step(state, iteration):
     rng = np.random.default_rng([config.seed, iteration])
     views = [normal_view(rng, num_views, len(decoys), settings.decoy_fraction) for _ in range(2)]
-    return steps(None, state, data, *views)
+    return steps(None, state, data, *views, (iteration - 1) % num_keys)
 
   eval_cameras, eval_targets, _ = evaluate.held_out_views(scene, c.eval_views)
 
@@ -255,10 +296,15 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
     if not c.eval_every or iteration % c.eval_every:
       return None
     decoder = state.decoder if settings.use_decoder else None
-    revealed = reveal.reveal_image(state.student, check_camera, options, decoder, settings.decoder_width,
-                                   settings.hidden_size)
-    return dict(hidden_psnr=float(metrics.psnr(revealed, hidden)), hidden_ssim=float(metrics.ssim(revealed, hidden)),
-                test_psnr=evaluate.views_psnr(state.student, eval_cameras, eval_targets, options))
+    revealed = [reveal.reveal_image(state.student, camera, options, decoder, settings.decoder_width,
+                                    settings.hidden_size) for camera, _ in keys]
+    record = dict(hidden_psnr=float(metrics.psnr(revealed[0], hiddens[0])),
+                  hidden_ssim=float(metrics.ssim(revealed[0], hiddens[0])),
+                  test_psnr=evaluate.views_psnr(state.student, eval_cameras, eval_targets, options))
+    if num_keys > 1:
+      record.update(hidden_psnr_keys=[float(metrics.psnr(r, h)) for r, h in zip(revealed, hiddens)],
+                    hidden_ssim_keys=[float(metrics.ssim(r, h)) for r, h in zip(revealed, hiddens)])
+    return record
 
   result = loop.run("conceal", loop_settings(config), workdir, init_state=fresh, restore_template=lambda _: fresh(),
                     step=step, after_window=after_window, postfix_keys=("plus",), max_steps=max_steps)
@@ -272,21 +318,26 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
     reveal.save_decoder(os.path.join(workdir, DECODER_FILE), decoder)
   key_info.update(hidden_size=settings.hidden_size, uses_decoder=settings.use_decoder,
                   decoder_width=settings.decoder_width, render_options=dataclasses.asdict(options))
-  key_lib.save_key(os.path.join(workdir, KEY_FILE), check_camera, key_info)
-  fileio.write_image(os.path.join(workdir, "hidden.png"), hidden)
+  # reveal.key_number k reveals the k-th extra image
+  key_lib.save_key(os.path.join(workdir, KEY_FILE), check_camera, key_info,
+                   [(camera, dict(info, number=k, hidden=source))
+                    for k, ((camera, info), source) in enumerate(zip(keys[1:], sources[1:]), 1)])
+  fileio.write_image(os.path.join(workdir, "hidden.png"), hiddens[0])
+  for k, image in enumerate(hiddens[1:], 1):
+    fileio.write_image(os.path.join(workdir, f"hidden_key{k}.png"), image)
   summary = dict(iterations=c.iterations, resumed_from=result.start, settings=dataclasses.asdict(settings),
-                 num_gaussians=int(teacher.num), num_decoys=len(decoys), **result.timing(), traces=dict(traces.counts),
-                 pair_capacity=steps.capacity, capacity_reruns=steps.reruns, capacity_shrinks=steps.shrinks,
-                 history=result.history)
+                 num_gaussians=int(teacher.num), num_keys=num_keys, num_decoys=len(decoys), **result.timing(),
+                 traces=dict(traces.counts), pair_capacity=steps.capacity, capacity_reruns=steps.reruns,
+                 capacity_shrinks=steps.shrinks, history=result.history)
   fileio.write_json(os.path.join(workdir, SUMMARY_FILE), summary)
   reveal_fn = reveal.decoder_reveal(decoder, settings.decoder_width, settings.hidden_size)
   scored = evaluate_concealment(config, workdir, scene, teacher, state.student, reveal_fn, check_camera, options,
-                                hidden)
+                                hiddens[0], [(camera, hidden) for (camera, _), hidden in zip(keys[1:], hiddens[1:])])
   return dict(summary, metrics=scored)
 
 
 def evaluate_concealment(config, workdir, scene, teacher, student, reveal_fn, check_camera, options: RenderOptions,
-                         hidden: np.ndarray) -> dict:
+                         hidden: np.ndarray, extra_keys=()) -> dict:
   """metrics.json: render quality of student and teacher on the test split (vs ground truth, and the
   student vs the teacher), hidden-image recovery at the check view, and leakage: the best SSIM to the
   hidden image of the decoder output over the student's test views, at the clean teacher's check view
@@ -294,36 +345,75 @@ def evaluate_concealment(config, workdir, scene, teacher, student, reveal_fn, ch
   maps renders [V, H, W, 3] to revealed images [V, S, S, 3] (reveal.decoder_reveal; baselines have their
   own). Images:
   revealed.png (student, check view), teacher_revealed.png (clean teacher, check view) and
-  normal_revealed.png (student, the test view of the highest SSIM)."""
+  normal_revealed.png (student, the test view of the highest SSIM).
+
+  `extra_keys`: (camera, hidden image [S, S, 3]) of further hidden images (conceal.extra_hidden), K keys in
+  all. With them, each leakage figure is the worst over every hidden image, and over the clean teacher at
+  every key and the poses near every key (near_check pools the K keys' poses); revealed_key<k>.png shows
+  the k-th extra key, and metrics.json gains `keys`: see `key_scores`.
+  """
   eval_opts = evaluate.eval_options(config, scene.background)
   cameras, targets, names = evaluate.held_out_views(scene, config.eval.max_views)
   student_renders = evaluate.render_images(student, cameras, eval_opts)
   teacher_renders = evaluate.render_images(teacher, cameras, eval_opts)
   evaluate.write_images(os.path.join(workdir, "test_renders"), names, student_renders)
   net = config.eval.lpips_net
-  # The key view is rendered alone, exactly as the reveal job renders it.
-  revealed = np.asarray(reveal_fn(render(student, check_camera, options).rgb[None])[0])
-  fileio.write_image(os.path.join(workdir, "revealed.png"), revealed)
-  teacher_revealed = np.asarray(reveal_fn(render(teacher, check_camera, options).rgb[None])[0])
-  fileio.write_image(os.path.join(workdir, "teacher_revealed.png"), teacher_revealed)
+  keys = [(check_camera, hidden)] + list(extra_keys)
+  hiddens = np.stack([np.asarray(image) for _, image in keys])  # [K, S, S, 3]
+  # The key views are rendered alone, exactly as the reveal job renders them.
+  revealed = [np.asarray(reveal_fn(render(student, camera, options).rgb[None])[0]) for camera, _ in keys]
+  teacher_revealed = [np.asarray(reveal_fn(render(teacher, camera, options).rgb[None])[0]) for camera, _ in keys]
+  fileio.write_image(os.path.join(workdir, "revealed.png"), revealed[0])
+  fileio.write_image(os.path.join(workdir, "teacher_revealed.png"), teacher_revealed[0])
+  for k, image in enumerate(revealed[1:], 1):
+    fileio.write_image(os.path.join(workdir, f"revealed_key{k}.png"), image)
   # Leakage is scored on the student's own test renders, as a viewer of the shared scene would see them,
   # and at poses near the key, as someone guessing it would.
   normal_revealed = reveal_fn(student_renders)
-  ssim_to_hidden = reveal.scores_to_hidden(normal_revealed, hidden)["ssim"]
-  worst = int(np.argmax(ssim_to_hidden))  # the test view whose decoder output looks most like I
+  ssim_to_hidden = reveal.scores_to_hidden(normal_revealed, hiddens)["ssim"]
+  worst = int(np.argmax(ssim_to_hidden))  # the test view whose decoder output looks most like a hidden image
   fileio.write_image(os.path.join(workdir, "normal_revealed.png"), np.asarray(normal_revealed[worst]))
-  near_check = reveal.near_key_rows(student, check_camera, options, reveal_fn, hidden, scene.scene_extent(),
-                                    NEAR_TRANSLATIONS, NEAR_ROTATIONS_DEG, NEAR_DIRECTIONS)
+  near_rows = [reveal.near_key_rows(student, camera, options, reveal_fn, hiddens, scene.scene_extent(),
+                                    NEAR_TRANSLATIONS, NEAR_ROTATIONS_DEG, NEAR_DIRECTIONS) for camera, _ in keys]
+  near_check = pooled_near_rows(near_rows)
+  teacher_ssim = [[float(metrics.ssim(image, h)) for h in hiddens] for image in teacher_revealed]
   result = dict(
       student_vs_ground_truth=evaluate.image_metrics(student_renders, targets, names, net)["mean"],
       teacher_vs_ground_truth=evaluate.image_metrics(teacher_renders, targets, names, net)["mean"],
       student_vs_teacher=evaluate.image_metrics(student_renders, teacher_renders, names, net)["mean"],
-      hidden=dict(psnr=float(metrics.psnr(revealed, hidden)), ssim=float(metrics.ssim(revealed, hidden))),
+      hidden=dict(psnr=float(metrics.psnr(revealed[0], hidden)), ssim=float(metrics.ssim(revealed[0], hidden))),
       leakage_worst_test_view=names[worst],
       leakage=dict(max_ssim_student_test_views=float(ssim_to_hidden.max()),
-                   ssim_teacher_check_view=float(metrics.ssim(teacher_revealed, hidden)),
+                   ssim_teacher_check_view=max(max(row) for row in teacher_ssim),
                    max_ssim_near_check=max(row["max_ssim"] for row in near_check)),
       near_check=near_check,
       num_test_views=len(names), lpips_net=metrics.LPIPS_NET_NAME[net], eval_render_options=repr(eval_opts))
+  if extra_keys:
+    result["keys"] = key_scores(revealed, hiddens, near_rows, teacher_ssim)
   fileio.write_json(os.path.join(workdir, evaluate.METRICS_FILE), result)
   return result
+
+
+def pooled_near_rows(rows_per_key: list[list[dict]]) -> list[dict]:
+  """reveal.near_key_rows of K keys (same poses relative to each key) as one list: per (kind, value), the
+  mean over keys of mean_ssim and mean_psnr (every key has as many directions) and the max of max_ssim."""
+  return [dict(rows[0], mean_ssim=float(np.mean([r["mean_ssim"] for r in rows])),
+               max_ssim=max(r["max_ssim"] for r in rows), mean_psnr=float(np.mean([r["mean_psnr"] for r in rows])))
+          for rows in zip(*rows_per_key)]
+
+
+def key_scores(revealed, hiddens: np.ndarray, near_rows: list[list[dict]], teacher_ssim) -> dict:
+  """metrics.json's `keys` for K keys, from the images revealed at them [K][S, S, 3], the hidden images
+  [K, S, S, 3], the near-key rows of each key and the SSIM [K][K] of the clean teacher's reveal at key i to
+  image j: `hidden` (per key: PSNR / SSIM of what key i reveals to its own image, and its leakage near the
+  key and at the clean teacher, over every image), `cross_talk_ssim` [K][K] (row i: revealed at key i,
+  column j: SSIM to image j; the diagonal is each key's own image), `max_cross_talk` (its largest
+  off-diagonal entry) and `images_ssim` [K][K] (the hidden images' SSIM to each other: the cross-talk of a
+  perfect reveal)."""
+  cross = [[float(metrics.ssim(image, h)) for h in hiddens] for image in revealed]
+  num = len(hiddens)
+  return dict(hidden=[dict(psnr=float(metrics.psnr(image, hiddens[i])), ssim=cross[i][i],
+                           max_ssim_near_key=max(row["max_ssim"] for row in near_rows[i]),
+                           ssim_teacher_at_key=max(teacher_ssim[i])) for i, image in enumerate(revealed)],
+              cross_talk_ssim=cross, max_cross_talk=max(cross[i][j] for i in range(num) for j in range(num) if i != j),
+              images_ssim=[[float(metrics.ssim(a, b)) for b in hiddens] for a in hiddens])

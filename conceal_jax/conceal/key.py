@@ -2,7 +2,8 @@
 
 Either a training camera by index (the released ConcealGS code uses the second to last) or a secret
 pose sampled from a seed on the orbit of the training cameras (a view nobody trains or tests on).
-Saved as key.json: the camera and what the reveal needs to know (hidden size, decoder width).
+Saved as key.json: the camera and what the reveal needs to know (hidden size, decoder width); a run with
+further hidden images (conceal.extra_hidden) adds their keys, of the same kind, as `extra_keys`.
 """
 from __future__ import annotations
 
@@ -108,20 +109,59 @@ def check_camera(cameras: Sequence[Camera], kind: str, index: int, seed: int) ->
   raise ValueError(f"conceal.key_kind must be one of {KEY_KINDS}, got {kind!r}")
 
 
-def save_key(path: str, camera: Camera, info: dict) -> None:
-  fileio.write_json(path, dict(info, camera=dict(
-      world_to_camera=np.asarray(camera.world_to_camera, np.float64).tolist(), fx=float(camera.fx),
-      fy=float(camera.fy), cx=float(camera.cx), cy=float(camera.cy), width=camera.width, height=camera.height)))
+def key_cameras(cameras: Sequence[Camera], kind: str, index: int, seed: int,
+                extra: int) -> list[tuple[Camera, dict]]:
+  """(camera, description) of the check view and of `extra` further keys of the same kind, one per extra
+  hidden image (conceal.extra_hidden): the k-th extra (0-based) is training camera index - 1 - k, or the
+  orbit pose of seed seed + 1 + k. Neighbouring indices suffice: the training cameras of a capture are
+  not ordered by pose (the demo scene draws them at random). ValueError naming conceal.extra_hidden if an
+  extra index is out of range or two keys are the same pose (a scene with fewer cameras than keys)."""
+  keys = [check_camera(cameras, kind, index, seed)]
+  for k in range(extra):
+    if kind == "train_index" and not -len(cameras) <= index - 1 - k < len(cameras):
+      raise ValueError(f"conceal.extra_hidden: the key of extra image {k}, training camera conceal.key_index - "
+                       f"{k + 1} = {index - 1 - k}, is out of range for {len(cameras)} training cameras")
+    keys.append(check_camera(cameras, kind, index - 1 - k, seed + 1 + k))
+  poses = [np.asarray(camera.world_to_camera) for camera, _ in keys]
+  for i in range(len(keys)):
+    for j in range(i):
+      if np.allclose(poses[i], poses[j]):
+        raise ValueError(f"conceal.extra_hidden: keys {j} and {i} are the same pose ({keys[i][1]}); each hidden "
+                         "image needs its own key")
+  return keys
 
 
-def load_key(path: str) -> tuple[Camera, dict]:
-  """(check camera, the rest of key.json); ValueError naming the file if it is missing or malformed."""
+def camera_dict(camera: Camera) -> dict:
+  """A camera as key.json stores it (plain floats)."""
+  return dict(world_to_camera=np.asarray(camera.world_to_camera, np.float64).tolist(), fx=float(camera.fx),
+              fy=float(camera.fy), cx=float(camera.cx), cy=float(camera.cy), width=camera.width, height=camera.height)
+
+
+def camera_from_dict(c: dict) -> Camera:
+  return Camera.from_intrinsics(np.asarray(c["world_to_camera"], np.float64).reshape(4, 4), c["fx"], c["fy"],
+                                c["cx"], c["cy"], int(c["width"]), int(c["height"]))
+
+
+def save_key(path: str, camera: Camera, info: dict, extra_keys: Sequence[tuple[Camera, dict]] = ()) -> None:
+  """key.json: `info` with the check `camera`; `extra_keys` (camera, description) of further hidden images
+  as the list `extra_keys`, each its description with its camera (absent without any)."""
+  extra = dict(extra_keys=[dict(more, camera=camera_dict(c)) for c, more in extra_keys]) if extra_keys else {}
+  fileio.write_json(path, dict(info, camera=camera_dict(camera), **extra))
+
+
+def load_key(path: str, number: int = 0) -> tuple[Camera, dict]:
+  """(camera of key `number`, the rest of key.json): 0 the check view, k >= 1 the k-th of its `extra_keys`.
+  ValueError naming the file if it is missing or malformed, or has no key `number`."""
   try:
     with open(path) as f:
       info = json.load(f)
     c = info.pop("camera")
-    camera = Camera.from_intrinsics(np.asarray(c["world_to_camera"], np.float64).reshape(4, 4), c["fx"], c["fy"],
-                                    c["cx"], c["cy"], int(c["width"]), int(c["height"]))
+    if number:
+      extra = info.get("extra_keys", [])
+      if not 0 < number <= len(extra):
+        raise ValueError(f"no key number {number}: it holds keys 0 to {len(extra)}")
+      c = extra[number - 1]["camera"]
+    camera = camera_from_dict(c)
   except (OSError, ValueError, KeyError, TypeError) as error:
     raise ValueError(f"cannot read key {path}: {error}") from error
   return camera, info

@@ -12,7 +12,9 @@ gradients are the two pytrees the guided step compares:
 `data` is the device-resident dict built once per run (conceal.build_data): train images [V, H, W, 3],
 cached teacher renders [V, H, W, 3] and at the decoder size [V, S, S, 3], stacked train cameras, the
 check camera, its target image, the teacher's check render at the decoder size, and the hidden image
-[S, S, 3].
+[S, S, 3]. With further hidden images (conceal.extra_hidden) it also holds those four per key, stacked
+[K, ...] under data["keys"]; a step trains one key, and `key_data` puts that key's in their place, so the
+objective below is written for one key.
 """
 from __future__ import annotations
 
@@ -77,6 +79,18 @@ class ConcealSettings:
   def identity_loss(self) -> bool:
     """Whether L_d^- trains the decoder."""
     return self.use_decoder and self.consistency
+
+
+KEY_FIELDS = ("check_camera", "check_image", "hidden", "teacher_check_small")
+
+
+def key_data(data: dict, key) -> dict:
+  """`data` with the KEY_FIELDS of key `key` (an int, traced in the step: no retrace per key) taken from
+  data["keys"] (cameras [K], check images [K, H, W, 3], hidden images and teacher check renders
+  [K, S, S, 3]); `data` itself when it holds one key, so a single-image run traces what it always did."""
+  if "keys" not in data:
+    return data
+  return dict(data, **jax.tree.map(lambda x: x[key], data["keys"]))
 
 
 def student_objective(student, decoder, data: dict, view, settings: ConcealSettings,

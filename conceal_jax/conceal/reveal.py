@@ -56,7 +56,11 @@ def reveal_image(gaussians: Gaussians, camera: Camera, options: RenderOptions, d
 
 
 def scores_to_hidden(revealed, hidden) -> dict[str, np.ndarray]:
-  """PSNR and SSIM [V] of revealed images [V, S, S, 3] to the hidden image I [S, S, 3]."""
+  """PSNR and SSIM [V] of revealed images [V, S, S, 3] to the hidden image I [S, S, 3]; given several hidden
+  images [J, S, S, 3], each view's best over them (each score on its own): leakage of any of them."""
+  if np.ndim(hidden) == 4:
+    each = [scores_to_hidden(revealed, image) for image in hidden]
+    return {name: np.max([scores[name] for scores in each], axis=0) for name in ("psnr", "ssim")}
   revealed = jnp.asarray(revealed)
   hidden = jnp.broadcast_to(jnp.asarray(hidden), revealed.shape)
   return dict(psnr=np.asarray(jax.vmap(metrics.psnr)(revealed, hidden), np.float64),
@@ -74,7 +78,7 @@ def near_key_rows(gaussians: Gaussians, check_camera: Camera, options: RenderOpt
                   extent: float, translations, rotations_deg, directions: int) -> list[dict]:
   """What `reveal_fn` (renders -> revealed images, see `decoder_reveal`) reveals at poses near the key
   (key.nearby_cameras): per (kind, value), the mean and max SSIM and the mean PSNR to I over the random
-  directions."""
+  directions (to the best of several hidden images [J, S, S, 3], see `scores_to_hidden`)."""
   poses = key_lib.nearby_cameras(check_camera, extent, translations, rotations_deg, directions)
   renders = evaluate.render_images(gaussians, [camera for _, _, camera in poses], options)
   scores = scores_to_hidden(reveal_fn(renders), hidden)
@@ -114,12 +118,14 @@ def validate(config: ml_collections.ConfigDict) -> None:
   for name in ("ply", "key"):
     if not config.reveal[name]:
       raise ValueError(f"reveal.{name} is required")
+  settings.check_count("reveal.key_number", config.reveal.key_number, minimum=0)
 
 
 def reveal_from_files(r: ml_collections.ConfigDict) -> np.ndarray:
-  """[S, S, 3] image revealed from the scene r.ply at the key r.key with the decoder r.decoder (a
-  `reveal` config section); S is the key's hidden size."""
-  camera, info = key_lib.load_key(r.key)
+  """[S, S, 3] image revealed from the scene r.ply at key number r.key_number of the key file r.key (0: its
+  check view, k: its k-th extra key) with the decoder r.decoder (a `reveal` config section); S is the key's
+  hidden size."""
+  camera, info = key_lib.load_key(r.key, r.key_number)
   if info.get("uses_decoder", True) and not r.decoder:
     raise ValueError("reveal.decoder is required: this key was made with a decoder")
   decoder = load_decoder(r.decoder) if info.get("uses_decoder", True) else None

@@ -100,6 +100,9 @@ def get_config() -> ml_collections.ConfigDict:
   config.conceal.iterations = 10_000
   config.conceal.variant = "paper"     # 'paper' or 'released'
   config.conceal.hidden = "astronaut"  # an image path or a scikit-image sample name
+  # up to 3 more hidden images, each at its own key of key_kind's kind (training cameras key_index - 1,
+  # key_index - 2, ... or orbit seeds key_seed + 1, ...), one decoder for all (see conceal/conceal.py)
+  config.conceal.extra_hidden = ()
   config.conceal.hidden_size = 64
   config.conceal.key_kind = "train_index"  # 'train_index' or 'orbit' (a secret pose from key_seed)
   config.conceal.key_index = -2        # second to last training camera, as released
@@ -178,6 +181,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.reveal.decoder = ""  # decoder.msgpack written by conceal
   config.reveal.key = ""      # key.json written by conceal
   config.reveal.hidden = ""   # optional reference hidden image (path or sample name) to score against
+  config.reveal.key_number = 0  # which key of the key file: 0 its check view, k its k-th extra_keys entry
 
   # verify mode: the reveal section's ply, decoder, key and hidden image (required here), scored and
   # decided at the threshold chosen from a calibration file of measured clean and marked scores
