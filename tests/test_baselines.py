@@ -19,7 +19,8 @@ from conceal_jax.conceal import hidden as hidden_lib
 from conceal_jax.configs import demo
 from conceal_jax.core import fileio
 from conceal_jax.data import datasets
-from experiments import bench_baselines, reproduce
+from conceal_jax.configs import conceal_ours
+from experiments import bench_baselines, bench_conceal, reproduce
 from tests.helpers import set_field
 from tests.test_conceal import tiny  # noqa: F401  (the 32x32 demo scene and random teacher)
 
@@ -242,6 +243,11 @@ def test_bench_rows_feed_the_reproduction(lsb_run, deepstega_run, tiny, tmp_path
   baseline.validate(config)
   assert (config.mode, config.baseline.method, config.baseline.lsb_bits) == ("baseline", "lsb", 3)
   assert (config.baseline.iterations, config.eval.max_views, config.conceal.hidden) == (100, 5, "astronaut")
+  # containers train with the rates of the ConcealGS row beside them; StegaNeRF keeps its own
+  gentle = conceal_ours.gentle_student(bench_conceal.run_config("lego", tiny[1], "full", 16, 100, 5)).conceal.lr
+  assert config.conceal.lr.to_dict() == gentle.to_dict()
+  stega = bench_baselines.run_config("lego", tiny[1], "steganerf_all_views", 100, 5)
+  assert stega.conceal.lr.sh_dc != gentle.sh_dc and stega.conceal.lr.warmup_steps == 0
 
 
 @pytest.fixture(scope="module")

@@ -20,7 +20,13 @@ def apply(config, decoy_views: int):
   c.identity_on_teacher_check = True
   c.decoy_views = decoy_views
   c.decoy_fraction = 0.25
-  lr = c.lr
+  return gentle_student(config)
+
+
+def gentle_student(config):
+  """The gentle student's rates alone (conceal.lr): bench-baselines trains LSB's and DeepStega's containers
+  from the teacher with them, the recipe of the ConcealGS row they are compared with."""
+  lr = config.conceal.lr
   lr.warmup_steps = 200
   lr.opacity, lr.scales, lr.quats = 0.0125, 1.25e-3, 2.5e-4
   lr.sh_dc, lr.sh_rest = 6.25e-4, 3.125e-5
