@@ -13,7 +13,8 @@ It also writes ownership_calibration.json for `--config.mode=verify`: scores (SS
 to the run's hidden image I) of `marked` trials, the student under every mild and medium attack, and of
 `clean` trials, scenes never marked with I at that key: the clean teacher at the key and at --poses
 random orbit poses, the student at those poses and at every test view, and every other run's student and
-teacher seen through this run's decoder at their own keys and test views. The chosen threshold keeps the
+teacher seen through this run's decoder at their own keys and test views, and every --clean-models scene
+(teachers trained with other seeds, other scenes) at this run's key and orbit poses. The chosen threshold keeps the
 measured false-positive rate below 1%.
 
 `make bench-robust` then runs experiments/bench_multikey.py (several hidden images at their own keys in
@@ -36,7 +37,7 @@ from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, train
 from conceal_jax.robust import image_attacks, ownership, robustness
 
-DEFAULT_RUNS = "workdirs/demo/conceal,workdirs/bench/lego/conceal_full_w16"
+DEFAULT_RUNS = "workdirs/demo/conceal,workdirs/bench/lego/conceal_ours_w16"
 # The paper's mild levels (blur sigma <= 1, JPEG quality >= 70) and its finding: mean SSIM drop ~0.02.
 PAPER_MILD = (("blur", lambda s: s <= 1.0), ("jpeg", lambda q: q >= 70))
 
@@ -114,9 +115,13 @@ def scores_of(owner: robustness.Owner, gaussians, cameras) -> list[float]:
   return owner.scores(owner.reveal_renders(renders))["ssim"].tolist()
 
 
-def calibration_trials(runs: list[pathlib.Path], results: list[dict], poses: int, test_views: int) -> dict:
-  """Labelled clean and marked scores over every run (see the module doc)."""
+def calibration_trials(runs: list[pathlib.Path], results: list[dict], poses: int, test_views: int,
+                       clean_models: list[pathlib.Path] = ()) -> dict:
+  """Labelled clean and marked scores over every run (see the module doc); each of `clean_models` (scenes
+  never marked: teachers trained with other seeds, other scenes) is also seen through every run's decoder at
+  its key and its orbit poses."""
   views = {run: views_of(run, poses, test_views) for run in runs}
+  models = {path: ply.load_ply(str(path)) for path in clean_models}
   clean, marked = [], []
   for run, result in zip(runs, results):
     mine = views[run]
@@ -128,6 +133,8 @@ def calibration_trials(runs: list[pathlib.Path], results: list[dict], poses: int
               ("teacher at orbit poses", mine["teacher"], mine["orbit"]),
               ("student at orbit poses", mine["student"], mine["orbit"]),
               ("student at test views", mine["student"], mine["test"])]
+    trials += [(f"clean model {path}", gaussians, [owner.check_camera] + mine["orbit"])
+               for path, gaussians in models.items()]
     for other, theirs in views.items():
       if other != run:
         cameras = [theirs["owner"].check_camera] + list(theirs["test"])
@@ -184,7 +191,13 @@ def main():
   parser.add_argument("--poses", type=int, default=50, help="random orbit poses per scene for clean trials")
   parser.add_argument("--finetune", default="1000,3000,10000",
                       help="fine-tuning attack lengths (steps), with and without densification; empty: skip")
+  parser.add_argument("--clean-models", default="",
+                      help="comma-separated .ply files never marked (other seeds, other scenes): more clean trials")
   args = parser.parse_args()
+  clean_models = [pathlib.Path(p) for p in args.clean_models.split(",") if p]
+  for path in clean_models:
+    if not path.is_file():
+      raise SystemExit(f"--clean-models: no such file {path}")
   results, runs = [], []
   for run in (pathlib.Path(r) for r in args.runs.split(",") if r):
     if not (run / "student.ply").is_file() or not (run / "config.json").is_file():
@@ -203,7 +216,7 @@ def main():
   fileio.write_json(out / "robust_bench.json", dict(device=str(jax.devices()[0]), image_attack_levels=[
       list(level) for level in image_attacks.LEVELS], runs=results))
   plot(results, out / "robust_bench.png")
-  calibration = calibration_trials(runs, results, args.poses, 0)
+  calibration = calibration_trials(runs, results, args.poses, 0, clean_models)
   fileio.write_json(out / "ownership_calibration.json", calibration)
   print(json.dumps({k: v for k, v in calibration.items() if not isinstance(v, list)}))
 
