@@ -31,6 +31,10 @@ Leakage control, an option beyond the paper (off by default, so `variant=paper` 
                                probability decoy_fraction, so L_kd holds the student to the teacher there
                                and L_d^- keeps F the identity there. Only the exact key reveals.
 
+Robustness, an option beyond the paper: conceal.check_blur_max / check_noise_max distort the student's check
+render (a blur and a noise level drawn per step, augment.py) before the decoder reads it for L_d^+, so that
+the hidden image survives blur, JPEG and noise of the check render.
+
 conceal.key_at_decoder_size (off: as the paper) renders the key directly at the decoder's size (hidden_size
 squared) with the check pose's field of view, instead of rendering it at the training resolution and resizing.
 It is a cheaper key (on lego, 200x200 -> 64x64 cuts the check render's fwd+bwd from 191 to 124 ms and the
@@ -65,7 +69,7 @@ import numpy as np
 import optax
 from flax import struct
 
-from conceal_jax.conceal import guidance, hidden as hidden_lib, key as key_lib, reveal, unet
+from conceal_jax.conceal import augment, guidance, hidden as hidden_lib, key as key_lib, reveal, unet
 from conceal_jax.conceal.objective import (ConcealSettings, decoder_identity_objective, identity_inputs, key_data,
                                            student_objective)
 from conceal_jax.core import fileio, loop, settings as settings_lib
@@ -144,8 +148,9 @@ def validate(config: ml_collections.ConfigDict) -> None:
 
 def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student_tx, decoder_tx,
                       traces: loop.TraceCounter | None = None):
-  """Builds step(state, data, view, normal_view, key) -> (state, stats), jitted with the state donated; `key`
-  picks the check view (and its hidden image) of a run with several (objective.key_data; unused with one).
+  """Builds step(state, data, view, normal_view, key, distortion) -> (state, stats), jitted with the state
+  donated; `key` picks the check view (and its hidden image) of a run with several (objective.key_data;
+  unused with one); `distortion` (augment.draw) is applied to the check render when settings.distorts_check.
   `options` carry a pair capacity; a step whose renders overflowed it returns the state unchanged (gs.capacity).
 
   The student and the decoder share one backward pass of `student_objective` (its decoder half is
@@ -154,10 +159,10 @@ def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student
   """
   s = settings
 
-  def step(state: ConcealState, data, view, normal_view, key=0):
+  def step(state: ConcealState, data, view, normal_view, key=0, distortion=None):
     data = key_data(data, key)
     (total, aux), (student_grad, plus_grad) = jax.value_and_grad(student_objective, argnums=(0, 1), has_aux=True)(
-        state.student, state.decoder, data, view, s, options)
+        state.student, state.decoder, data, view, s, options, distortion)
     updates, student_opt = student_tx.update(student_grad, state.student_opt, state.student)
     new_state = state.replace(step=state.step + 1, student=optax.apply_updates(state.student, updates),
                               student_opt=student_opt)
@@ -291,7 +296,9 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   def step(state, iteration):
     rng = np.random.default_rng([config.seed, iteration])
     views = [normal_view(rng, num_views, len(decoys), settings.decoy_fraction) for _ in range(2)]
-    return steps(None, state, data, *views, (iteration - 1) % num_keys)
+    distortion = (augment.draw(rng, settings.check_blur_max, settings.check_noise_max) if settings.distorts_check
+                  else None)
+    return steps(None, state, data, *views, (iteration - 1) % num_keys, distortion)
 
   eval_cameras, eval_targets, _ = evaluate.held_out_views(scene, c.eval_views)
 

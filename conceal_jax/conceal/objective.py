@@ -23,7 +23,7 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 
-from conceal_jax.conceal import guidance, reveal, unet
+from conceal_jax.conceal import augment, guidance, reveal, unet
 from conceal_jax.gs import losses
 from conceal_jax.splat.render import RenderOptions, render
 
@@ -50,6 +50,9 @@ class ConcealSettings:
   identity_on_student: bool = False
   identity_on_teacher_check: bool = False
   decoy_fraction: float = 0.0
+  # Robustness, an option beyond the paper (augment.py): the check render blurred and noised for L_d^+.
+  check_blur_max: float = 0.0
+  check_noise_max: float = 0.0
 
   def __post_init__(self):
     if self.variant not in VARIANTS:
@@ -66,6 +69,9 @@ class ConcealSettings:
     if self.decoy_fraction and not self.distill:
       raise ValueError("conceal.decoy_fraction needs L_kd (variant 'paper' with consistency): decoy poses have "
                        "no ground truth, only the teacher's renders")
+    if not (self.check_blur_max >= 0 and self.check_noise_max >= 0):
+      raise ValueError(f"conceal.check_blur_max and check_noise_max must be >= 0, got {self.check_blur_max} and "
+                       f"{self.check_noise_max}")
     if (self.identity_on_student or self.identity_on_teacher_check) and not self.identity_loss:
       raise ValueError("conceal.identity_on_student and identity_on_teacher_check need L_d^- (a decoder and "
                        "consistency)")
@@ -74,6 +80,11 @@ class ConcealSettings:
   def distill(self) -> bool:
     """Normal views supervised by the teacher (L_kd) rather than by ground truth."""
     return self.variant == "paper" and self.consistency
+
+  @property
+  def distorts_check(self) -> bool:
+    """Whether a step distorts the check render before decoding it (augment.py)."""
+    return self.check_blur_max > 0 or self.check_noise_max > 0
 
   @property
   def identity_loss(self) -> bool:
@@ -94,8 +105,11 @@ def key_data(data: dict, key) -> dict:
 
 
 def student_objective(student, decoder, data: dict, view, settings: ConcealSettings,
-                      options: RenderOptions) -> tuple[jax.Array, dict]:
+                      options: RenderOptions, distortion: dict | None = None) -> tuple[jax.Array, dict]:
   """L_kd (eq. 3) at training view `view` + lambda+ L_d^+ (eq. 5) at the check view -> (total, aux).
+
+  `distortion` (augment.draw, with settings.distorts_check): L_d^+ decodes the check render blurred and
+  noised by it.
 
   Without consistency, or in the released variant, the normal view is supervised by its ground-truth
   image with the 3D-GS photometric loss instead of L_kd; the released variant adds an L1 between the
@@ -113,7 +127,8 @@ def student_objective(student, decoder, data: dict, view, settings: ConcealSetti
     normal = losses.photometric_loss(rgb, data["images"][view])
   check_out = render(student, data["check_camera"], options)
   check_rgb = check_out.rgb
-  small = reveal.resize_for_decoder(check_rgb, s.hidden_size)
+  seen = augment.distort(check_rgb, distortion, s.check_blur_max) if s.distorts_check else check_rgb
+  small = reveal.resize_for_decoder(seen, s.hidden_size)
   revealed = reveal.decode(decoder, s.decoder_width, small) if s.use_decoder else small
   plus = losses.hidden_image_loss(revealed, data["hidden"])
   total = normal + s.weight_plus * plus

@@ -126,6 +126,9 @@ def get_config() -> ml_collections.ConfigDict:
   config.conceal.decoy_fraction = 0.0  # share of steps whose normal views are decoys
   config.conceal.decoy_translation = (0.01, 0.1)  # decoy moves, fractions of the scene extent (lo, hi)
   config.conceal.decoy_rotation_deg = (1.0, 10.0)  # decoy turns, degrees (lo, hi)
+  # robustness beyond the paper (conceal/augment.py): per step, blur sigma ~ U[0, max] px and noise ~ U[0, max]
+  config.conceal.check_blur_max = 0.0
+  config.conceal.check_noise_max = 0.0
   # student learning rates: the 3D-GS schedule continued from step 10k of 30k, as the released run does
   config.conceal.lr = ml_collections.ConfigDict(config.train.lr.to_dict())
   config.conceal.lr.means_init = 3.45e-5
