@@ -6,6 +6,11 @@ render by a Gaussian of a standard deviation drawn from [0, check_blur_max] pixe
 a standard deviation drawn from [0, check_noise_max] before the decoder reads it for L_d^+ (eq. 5), as
 watermarking methods train through their attack layers. The draws are made on the host and enter the jitted
 step as values, so they never retrace it.
+
+Measured on the demo (configs/demo.py, 1300 steps; experiments/results/robust_bench_demo_augment.json) with
+check_blur_max 1.5 and check_noise_max 0.02: the mean hidden-SSIM drop under the paper's mild blur and JPEG
+fell from 0.036 to 0.003 (hidden 31.07 dB / 0.9727 against 31.20 / 0.9764), but a blur-tolerant decoder also
+reveals more near the key (SSIM 0.23 against 0.17) and the student lost 0.96 dB against 0.62.
 """
 from __future__ import annotations
 
