@@ -73,7 +73,8 @@ def bench_run(run: pathlib.Path, test_views: int) -> dict:
 def finetune_rows(run: pathlib.Path, lengths: list[int], densify: bool, test_views: int) -> list[dict]:
   """The fine-tuning attack (ConcealGS's research question 3): 3D-GS training continued from the student
   on the scene's training views (with the run's own recipe, with or without densification), scored after
-  each of `lengths` steps (snapshots of one run of max(lengths) steps, resumable in run/finetune_*)."""
+  each of `lengths` steps (snapshots of one run of max(lengths) steps, resumable in
+  run/finetune_{fixed,densify}_<max(lengths)>)."""
   config, student, owner = load_run(run)
   config.mode = "train"
   config.init.kind, config.init.ply = "ply", str(run / "student.ply")
@@ -84,7 +85,8 @@ def finetune_rows(run: pathlib.Path, lengths: list[int], densify: bool, test_vie
   config.eval.max_views = test_views
   if not densify:
     config.train.densify.until = 0  # no densification and no opacity reset
-  workdir = run / f"finetune_{'densify' if densify else 'fixed'}"
+  # one workdir per schedule: a run of another length must not resume this one's checkpoints
+  workdir = run / f"finetune_{'densify' if densify else 'fixed'}_{max(lengths)}"
   workdir.mkdir(exist_ok=True)
   fileio.write_json(workdir / "config.json", config.to_dict())
   train.train_and_evaluate(config, str(workdir))
