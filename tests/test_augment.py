@@ -33,8 +33,11 @@ def test_distort_adds_noise_of_the_drawn_level_and_draws_stay_in_range():
   draws = [augment.draw(rng, 1.5, 0.05) for _ in range(200)]
   assert all(0 <= d["blur"] <= 1.5 and 0 <= d["noise"] <= 0.05 for d in draws)
   image = jnp.full((64, 64, 3), 0.5, jnp.float32)
-  out = augment.distort(image, dict(blur=np.float32(0.0), noise=np.float32(0.1), seed=np.uint32(3)), 0.0)
+  drawn = dict(blur=np.float32(0.0), noise=np.float32(0.1), seed=np.uint32(3))
+  out = augment.distort(image, drawn, 0.0, 0.1)
   assert abs(float(jnp.std(out)) - 0.1) < 0.005 and abs(float(jnp.mean(out)) - 0.5) < 0.005
+  # a run that never draws noise (noise_max 0) adds none
+  np.testing.assert_array_equal(np.asarray(augment.distort(image, drawn, 0.0, 0.0)), np.asarray(image))
 
 
 def test_conceal_trains_through_distortions_in_one_trace(tiny, tmp_path):  # noqa: F811

@@ -49,13 +49,16 @@ def gaussian_blur(image: jax.Array, sigma: jax.Array, radius: int) -> jax.Array:
   return sum(kernel[k] * rows[:, k:k + width] for k in range(2 * radius + 1))
 
 
-def distort(image: jax.Array, distortion: dict, blur_max: float) -> jax.Array:
+def distort(image: jax.Array, distortion: dict, blur_max: float, noise_max: float) -> jax.Array:
   """image [H, W, 3] blurred by distortion["blur"] pixels and plus normal noise of standard deviation
-  distortion["noise"] drawn from the PRNG seed distortion["seed"] (all traced; see `draw`)."""
+  distortion["noise"] drawn from the PRNG seed distortion["seed"] (all traced; see `draw`). The static
+  maxima leave out, at trace time, the blur or the noise a run never draws."""
   if blur_max > 0:
     image = gaussian_blur(image, distortion["blur"], blur_radius(blur_max))
-  noise = jax.random.normal(jax.random.key(distortion["seed"]), image.shape, image.dtype)
-  return image + distortion["noise"] * noise
+  if noise_max > 0:
+    image = image + distortion["noise"] * jax.random.normal(jax.random.key(distortion["seed"]), image.shape,
+                                                            image.dtype)
+  return image
 
 
 def draw(rng: np.random.Generator, blur_max: float, noise_max: float) -> dict:

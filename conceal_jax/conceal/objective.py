@@ -127,7 +127,8 @@ def student_objective(student, decoder, data: dict, view, settings: ConcealSetti
     normal = losses.photometric_loss(rgb, data["images"][view])
   check_out = render(student, data["check_camera"], options)
   check_rgb = check_out.rgb
-  seen = augment.distort(check_rgb, distortion, s.check_blur_max) if s.distorts_check else check_rgb
+  seen = (augment.distort(check_rgb, distortion, s.check_blur_max, s.check_noise_max) if s.distorts_check
+          else check_rgb)
   small = reveal.resize_for_decoder(seen, s.hidden_size)
   revealed = reveal.decode(decoder, s.decoder_width, small) if s.use_decoder else small
   plus = losses.hidden_image_loss(revealed, data["hidden"])
