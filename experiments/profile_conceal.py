@@ -10,7 +10,8 @@ gradient, `student_objective` with its gradient (the normal render, the check re
 it), the decoder alone (forward, forward+backward, for one image and for a batch of two),
 `decoder_identity_objective` with its gradient, the guided combination of the two decoder gradients, the
 two Adam updates, the decoder's two passes run separately or fused into one
-batch, and the whole step. Writes conceal_step_profile.json to --out.
+batch, and the whole step on one lane and on two (core.lanes: the two renders side by side). Writes
+conceal_step_profile.json to --out.
 Run it on a quiet machine.
 """
 from __future__ import annotations
@@ -27,7 +28,7 @@ import optax
 
 from conceal_jax.conceal import conceal, guidance, hidden as hidden_lib, key as key_lib, reveal
 from conceal_jax.conceal.objective import decoder_identity_objective, identity_inputs, student_objective
-from conceal_jax.core import fileio
+from conceal_jax.core import fileio, lanes
 from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, losses, optimizer
 from conceal_jax.splat import render as render_lib
@@ -59,6 +60,32 @@ def decoder_pass_times(decoder, width: int, data: dict, settings, repeats: int) 
   batch = len(minus_inputs)
   return {f"decoder_passes_separate_b{batch}": median_ms(jax.jit(separate), decoder, check, repeats=repeats),
           f"decoder_passes_fused_b{batch}": median_ms(jax.jit(fused), decoder, check, repeats=repeats)}
+
+
+def step_ms(settings, options, student_tx, decoder_tx, gaussians, decoder, data, counts, num_views: int,
+            repeats: int, rounds: int = 3) -> dict:
+  """Median ms of the whole jitted step (state donated) on each number of lanes in `counts` (core.lanes),
+  after one warm-up each; the variants take turns, `rounds` times `repeats` steps, so that a slower
+  stretch of the machine does not fall on one of them only."""
+  runs = {}
+  for count in counts:
+    mesh = lanes.lane_mesh(count)
+    step = conceal.make_conceal_step(settings, options, student_tx, decoder_tx, mesh=mesh)
+    fresh = jax.tree.map(jnp.copy, (gaussians, decoder))
+    state = lanes.replicate(conceal.create_conceal_state(*fresh, student_tx, decoder_tx), mesh)
+    placed = lanes.replicate(data, mesh)
+    state, _ = step(state, placed, 0, 1)
+    runs[count] = [step, state, placed, []]
+  for _ in range(rounds):
+    for count, run in runs.items():
+      step, state, placed, times = run
+      for i in range(repeats):
+        start = time.perf_counter()
+        state, stats = step(state, placed, i % num_views, (i + 1) % num_views)
+        jax.block_until_ready(stats)
+        times.append(time.perf_counter() - start)
+      run[1] = state
+  return {f"conceal_step_lanes{count}": 1e3 * float(np.median(run[3])) for count, run in runs.items()}
 
 
 def profile(row: str, width: int, teacher: pathlib.Path, repeats: int, key_at_decoder_size: bool) -> dict:
@@ -110,16 +137,9 @@ def profile(row: str, width: int, teacher: pathlib.Path, repeats: int, key_at_de
   times["decoder_adam"] = median_ms(jax.jit(decoder_tx.update), plus_grad, decoder_tx.init(decoder), decoder,
                                     repeats=repeats)
 
-  step = conceal.make_conceal_step(settings, options, student_tx, decoder_tx)
-  state = conceal.create_conceal_state(jax.tree.map(jnp.copy, gaussians), decoder, student_tx, decoder_tx)
-  state, _ = step(state, data, 0, 1)
-  step_times = []
-  for i in range(repeats):
-    start = time.perf_counter()
-    state, stats = step(state, data, i % len(scene.train_cameras), (i + 1) % len(scene.train_cameras))
-    jax.block_until_ready(stats)
-    step_times.append(time.perf_counter() - start)
-  times["conceal_step"] = 1e3 * float(np.median(step_times))
+  counts = (1, 2) if jax.local_device_count() >= 2 else (1,)
+  times.update(step_ms(settings, options, student_tx, decoder_tx, gaussians, decoder, data, counts,
+                       len(scene.train_cameras), repeats))
   return dict(row=row, key_at_decoder_size=key_at_decoder_size, decoder_width=width, num_gaussians=int(gaussians.num), pair_capacity=options.pair_capacity,
               tile_size=options.tile_size, image_size=[camera.width, camera.height],
               hidden_size=settings.hidden_size, settings=dataclasses.asdict(settings), repeats=repeats,

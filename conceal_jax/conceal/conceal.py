@@ -69,10 +69,9 @@ import numpy as np
 import optax
 from flax import struct
 
-from conceal_jax.conceal import augment, guidance, hidden as hidden_lib, key as key_lib, reveal, unet
-from conceal_jax.conceal.objective import (ConcealSettings, decoder_identity_objective, identity_inputs, key_data,
-                                           student_objective)
-from conceal_jax.core import fileio, loop, settings as settings_lib
+from conceal_jax.conceal import augment, guidance, hidden as hidden_lib, key as key_lib, lanes_objective, reveal, unet
+from conceal_jax.conceal.objective import ConcealSettings, key_data
+from conceal_jax.core import fileio, lanes, loop, settings as settings_lib
 from conceal_jax.data import ply
 from conceal_jax.gs import capacity, evaluate, metrics, optimizer
 from conceal_jax.splat import camera as camera_lib
@@ -118,6 +117,7 @@ def validate(config: ml_collections.ConfigDict) -> None:
   loop_settings(config)
   optimizer.means_decay_steps(c.lr, c.iterations)
   evaluate.validate(config)
+  lanes.resolve(c.lanes)
   if c.key_kind not in key_lib.KEY_KINDS:
     raise ValueError(f"conceal.key_kind must be one of {key_lib.KEY_KINDS}, got {c.key_kind!r}")
   if not (c.lr.means_init > 0 and c.decoder_lr > 0):
@@ -147,34 +147,30 @@ def validate(config: ml_collections.ConfigDict) -> None:
 
 
 def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student_tx, decoder_tx,
-                      traces: loop.TraceCounter | None = None):
+                      traces: loop.TraceCounter | None = None, mesh=None):
   """Builds step(state, data, view, normal_view, key, distortion) -> (state, stats), jitted with the state
   donated; `key` picks the check view (and its hidden image) of a run with several (objective.key_data;
   unused with one); `distortion` (augment.draw) is applied to the check render when settings.distorts_check.
   `options` carry a pair capacity; a step whose renders overflowed it returns the state unchanged (gs.capacity).
 
-  The student and the decoder share one backward pass of `student_objective` (its decoder half is
-  lambda+ grad L_d^+); `decoder_identity_objective` has its own. The decoder update is the guided one
-  of Sec. 2.3: per-layer cosine of the two decoder gradients, sigmoid weight, one optax update.
+  The gradients come from lanes_objective.gradients: the student's of `student_objective`, and the
+  decoder's of lambda+ L_d^+ and of lambda- L_d^- apart, two lanes (one per render) that run side by side on
+  the two devices of `mesh` (core.lanes) and in turn without. The decoder update is the guided one of
+  Sec. 2.3: per-layer cosine of the two decoder gradients, sigmoid weight, one optax update.
   """
   s = settings
 
   def step(state: ConcealState, data, view, normal_view, key=0, distortion=None):
     data = key_data(data, key)
-    (total, aux), (student_grad, plus_grad) = jax.value_and_grad(student_objective, argnums=(0, 1), has_aux=True)(
-        state.student, state.decoder, data, view, s, options, distortion)
+    t = lanes_objective.gradients(state.student, state.decoder, data, view, normal_view, s, options, distortion,
+                                  mesh)
+    student_grad, total = t["student_grad"], t["normal"] + t["check"]
     updates, student_opt = student_tx.update(student_grad, state.student_opt, state.student)
     new_state = state.replace(step=state.step + 1, student=optax.apply_updates(state.student, updates),
                               student_opt=student_opt)
-    stats = dict(loss=total, normal=aux["normal"], plus=aux["plus"], num_pairs=aux["num_pairs"],
-                 psnr=metrics.psnr(jnp.clip(aux["rgb"], 0, 1),
-                                   data["teacher"][view] if s.distill else data["images"][view]))
+    stats = dict(loss=total, normal=t["normal"], plus=t["plus"], num_pairs=t["num_pairs"], psnr=t["psnr"])
     if s.use_decoder:
-      if s.identity_loss:
-        inputs = identity_inputs(data, normal_view, s, aux["rgb"])
-        minus, minus_grad = jax.value_and_grad(decoder_identity_objective)(state.decoder, inputs, s)
-      else:
-        minus, minus_grad = jnp.zeros(()), jax.tree.map(jnp.zeros_like, plus_grad)
+      plus_grad, minus_grad = t["plus_grad"], t["minus_grad"]
       if s.guidance:  # plus_grad and minus_grad already carry their loss weights; cosines ignore scale
         decoder_grad, weights = guidance.guided_decoder_gradient(plus_grad, minus_grad, 1.0, 1.0, s.granularity)
         stats["mean_guidance_weight"] = jnp.mean(jnp.stack(jax.tree.leaves(weights)))
@@ -182,9 +178,9 @@ def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student
         decoder_grad = jax.tree.map(jnp.add, plus_grad, minus_grad)
       updates, decoder_opt = decoder_tx.update(decoder_grad, state.decoder_opt, state.decoder)
       new_state = new_state.replace(decoder=optax.apply_updates(state.decoder, updates), decoder_opt=decoder_opt)
-      stats["minus"] = minus
-      stats["loss"] = total + minus
-    return capacity.keep_unless_overflowed(aux["overflowed"], new_state, state), stats
+      stats["minus"] = t["minus"]
+      stats["loss"] = total + t["minus"]
+    return capacity.keep_unless_overflowed(t["overflowed"], new_state, state), stats
 
   if traces is not None:
     step = traces.wrap("conceal_step", step)
@@ -278,13 +274,14 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
             for decoy in key_lib.decoy_cameras(pose, scene.scene_extent(), c.decoy_views, tuple(c.decoy_translation),
                                                tuple(c.decoy_rotation_deg), c.key_seed + k)]
   extra_keys = [(camera, image, hidden) for (camera, _), image, hidden in zip(keys[1:], check_images[1:], hiddens[1:])]
-  data = build_data(scene, teacher, options, check_camera, check_images[0], hiddens[0], settings.hidden_size, decoys,
-                    extra_keys)
+  mesh = lanes.lane_mesh(lanes.resolve(c.lanes))
+  data = lanes.replicate(build_data(scene, teacher, options, check_camera, check_images[0], hiddens[0],
+                                    settings.hidden_size, decoys, extra_keys), mesh)
 
   student_tx = optimizer.gaussian_optimizer(c.lr, scene.scene_extent(), c.iterations)
   decoder_tx = optax.adam(c.decoder_lr, eps=optimizer.ADAM_EPS)
   traces = loop.TraceCounter()
-  steps = capacity.GrowingSteps(lambda _, opts: make_conceal_step(settings, opts, student_tx, decoder_tx, traces),
+  steps = capacity.GrowingSteps(lambda _, opts: make_conceal_step(settings, opts, student_tx, decoder_tx, traces, mesh),
                                 options)
   steps.grow(render_lib.initial_capacity(teacher.num, options))
   num_views, num_keys = len(scene.train_cameras), len(keys)
@@ -298,13 +295,14 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
     views = [normal_view(rng, num_views, len(decoys), settings.decoy_fraction) for _ in range(2)]
     distortion = (augment.draw(rng, settings.check_blur_max, settings.check_noise_max) if settings.distorts_check
                   else None)
-    return steps(None, state, data, *views, (iteration - 1) % num_keys, distortion)
+    return steps(None, lanes.replicate(state, mesh), data, *views, (iteration - 1) % num_keys, distortion)
 
   eval_cameras, eval_targets, _ = evaluate.held_out_views(scene, c.eval_views)
 
   def after_window(state, iteration):
     if not c.eval_every or iteration % c.eval_every:
       return None
+    state = lanes.on_one_device(state, mesh)
     decoder = state.decoder if settings.use_decoder else None
     revealed = [reveal.reveal_image(state.student, camera, options, decoder, settings.decoder_width,
                                     settings.hidden_size) for camera, _ in keys]
@@ -321,7 +319,7 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   if not result.finished:
     return dict(stopped_at=int(result.state.step))
 
-  state = result.state
+  state = lanes.on_one_device(result.state, mesh)
   decoder = state.decoder if settings.use_decoder else None
   ply.save_ply(os.path.join(workdir, STUDENT_FILE), jax.device_get(state.student))
   if decoder is not None:

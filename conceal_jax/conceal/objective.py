@@ -109,7 +109,8 @@ def student_objective(student, decoder, data: dict, view, settings: ConcealSetti
   """L_kd (eq. 3) at training view `view` + lambda+ L_d^+ (eq. 5) at the check view -> (total, aux).
 
   `distortion` (augment.draw, with settings.distorts_check): L_d^+ decodes the check render blurred and
-  noised by it.
+  noised by it. The step computes the gradients of this objective and of `decoder_identity_objective` as two
+  lanes (lanes_objective.py); these functions are their plain statement.
 
   Without consistency, or in the released variant, the normal view is supervised by its ground-truth
   image with the 3D-GS photometric loss instead of L_kd; the released variant adds an L1 between the

@@ -137,6 +137,9 @@ def get_config() -> ml_collections.ConfigDict:
   config.conceal.eval_every = 0        # steps between hidden PSNR/SSIM + student test PSNR records (0: none)
   config.conceal.eval_views = 4        # test views of that student PSNR
   config.conceal.checkpoint_every = 1000
+  # 0: automatic (the two renders of a step side by side on a CPU host split in two devices, else one
+  # after the other); 1 or 2 to choose. Values are the same either way (conceal_jax/core/lanes.py).
+  config.conceal.lanes = 0
   config.conceal.progress_bar = True
 
   # baseline mode: a way to hide an image that the paper compares with (see conceal_jax/baselines/baseline.py),
