@@ -309,13 +309,13 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   def after_window(state, iteration):
     if not c.eval_every or iteration % c.eval_every:
       return None
-    state = lanes.on_one_device(state, mesh)
-    decoder = state.decoder if settings.use_decoder else None
-    revealed = [reveal.reveal_image(state.student, camera, options, decoder, settings.decoder_width,
+    student, decoder = lanes.on_one_device((state.student, state.decoder), mesh)  # not the Adam moments
+    decoder = decoder if settings.use_decoder else None
+    revealed = [reveal.reveal_image(student, camera, options, decoder, settings.decoder_width,
                                     settings.hidden_size) for camera, _ in keys]
     record = dict(hidden_psnr=float(metrics.psnr(revealed[0], hiddens[0])),
                   hidden_ssim=float(metrics.ssim(revealed[0], hiddens[0])),
-                  test_psnr=evaluate.views_psnr(state.student, eval_cameras, eval_targets, options))
+                  test_psnr=evaluate.views_psnr(student, eval_cameras, eval_targets, options))
     if num_keys > 1:
       record.update(hidden_psnr_keys=[float(metrics.psnr(r, h)) for r, h in zip(revealed, hiddens)],
                     hidden_ssim_keys=[float(metrics.ssim(r, h)) for r, h in zip(revealed, hiddens)])

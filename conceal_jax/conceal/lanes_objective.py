@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from conceal_jax.conceal import augment, reveal
+from conceal_jax.conceal import objective
 from conceal_jax.conceal.objective import ConcealSettings
 from conceal_jax.core import lanes
 from conceal_jax.gs import losses, metrics
@@ -37,15 +37,11 @@ NO_DISTORTION = dict(blur=np.float32(0.0), noise=np.float32(0.0), seed=np.uint32
 
 def identity_weights(settings: ConcealSettings) -> dict:
   """Per image weight of lambda- L_d^- (eq. 4, the mean over its B inputs) on the student's normal render,
-  the teacher's normal-view render and the teacher's check render (objective.identity_inputs' choice)."""
-  s = settings
-  if not s.identity_loss:
-    return dict(student=0.0, teacher_normal=0.0, teacher_check=0.0)
-  paper = s.variant == "paper"
-  used = dict(student=s.identity_on_student, teacher_normal=paper,
-              teacher_check=(s.identity_on_teacher_check and paper) or not paper)
-  share = s.weight_minus / sum(used.values())
-  return {name: share if on else 0.0 for name, on in used.items()}
+  the teacher's normal-view render and the teacher's check render: lambda- / B on objective.identity_sources,
+  0 elsewhere and without L_d^-."""
+  sources = objective.identity_sources(settings) if settings.identity_loss else ()
+  return {name: settings.weight_minus / len(sources) if name in sources else 0.0
+          for name in ("student", "teacher_normal", "teacher_check")}
 
 
 def lane_inputs(data: dict, view, normal_view, settings: ConcealSettings, distortion=None) -> list[dict]:
@@ -90,20 +86,14 @@ def lane_gradients(shared, lane: dict, settings: ConcealSettings, options: Rende
 
   pixel, pixel_ct = jax.value_and_grad(pixel_loss)(rgb)
 
-  def prepared(image):
-    seen = augment.distort(image, lane["distortion"], s.check_blur_max, s.check_noise_max) if s.distorts_check \
-        else image
-    return reveal.resize_for_decoder(seen, s.hidden_size)
-
-  small, prepared_vjp = jax.vjp(prepared, rgb)
+  small, prepared_vjp = jax.vjp(lambda image: objective.check_decoder_input(image, lane["distortion"], s), rgb)
   images = jnp.stack([small, lane["teacher_small"]])
   own_target = lane["target_is_input"] * jax.lax.stop_gradient(small) + (1 - lane["target_is_input"]) * lane[
       "own_target"]
   targets = jnp.stack([own_target, lane["teacher_small"]])
 
   def image_loss(params, image, target):
-    decoded = reveal.decode(params, s.decoder_width, image) if s.use_decoder else image
-    return losses.l1(decoded, target)
+    return losses.l1(objective.decoded(params, image, s), target)
 
   values, (params_grads, image_grads) = jax.vmap(jax.value_and_grad(image_loss, argnums=(0, 1)),
                                                  in_axes=(None, 0, 0))(decoder, images, targets)

@@ -128,11 +128,7 @@ def student_objective(student, decoder, data: dict, view, settings: ConcealSetti
     normal = losses.photometric_loss(rgb, data["images"][view])
   check_out = render(student, data["check_camera"], options)
   check_rgb = check_out.rgb
-  seen = (augment.distort(check_rgb, distortion, s.check_blur_max, s.check_noise_max) if s.distorts_check
-          else check_rgb)
-  small = reveal.resize_for_decoder(seen, s.hidden_size)
-  revealed = reveal.decode(decoder, s.decoder_width, small) if s.use_decoder else small
-  plus = losses.hidden_image_loss(revealed, data["hidden"])
+  plus = losses.hidden_image_loss(decoded(decoder, check_decoder_input(check_rgb, distortion, s), s), data["hidden"])
   total = normal + s.weight_plus * plus
   if s.variant == "released":
     total = total + s.weight_check * losses.l1(check_rgb, data["check_image"])
@@ -141,23 +137,45 @@ def student_objective(student, decoder, data: dict, view, settings: ConcealSetti
                      overflowed=normal_out.overflowed | check_out.overflowed)
 
 
-def identity_inputs(data: dict, normal_view, settings: ConcealSettings, student_rgb=None) -> jax.Array:
-  """[B, S, S, 3] the renders on which L_d^- asks F to be the identity: the teacher's render of normal view
-  `normal_view` (the paper) or of the check view (the released code); with `identity_on_teacher_check`,
-  the paper's input and the teacher's check render; with `identity_on_student`, also the student's render
-  `student_rgb` [H, W, 3] of the step's normal view, as a constant (L_d^- trains F only)."""
+def check_decoder_input(check_rgb: jax.Array, distortion: dict | None, settings: ConcealSettings) -> jax.Array:
+  """[S, S, 3] the student's check render [H, W, 3] as F reads it for L_d^+: distorted by `distortion`
+  (augment.py) when settings.distorts_check, resized to the decoder's size."""
   s = settings
-  teacher = data["teacher_small"][normal_view] if s.variant == "paper" else data["teacher_check_small"]
-  inputs = [teacher]
-  if s.identity_on_teacher_check and s.variant == "paper":
-    inputs.append(data["teacher_check_small"])
+  seen = augment.distort(check_rgb, distortion, s.check_blur_max, s.check_noise_max) if s.distorts_check else check_rgb
+  return reveal.resize_for_decoder(seen, s.hidden_size)
+
+
+def decoded(decoder, images: jax.Array, settings: ConcealSettings) -> jax.Array:
+  """F(images) [..., S, S, 3]; the images themselves without a decoder (the "w/o decoder" ablation)."""
+  return reveal.decode(decoder, settings.decoder_width, images) if settings.use_decoder else images
+
+
+def identity_sources(settings: ConcealSettings) -> tuple[str, ...]:
+  """The renders on which L_d^- asks F to be the identity, in order: 'teacher_normal', the teacher's render
+  of the step's normal view (the paper), or 'teacher_check', its check render (the released code); with
+  `identity_on_teacher_check` (paper), also 'teacher_check'; with `identity_on_student`, also 'student',
+  the student's render of the step's normal view."""
+  s = settings
+  paper = s.variant == "paper"
+  sources = ["teacher_normal" if paper else "teacher_check"]
+  if s.identity_on_teacher_check and paper:
+    sources.append("teacher_check")
   if s.identity_on_student:
-    inputs.append(jax.lax.stop_gradient(reveal.resize_for_decoder(student_rgb, s.hidden_size)))
-  return jnp.stack(inputs)
+    sources.append("student")
+  return tuple(sources)
+
+
+def identity_inputs(data: dict, normal_view, settings: ConcealSettings, student_rgb=None) -> jax.Array:
+  """[B, S, S, 3] the `identity_sources` at the decoder size; the student's render `student_rgb` [H, W, 3]
+  enters as a constant (L_d^- trains F only)."""
+  images = dict(teacher_normal=lambda: data["teacher_small"][normal_view],
+                teacher_check=lambda: data["teacher_check_small"],
+                student=lambda: jax.lax.stop_gradient(reveal.resize_for_decoder(student_rgb, settings.hidden_size)))
+  return jnp.stack([images[name]() for name in identity_sources(settings)])
 
 
 def decoder_identity_objective(decoder, inputs: jax.Array, settings: ConcealSettings) -> jax.Array:
   """lambda- L_d^- (eq. 4): F is the identity on `inputs` [B, S, S, 3] (see `identity_inputs`), the L1
   averaged over them."""
   s = settings
-  return s.weight_minus * losses.decoder_identity_loss(reveal.decode(decoder, s.decoder_width, inputs), inputs)
+  return s.weight_minus * losses.decoder_identity_loss(decoded(decoder, inputs, s), inputs)
