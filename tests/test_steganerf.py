@@ -62,6 +62,19 @@ def test_the_mask_scales_adams_update_but_not_through_its_gradient():
   np.testing.assert_allclose(_first_sh_step(steganerf.sh_optimizer(LR, "gradient"), sh, grad), plain, rtol=1e-5)
 
 
+def test_networks_take_small_steps_on_vanishing_gradients():
+  """A classifier that already separates its renders gets gradients far below Adam's eps; its steps must
+  shrink with them (not stay lr-sized, which grows the logits without bound), while ordinary gradients
+  still take lr-sized first steps."""
+  s = _settings(decoder_lr=1e-3, classifier_lr=1e-3)
+  networks = steganerf.init_networks(jax.random.key(0), s)
+  tx = steganerf.networks_optimizer(s)
+  for scale, bound in ((1e-12, 1e-3), (1e-2, 1.0)):
+    grads = jax.tree.map(lambda p: jnp.full_like(p, scale), networks)
+    step = max(float(jnp.max(jnp.abs(u))) for u in jax.tree.leaves(tx.update(grads, tx.init(networks), networks)[0]))
+    assert step <= bound * 1e-3 * 1.0001 and (scale < 1e-6 or step > 0.99e-3)
+
+
 def _settings(**overrides):
   values = dict(decoder_width=4, classifier_width=4, hidden_size=16)
   values.update(overrides)

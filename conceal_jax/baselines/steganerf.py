@@ -48,6 +48,11 @@ DECODER_CHANNELS = 4  # the render's 3 and the classifier's score
 CLASSIFIER_DEPTH = 3
 # The classifier's targets for the two renders of a step: (carries I, initial render).
 WATERMARK_LABELS = (1.0, 0.0)
+# Adam eps of the decoder and classifier: torch's default, as StegaNeRF trains them. 3D-GS's 1e-15 turns the
+# vanishing gradients of a classifier that already separates its two renders into full-size steps, so its
+# logits grow without bound until one changed render flips them (BCE 17 on lego at step 3500) and the
+# decoder, reading the score as its 4th channel, dies to a constant image (hidden MSE stuck at 0.133).
+NETWORKS_ADAM_EPS = 1e-8
 
 
 @dataclasses.dataclass(frozen=True)
@@ -164,8 +169,8 @@ def sh_optimizer(lr: ml_collections.ConfigDict, mask_at: str) -> optax.GradientT
 
 
 def networks_optimizer(settings: StegaNerfSettings) -> optax.GradientTransformation:
-  """Adam on {'decoder', 'classifier'} with their own learning rates."""
-  adam = lambda rate: optax.adam(rate, eps=optimizer.ADAM_EPS)
+  """Adam (eps NETWORKS_ADAM_EPS) on {'decoder', 'classifier'} with their own learning rates."""
+  adam = lambda rate: optax.adam(rate, eps=NETWORKS_ADAM_EPS)
   return optax.multi_transform(dict(decoder=adam(settings.decoder_lr), classifier=adam(settings.classifier_lr)),
                                dict(decoder="decoder", classifier="classifier"))
 
