@@ -62,22 +62,22 @@ def decoder_pass_times(decoder, width: int, data: dict, settings, repeats: int) 
           f"decoder_passes_fused_b{batch}": median_ms(jax.jit(fused), decoder, check, repeats=repeats)}
 
 
-def step_ms(settings, options, student_tx, decoder_tx, gaussians, decoder, data, counts, num_views: int,
+def step_ms(settings, variants: dict, student_tx, decoder_tx, gaussians, decoder, data, num_views: int,
             repeats: int, rounds: int = 3) -> dict:
-  """Median ms of the whole jitted step (state donated) on each number of lanes in `counts` (core.lanes),
-  after one warm-up each; the variants take turns, `rounds` times `repeats` steps, so that a slower
-  stretch of the machine does not fall on one of them only."""
+  """Median ms of the whole jitted step (state donated) for each variant, name -> (render options, number of
+  lanes (core.lanes)), after one warm-up each; the variants take turns, `rounds` times `repeats` steps, so
+  that a slower stretch of the machine does not fall on one of them only."""
   runs = {}
-  for count in counts:
+  for name, (options, count) in variants.items():
     mesh = lanes.lane_mesh(count)
     step = conceal.make_conceal_step(settings, options, student_tx, decoder_tx, mesh=mesh)
     fresh = jax.tree.map(jnp.copy, (gaussians, decoder))
     state = lanes.replicate(conceal.create_conceal_state(*fresh, student_tx, decoder_tx), mesh)
     placed = lanes.replicate(data, mesh)
     state, _ = step(state, placed, 0, 1)
-    runs[count] = [step, state, placed, []]
+    runs[name] = [step, state, placed, []]
   for _ in range(rounds):
-    for count, run in runs.items():
+    for name, run in runs.items():
       step, state, placed, times = run
       for i in range(repeats):
         start = time.perf_counter()
@@ -85,10 +85,13 @@ def step_ms(settings, options, student_tx, decoder_tx, gaussians, decoder, data,
         jax.block_until_ready(stats)
         times.append(time.perf_counter() - start)
       run[1] = state
-  return {f"conceal_step_lanes{count}": 1e3 * float(np.median(run[3])) for count, run in runs.items()}
+  return {name: 1e3 * float(np.median(run[3])) for name, run in runs.items()}
 
 
-def profile(row: str, width: int, teacher: pathlib.Path, repeats: int, key_at_decoder_size: bool) -> dict:
+def profile(row: str, width: int, teacher: pathlib.Path, repeats: int, key_at_decoder_size: bool,
+            headrooms: tuple[float, ...] = ()) -> dict:
+  """One profile row; `headrooms`: also time the whole step (on the most lanes) at pair capacities of
+  these multiples of the largest need over the training views, instead of the bucket above the need."""
   config = run_config("lego", teacher, row, width, 0, 0)
   c = config.conceal
   c.key_at_decoder_size = key_at_decoder_size
@@ -101,6 +104,7 @@ def profile(row: str, width: int, teacher: pathlib.Path, repeats: int, key_at_de
   needed = max(int(render_lib.render(gaussians, cam, options).num_pairs)
                for cam in (check_camera, scene.train_cameras[0]))
   options = render_lib.grow_capacity(options, needed)
+  views_need = max(int(render_lib.render(gaussians, cam, options).num_pairs) for cam in scene.train_cameras)
   hidden = hidden_lib.load_hidden_image(c.hidden, settings.hidden_size)
   data = conceal.build_data(scene, gaussians, options, check_camera, jnp.asarray(scene.train_images[0]), hidden,
                             settings.hidden_size)
@@ -138,9 +142,13 @@ def profile(row: str, width: int, teacher: pathlib.Path, repeats: int, key_at_de
                                     repeats=repeats)
 
   counts = (1, 2) if jax.local_device_count() >= 2 else (1,)
-  times.update(step_ms(settings, options, student_tx, decoder_tx, gaussians, decoder, data, counts,
-                       len(scene.train_cameras), repeats))
+  variants = {f"conceal_step_lanes{count}": (options, count) for count in counts}
+  variants.update({f"conceal_step_lanes{counts[-1]}_headroom{h:g}": (
+      dataclasses.replace(options, pair_capacity=-(-int(views_need * h) // 256) * 256), counts[-1]) for h in headrooms})
+  times.update(step_ms(settings, variants, student_tx, decoder_tx, gaussians, decoder, data, len(scene.train_cameras),
+                       repeats))
   return dict(row=row, key_at_decoder_size=key_at_decoder_size, decoder_width=width, num_gaussians=int(gaussians.num), pair_capacity=options.pair_capacity,
+              views_pair_need=views_need,
               tile_size=options.tile_size, image_size=[camera.width, camera.height],
               hidden_size=settings.hidden_size, settings=dataclasses.asdict(settings), repeats=repeats,
               median_ms=times)
@@ -153,6 +161,8 @@ def main():
   parser.add_argument("--widths", default="16,64")
   parser.add_argument("--repeats", type=int, default=7)
   parser.add_argument("--row", default="ours", choices=sorted(ROWS), help="a bench-conceal row's settings")
+  parser.add_argument("--headrooms", default="",
+                      help="comma-separated multiples of the training views' largest pair need to time the step at")
   parser.add_argument("--key-at-decoder-size", default="0",
                       help="comma-separated 0/1: profile with the key rendered at the decoder size, or not")
   args = parser.parse_args()
@@ -162,7 +172,8 @@ def main():
   rows = []
   for width in (int(w) for w in args.widths.split(",") if w):
     for small_key in (bool(int(k)) for k in args.key_at_decoder_size.split(",")):
-      rows.append(profile(args.row, width, teacher, args.repeats, small_key))
+      rows.append(profile(args.row, width, teacher, args.repeats, small_key,
+                          tuple(float(h) for h in args.headrooms.split(",") if h)))
       print(f"decoder width {width}, key at the decoder size {small_key}:")
       for name, ms in rows[-1]["median_ms"].items():
         print(f"  {name:28s} {ms:8.1f} ms")

@@ -41,6 +41,25 @@ def test_map_lanes_gives_each_lane_its_input_and_differentiates():
   np.testing.assert_allclose(got[1], expected[1], rtol=1e-6)
 
 
+@needs_two
+def test_map_lanes_returns_each_lanes_outputs_of_every_dtype_and_shape():
+  """Outputs of mixed dtypes and shapes come back per lane, exactly (integers stay integers); the gradient
+  reaches each lane's own input."""
+  mesh = lanes.lane_mesh(2)
+  fn = lambda w, x: dict(value=jnp.sum(w * x["a"]), image=jnp.outer(w, x["a"]), count=x["n"] * 3,
+                         flag=(x["n"] > 4).astype(jnp.int32))
+  inputs = [dict(a=jnp.arange(3.0), n=jnp.int32(2**24 + 1)), dict(a=jnp.arange(3.0) - 7, n=jnp.int32(5))]
+  w = jnp.linspace(0.1, 0.9, 3)
+  expected = [fn(w, x) for x in inputs]
+  got = jax.jit(lambda w, xs: lanes.map_lanes(fn, w, xs, mesh))(lanes.replicate(w, mesh), inputs)
+  for e, g in zip(expected, got):
+    for name in e:
+      assert g[name].dtype == e[name].dtype and g[name].shape == e[name].shape
+      np.testing.assert_array_equal(np.asarray(g[name]), np.asarray(e[name]))
+  second = lambda a, m: lanes.map_lanes(fn, w, [inputs[0], dict(inputs[1], a=a)], m)[1]["value"]
+  np.testing.assert_allclose(jax.jit(jax.grad(second), static_argnums=1)(inputs[1]["a"], mesh), w, rtol=1e-6)
+
+
 def reference_gradients(student, decoder, data, view, normal_view, s, distortion):
   """Student and L_d^+ decoder gradients of objective.student_objective, L_d^- gradient of
   decoder_identity_objective: the plain statement of what the lanes compute."""

@@ -11,6 +11,7 @@ On one device (a GPU) the lanes run in turn; the values are the same, so the cho
 """
 from __future__ import annotations
 
+import math
 import os
 from typing import Callable, Sequence
 
@@ -66,6 +67,11 @@ def map_lanes(fn: Callable, shared, per_lane: Sequence, mesh: Mesh | None) -> li
 
   With a mesh of len(per_lane) devices and inputs of one structure and shape, lane i computes
   fn(shared, per_lane[i]) on device i, all at once (`shared` replicated); otherwise, in turn.
+
+  The lanes meet once: every collective is a rendezvous in which the faster lane waits, and left to the
+  partitioner the lego conceal step had 103 of them (the stacked inputs resharded by all-to-all, one
+  all-gather per output leaf). Here each device picks its lane's input from the replicated stack, and the
+  outputs travel as one flat vector per dtype (`_gather_flat`).
   """
   trees = [jax.tree.structure(x) for x in per_lane]
   shapes = [[jnp.shape(leaf) for leaf in jax.tree.leaves(x)] for x in per_lane]
@@ -73,16 +79,41 @@ def map_lanes(fn: Callable, shared, per_lane: Sequence, mesh: Mesh | None) -> li
       s != shapes[0] for s in shapes):
     return [fn(shared, x) for x in per_lane]
   stacked = jax.tree.map(lambda *xs: jnp.stack(xs), *per_lane)
+  structure = []  # the output's treedef, leaf shapes and dtypes, set while tracing `lane`
 
-  def lane(shared, x):
-    out = fn(shared, jax.tree.map(lambda leaf: leaf[0], x))
-    return jax.tree.map(lambda leaf: jnp.asarray(leaf)[None], out)
+  def lane(shared, stacked):
+    index = jax.lax.axis_index(LANE_AXIS)
+    out = fn(shared, jax.tree.map(lambda leaf: leaf[index], stacked))
+    leaves, treedef = jax.tree.flatten(out)
+    leaves = [jnp.asarray(leaf) for leaf in leaves]
+    structure[:] = [treedef, [(leaf.shape, leaf.dtype) for leaf in leaves]]
+    return _gather_flat(leaves)
 
   # check_vma off: the renderer's loops start from zeros that are the same on every lane and are updated
-  # with lane data; the outputs are per lane by construction (out_specs along LANE_AXIS).
-  out = jax.shard_map(lane, mesh=mesh, in_specs=(PartitionSpec(), PartitionSpec(LANE_AXIS)),
-                      out_specs=PartitionSpec(LANE_AXIS), check_vma=False)(shared, stacked)
-  # Every device gets every lane's output and runs what follows as one replicated program; left to the
-  # partitioner, the code after the lanes was split across the devices and ran slower than on one.
-  out = jax.lax.with_sharding_constraint(out, NamedSharding(mesh, PartitionSpec()))
-  return [jax.tree.map(lambda leaf: leaf[i], out) for i in range(len(per_lane))]
+  # with lane data; after the all-gather every output is the same on every device (out_specs replicated),
+  # and what follows runs as one replicated program (left to the partitioner, the code after the lanes was
+  # split across the devices and ran slower than on one).
+  gathered = jax.shard_map(lane, mesh=mesh, in_specs=(PartitionSpec(), PartitionSpec()), out_specs=PartitionSpec(),
+                           check_vma=False)(shared, stacked)
+  treedef, specs = structure
+  return [jax.tree.unflatten(treedef, _split_flat(gathered, specs, i)) for i in range(len(per_lane))]
+
+
+def _gather_flat(leaves: list) -> dict:
+  """Inside a lane: {dtype name: [lanes, size]}, the lane's leaves of each dtype raveled into one vector and
+  all-gathered over LANE_AXIS (one collective per dtype)."""
+  groups = {}
+  for leaf in leaves:
+    groups.setdefault(leaf.dtype.name, []).append(leaf.ravel())
+  return {name: jax.lax.all_gather(jnp.concatenate(parts), LANE_AXIS) for name, parts in groups.items()}
+
+
+def _split_flat(gathered: dict, specs: list, lane: int) -> list:
+  """Lane `lane`'s leaves (shapes and dtypes in `specs`) back from `_gather_flat`'s vectors."""
+  offsets = {name: 0 for name in gathered}
+  leaves = []
+  for shape, dtype in specs:
+    size, name = math.prod(shape), jnp.dtype(dtype).name
+    leaves.append(gathered[name][lane, offsets[name]:offsets[name] + size].reshape(shape))
+    offsets[name] += size
+  return leaves
