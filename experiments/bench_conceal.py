@@ -35,6 +35,7 @@ ROWS = {
     "released": dict(variant="released", granularity="tensor"),
     "tensor": dict(granularity="tensor"),
     "ours": lambda config: conceal_ours.apply(config, decoy_views=64),
+    "ours_robust": lambda config: conceal_ours.robust(config, decoy_views=64),
 }
 # The released decoder (width 64) starts from VGG16 with lr 1e-4; a narrow one starts from scratch and
 # learns at 5e-4 (the demo's rate).
@@ -75,7 +76,7 @@ def finished_run(run_dir: pathlib.Path) -> dict | None:
 def summary_row(scene: str, row: str, width: int, result: dict) -> dict:
   m = result["metrics"]
   history = result["history"]
-  overrides = ROWS[row] if isinstance(ROWS[row], dict) else "configs/conceal_ours.py"
+  overrides = ROWS[row] if isinstance(ROWS[row], dict) else f"configs/conceal_ours.py ({row})"
   return dict(scene=scene, row=row, decoder_width=width, overrides=overrides, iterations=result["iterations"],
               wall_time_s=result["wall_time_s"], median_step_s=result["median_step_s"],
               num_decoys=result.get("num_decoys", 0), **m,

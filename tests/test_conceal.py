@@ -131,6 +131,24 @@ def test_identity_on_student_adds_the_students_render_as_a_constant():
   assert all(float(jnp.abs(g).max()) == 0 for g in jax.tree.leaves(grads))
 
 
+def test_identity_distorted_reads_the_students_render_through_the_steps_distortion():
+  """With identity_distorted, L_d^-'s student input is the render blurred and noised as the check render
+  is (augment.distort, then resized); without it, the plain resized render. The setting needs a distortion."""
+  from conceal_jax.conceal import augment
+  _, _, data = _objective_inputs()
+  rgb = jax.random.uniform(jax.random.key(3), (32, 32, 3))
+  distortion = dict(blur=np.float32(1.2), noise=np.float32(0.04), seed=np.uint32(5))
+  base = dict(decoder_width=4, hidden_size=16, identity_on_student=True, check_blur_max=2.0, check_noise_max=0.05)
+  s = objective.ConcealSettings(**base, identity_distorted=True)
+  expected = reveal.resize_for_decoder(augment.distort(rgb, distortion, 2.0, 0.05), 16)
+  np.testing.assert_allclose(objective.identity_inputs(data, 2, s, rgb, distortion)[-1], expected, rtol=1e-6)
+  plain = objective.identity_inputs(data, 2, objective.ConcealSettings(**base), rgb, distortion)[-1]
+  np.testing.assert_allclose(plain, reveal.resize_for_decoder(rgb, 16), rtol=1e-6)
+  assert float(jnp.max(jnp.abs(plain - expected))) > 1e-2
+  with pytest.raises(ValueError, match="identity_distorted"):
+    objective.ConcealSettings(decoder_width=4, hidden_size=16, identity_on_student=True, identity_distorted=True)
+
+
 def test_identity_on_teacher_check_adds_the_teachers_check_render():
   _, _, data = _objective_inputs()
   s = objective.ConcealSettings(decoder_width=4, hidden_size=16, identity_on_teacher_check=True)

@@ -66,7 +66,7 @@ def reference_gradients(student, decoder, data, view, normal_view, s, distortion
   (total, aux), (g_student, g_plus) = jax.value_and_grad(objective.student_objective, argnums=(0, 1), has_aux=True)(
       student, decoder, data, view, s, OPTIONS, distortion)
   if s.identity_loss:
-    inputs = objective.identity_inputs(data, normal_view, s, aux["rgb"])
+    inputs = objective.identity_inputs(data, normal_view, s, aux["rgb"], distortion)
     minus, g_minus = jax.value_and_grad(objective.decoder_identity_objective)(decoder, inputs, s)
   else:
     minus, g_minus = 0.0, jax.tree.map(jnp.zeros_like, decoder)
@@ -81,6 +81,8 @@ SETTINGS = {
     "no_consistency": dict(consistency=False),
     "no_decoder": dict(use_decoder=False),
     "distorted": dict(identity_on_student=True, check_blur_max=1.5, check_noise_max=0.05),
+    "identity_distorted": dict(identity_on_student=True, check_blur_max=1.5, check_noise_max=0.05,
+                               identity_distorted=True),
 }
 
 

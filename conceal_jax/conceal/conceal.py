@@ -33,7 +33,9 @@ Leakage control, an option beyond the paper (off by default, so `variant=paper` 
 
 Robustness, an option beyond the paper: conceal.check_blur_max / check_noise_max distort the student's check
 render (a blur and a noise level drawn per step, augment.py) before the decoder reads it for L_d^+, so that
-the hidden image survives blur, JPEG and noise of the check render.
+the hidden image survives blur, JPEG and noise of the check render; conceal.identity_distorted puts the student's
+normal render (decoy poses included) through the same distortion for L_d^-, so that the decoder stays the identity
+on distorted views near the key.
 
 conceal.key_at_decoder_size (off: as the paper) renders the key directly at the decoder's size (hidden_size
 squared) with the check pose's field of view, instead of rendering it at the training resolution and resizing.

@@ -46,7 +46,7 @@ def identity_weights(settings: ConcealSettings) -> dict:
 
 def lane_inputs(data: dict, view, normal_view, settings: ConcealSettings, distortion=None) -> list[dict]:
   """The two lanes' data (objective.key_data already applied): camera, pixel target [H, W, 3] with its L1
-  and photometric weights, the distortion of the own render, the own render's decoded target and weights
+  and photometric weights, the distortion of the own render (lane 0's only with identity_distorted), the own render's decoded target and weights
   (plus: lambda+ of L_d^+, minus: its L_d^- share, target_is_input: 1 for an identity target), and the
   teacher render decoded beside it with its L_d^- share."""
   s = settings
@@ -57,7 +57,8 @@ def lane_inputs(data: dict, view, normal_view, settings: ConcealSettings, distor
   f32 = jnp.float32
   normal = dict(camera=jax.tree.map(lambda x: x[view], data["cameras"]), pixel_target=normal_target,
                 l1=f32(s.weight_kd if s.distill else 0.0), photometric=f32(0.0 if s.distill else 1.0),
-                distortion=NO_DISTORTION, own_target=data["hidden"], own_plus=f32(0.0), own_minus=f32(w["student"]),
+                distortion=distortion if s.identity_distorted else NO_DISTORTION, own_target=data["hidden"],
+                own_plus=f32(0.0), own_minus=f32(w["student"]),
                 target_is_input=f32(1.0), teacher_small=data["teacher_small"][normal_view],
                 teacher_minus=f32(w["teacher_normal"]))
   check = dict(camera=check, pixel_target=check_target, l1=f32(s.weight_check if s.variant == "released" else 0.0),

@@ -53,6 +53,9 @@ class ConcealSettings:
   # Robustness, an option beyond the paper (augment.py): the check render blurred and noised for L_d^+.
   check_blur_max: float = 0.0
   check_noise_max: float = 0.0
+  # L_d^- also reads the student's normal render through the step's distortion, so that a decoder taught to
+  # see through blur and noise at the key still gives the identity on blurred views near it.
+  identity_distorted: bool = False
 
   def __post_init__(self):
     if self.variant not in VARIANTS:
@@ -72,6 +75,9 @@ class ConcealSettings:
     if not (self.check_blur_max >= 0 and self.check_noise_max >= 0):
       raise ValueError(f"conceal.check_blur_max and check_noise_max must be >= 0, got {self.check_blur_max} and "
                        f"{self.check_noise_max}")
+    if self.identity_distorted and not (self.identity_on_student and self.distorts_check):
+      raise ValueError("conceal.identity_distorted needs identity_on_student and a distortion (check_blur_max or "
+                       "check_noise_max > 0)")
     if (self.identity_on_student or self.identity_on_teacher_check) and not self.identity_loss:
       raise ValueError("conceal.identity_on_student and identity_on_teacher_check need L_d^- (a decoder and "
                        "consistency)")
@@ -165,12 +171,16 @@ def identity_sources(settings: ConcealSettings) -> tuple[str, ...]:
   return tuple(sources)
 
 
-def identity_inputs(data: dict, normal_view, settings: ConcealSettings, student_rgb=None) -> jax.Array:
+def identity_inputs(data: dict, normal_view, settings: ConcealSettings, student_rgb=None,
+                    distortion: dict | None = None) -> jax.Array:
   """[B, S, S, 3] the `identity_sources` at the decoder size; the student's render `student_rgb` [H, W, 3]
-  enters as a constant (L_d^- trains F only)."""
+  enters as a constant (L_d^- trains F only), distorted as the check render is with identity_distorted."""
+  s = settings
+  student = lambda: (check_decoder_input(student_rgb, distortion, s) if s.identity_distorted
+                     else reveal.resize_for_decoder(student_rgb, s.hidden_size))
   images = dict(teacher_normal=lambda: data["teacher_small"][normal_view],
                 teacher_check=lambda: data["teacher_check_small"],
-                student=lambda: jax.lax.stop_gradient(reveal.resize_for_decoder(student_rgb, settings.hidden_size)))
+                student=lambda: jax.lax.stop_gradient(student()))
   return jnp.stack([images[name]() for name in identity_sources(settings)])
 
 

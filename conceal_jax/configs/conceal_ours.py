@@ -23,6 +23,21 @@ def apply(config, decoy_views: int):
   return gentle_student(config)
 
 
+def robust(config, decoy_views: int):
+  """`apply` plus training through the attacks of the robustness issue (conceal/augment.py): L_d^+ decodes
+  the check render blurred by up to ROBUST_BLUR px and noised by up to ROBUST_NOISE, and L_d^- sees the
+  student's normal renders (decoys included) distorted alike, so the decoder does not learn to reveal from
+  blurred views near the key."""
+  config = apply(config, decoy_views)
+  c = config.conceal
+  c.check_blur_max, c.check_noise_max, c.identity_distorted = ROBUST_BLUR, ROBUST_NOISE, True
+  return config
+
+
+# The demo's measured augmentation (augment.py): the paper's mild blur and JPEG then cost 0.003 hidden SSIM.
+ROBUST_BLUR, ROBUST_NOISE = 1.5, 0.02
+
+
 def gentle_student(config):
   """The gentle student's rates alone (conceal.lr): bench-baselines trains LSB's and DeepStega's containers
   from the teacher with them, the recipe of the ConcealGS row they are compared with."""

@@ -129,6 +129,7 @@ def get_config() -> ml_collections.ConfigDict:
   # robustness beyond the paper (conceal/augment.py): per step, blur sigma ~ U[0, max] px and noise ~ U[0, max]
   config.conceal.check_blur_max = 0.0
   config.conceal.check_noise_max = 0.0
+  config.conceal.identity_distorted = False  # L_d^- on the student's normal render distorted the same way
   # student learning rates: the 3D-GS schedule continued from step 10k of 30k, as the released run does
   config.conceal.lr = ml_collections.ConfigDict(config.train.lr.to_dict())
   config.conceal.lr.means_init = 3.45e-5
