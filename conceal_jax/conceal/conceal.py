@@ -50,7 +50,8 @@ the normal view's render with its decoder images and the check view's with its o
 which a CPU host runs side by side on its two cores (core.lanes); the values are those of the plain
 objective (tests/test_lanes.py). Profiled on lego width 16 (experiments/profile_conceal.py), the whole step
 takes 357 ms on two lanes against 424 ms on one; the 10k-step bench-conceal `ours` run took 67.9 min (median
-step 404 ms) against 89.2 min (487 ms) before.
+step 404 ms) against 89.2 min (487 ms) before, and 60.8 min (365 ms) once the lanes met in one all-gather per
+step instead of 103 collectives (core.lanes.map_lanes).
 
 Several hidden images, an option beyond the paper: conceal.extra_hidden holds up to MAX_EXTRA_HIDDEN
 more images, each at its own key of key_kind's kind (key.key_cameras: the next training cameras down
