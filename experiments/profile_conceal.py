@@ -24,7 +24,6 @@ import time
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from conceal_jax.conceal import conceal, guidance, hidden as hidden_lib, key as key_lib, reveal
 from conceal_jax.conceal.objective import decoder_identity_objective, identity_inputs, student_objective
@@ -135,7 +134,7 @@ def profile(row: str, width: int, teacher: pathlib.Path, repeats: int, key_at_de
   guided = jax.jit(lambda p, m: guidance.guided_decoder_gradient(p, m, 1.0, 1.0, settings.granularity))
   times["guidance"] = median_ms(guided, plus_grad, minus_grad, repeats=repeats)
   student_tx = optimizer.gaussian_optimizer(c.lr, scene.scene_extent(), c.iterations)
-  decoder_tx = optax.adam(c.decoder_lr, eps=optimizer.ADAM_EPS)
+  decoder_tx = conceal.decoder_optimizer(config)
   times["student_adam"] = median_ms(jax.jit(student_tx.update), gaussians, student_tx.init(gaussians), gaussians,
                                     repeats=repeats)
   times["decoder_adam"] = median_ms(jax.jit(decoder_tx.update), plus_grad, decoder_tx.init(decoder), decoder,

@@ -431,3 +431,15 @@ def test_concealed_image_is_revealed_only_by_the_student(tiny, tmp_path):
   assert metrics["hidden"]["ssim"] > 0.8
   assert metrics["leakage"]["ssim_teacher_check_view"] < 0.4
   assert metrics["leakage"]["max_ssim_student_test_views"] < 0.4
+
+
+def test_decoder_optimizer_uses_the_configured_eps():
+  """conceal.decoder_adam_eps: at the released 1e-15 a vanishing gradient still takes a step of the full rate;
+  at torch's 1e-8 it takes a negligible one."""
+  config = demo.get_config()
+  grads = dict(w=jnp.full((3,), 1e-12))
+  for eps, lo, hi in ((1e-15, 0.99, 1.0), (1e-8, 0.0, 1e-3)):
+    config.conceal.decoder_adam_eps = eps
+    tx = conceal.decoder_optimizer(config)
+    step = float(jnp.max(jnp.abs(tx.update(grads, tx.init(grads))[0]["w"]))) / config.conceal.decoder_lr
+    assert lo <= step <= hi * 1.0001

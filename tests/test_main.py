@@ -76,6 +76,7 @@ def test_bad_input_gives_one_clear_error_and_nonzero_exit(tmp_path, override, me
     ("train", "train.sh_degree", 5, "train.sh_degree"), ("train", "train.densify.every", 0, "densify"),
     ("train", "render.tile_size", 0, "tile_size"), ("eval", "eval.lpips_net", "squeeze", "squeeze"),
     ("conceal", "conceal.variant", "mine", "conceal.variant"), ("conceal", "conceal.key_kind", "x", "key_kind"),
+    ("conceal", "conceal.decoder_adam_eps", 0.0, "decoder_adam_eps"),
     ("render", "scene.num_views", 0, "num_views"), ("reveal", "reveal.key", "", "reveal.ply"),
     ("verify", "reveal.hidden", "", "reveal.ply"), ("verify", "train.iterations", 1, "reveal.ply")])
 def test_each_mode_validates_before_writing_anything(tmp_path, mode, field, value, message):

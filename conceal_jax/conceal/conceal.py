@@ -120,6 +120,12 @@ def loop_settings(config: ml_collections.ConfigDict) -> loop.LoopSettings:
   return settings_lib.from_section(loop.LoopSettings, config.conceal)
 
 
+def decoder_optimizer(config: ml_collections.ConfigDict) -> optax.GradientTransformation:
+  """Adam on the decoder at conceal.decoder_lr with eps conceal.decoder_adam_eps: 1e-15 as the released code,
+  where a weight whose gradient has all but vanished still takes steps of the full rate."""
+  return optax.adam(config.conceal.decoder_lr, eps=config.conceal.decoder_adam_eps)
+
+
 def validate(config: ml_collections.ConfigDict) -> None:
   """Every value the conceal job reads, checked before anything runs (ValueError naming the key)."""
   c = config.conceal
@@ -130,8 +136,8 @@ def validate(config: ml_collections.ConfigDict) -> None:
   lanes.resolve(c.lanes)
   if c.key_kind not in key_lib.KEY_KINDS:
     raise ValueError(f"conceal.key_kind must be one of {key_lib.KEY_KINDS}, got {c.key_kind!r}")
-  if not (c.lr.means_init > 0 and c.decoder_lr > 0):
-    raise ValueError("conceal.lr.means_init and conceal.decoder_lr must be positive")
+  if not (c.lr.means_init > 0 and c.decoder_lr > 0 and c.decoder_adam_eps > 0):
+    raise ValueError("conceal.lr.means_init, conceal.decoder_lr and conceal.decoder_adam_eps must be positive")
   if c.decoy_views < 0 or (c.decoy_fraction > 0) != (c.decoy_views > 0):
     raise ValueError("conceal.decoy_views must be positive exactly when conceal.decoy_fraction is, got "
                      f"{c.decoy_views} and {c.decoy_fraction}")
@@ -289,7 +295,7 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
                                     settings.hidden_size, decoys, extra_keys), mesh)
 
   student_tx = optimizer.gaussian_optimizer(c.lr, scene.scene_extent(), c.iterations)
-  decoder_tx = optax.adam(c.decoder_lr, eps=optimizer.ADAM_EPS)
+  decoder_tx = decoder_optimizer(config)
   traces = loop.TraceCounter()
   steps = capacity.GrowingSteps(lambda _, opts: make_conceal_step(settings, opts, student_tx, decoder_tx, traces, mesh),
                                 options)

@@ -111,6 +111,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.conceal.decoder_width = 64    # U-Net base channels (64 = the released decoder)
   config.conceal.decoder_vgg_init = True  # ImageNet VGG16 conv1_2..conv4_3 (width 64 only)
   config.conceal.decoder_lr = 1e-4
+  config.conceal.decoder_adam_eps = 1e-15  # the released code's (the Gaussians' Adam); torch's default is 1e-8
   config.conceal.use_decoder = True    # ablation switches
   config.conceal.consistency = True
   config.conceal.guidance = True
