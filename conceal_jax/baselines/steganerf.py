@@ -51,7 +51,9 @@ WATERMARK_LABELS = (1.0, 0.0)
 # Adam eps of the decoder and classifier: torch's default, as StegaNeRF trains them. 3D-GS's 1e-15 turns the
 # vanishing gradients of a classifier that already separates its two renders into full-size steps, so its
 # logits grow without bound until one changed render flips them (BCE 17 on lego at step 3500) and the
-# decoder, reading the score as its 4th channel, dies to a constant image (hidden MSE stuck at 0.133).
+# decoder, reading the score as its 4th channel, dies to a constant image. This eps alone does not keep the
+# decoder alive: at lr 1e-3 it still died at lego step 6160, with the classifier calm (replayed from step 6000,
+# the same collapse at 1e-3 and none at 1e-4).
 NETWORKS_ADAM_EPS = 1e-8
 
 
