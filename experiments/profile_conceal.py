@@ -103,7 +103,9 @@ def profile(row: str, width: int, teacher: pathlib.Path, repeats: int, key_at_de
   needed = max(int(render_lib.render(gaussians, cam, options).num_pairs)
                for cam in (check_camera, scene.train_cameras[0]))
   options = render_lib.grow_capacity(options, needed)
-  views_need = max(int(render_lib.render(gaussians, cam, options).num_pairs) for cam in scene.train_cameras)
+  # the largest need over every training view, for the headroom variants only (a render per view)
+  views_need = max(int(render_lib.render(gaussians, cam, options).num_pairs)
+                   for cam in scene.train_cameras) if headrooms else None
   hidden = hidden_lib.load_hidden_image(c.hidden, settings.hidden_size)
   data = conceal.build_data(scene, gaussians, options, check_camera, jnp.asarray(scene.train_images[0]), hidden,
                             settings.hidden_size)
@@ -143,7 +145,7 @@ def profile(row: str, width: int, teacher: pathlib.Path, repeats: int, key_at_de
   counts = (1, 2) if jax.local_device_count() >= 2 else (1,)
   variants = {f"conceal_step_lanes{count}": (options, count) for count in counts}
   variants.update({f"conceal_step_lanes{counts[-1]}_headroom{h:g}": (
-      dataclasses.replace(options, pair_capacity=-(-int(views_need * h) // 256) * 256), counts[-1]) for h in headrooms})
+      dataclasses.replace(options, pair_capacity=render_lib.round_capacity(views_need * h)), counts[-1]) for h in headrooms})
   times.update(step_ms(settings, variants, student_tx, decoder_tx, gaussians, decoder, data, len(scene.train_cameras),
                        repeats))
   return dict(row=row, key_at_decoder_size=key_at_decoder_size, decoder_width=width, num_gaussians=int(gaussians.num), pair_capacity=options.pair_capacity,

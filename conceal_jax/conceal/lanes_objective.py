@@ -46,9 +46,9 @@ def identity_weights(settings: ConcealSettings) -> dict:
 
 def lane_inputs(data: dict, view, normal_view, settings: ConcealSettings, distortion=None) -> list[dict]:
   """The two lanes' data (objective.key_data already applied): camera, pixel target [H, W, 3] with its L1
-  and photometric weights, the distortion of the own render (lane 0's only with identity_distorted), the own render's decoded target and weights
-  (plus: lambda+ of L_d^+, minus: its L_d^- share, target_is_input: 1 for an identity target), and the
-  teacher render decoded beside it with its L_d^- share."""
+  and photometric weights, the distortion of the own render (lane 0's only with identity_distorted), the
+  own render's decoded target and weights (plus: lambda+ of L_d^+, minus: its L_d^- share, target_is_input:
+  1 for an identity target), and the teacher render decoded beside it with its L_d^- share."""
   s = settings
   w = identity_weights(s)
   check = data["check_camera"]

@@ -111,11 +111,16 @@ class RenderOutput:
     return self.num_pairs > self.pair_capacity
 
 
+def round_capacity(needed: int) -> int:
+  """`needed` pairs rounded up to a multiple of 256, the granularity of every pair capacity (host-side)."""
+  return -(-math.ceil(needed) // 256) * 256
+
+
 def capacity_bucket(needed: int) -> int:
   """The smallest bucket >= needed: 1024 * sqrt(2)^k rounded up to a multiple of 256 (pure, host-side)."""
   k = max(0, math.ceil(2 * math.log2(max(needed, 1) / _MIN_CAPACITY) - 1e-9))
   while True:
-    bucket = -(-int(math.ceil(_MIN_CAPACITY * 2 ** (k / 2))) // 256) * 256
+    bucket = round_capacity(math.ceil(_MIN_CAPACITY * 2 ** (k / 2)))
     if bucket >= needed:
       return bucket
     k += 1
