@@ -371,6 +371,7 @@ def test_resized_camera_keeps_the_field_of_view():
     (dict(decoy_views=4), "decoy_fraction"), (dict(decoy_views=4, decoy_fraction=1.0), "decoy_fraction"),
     (dict(decoy_views=4, decoy_fraction=0.2, variant="released"), "decoy_fraction"),
     (dict(decoy_translation=(0.2, 0.1)), "decoy_translation"), (dict(eval_views=0), "eval_views"),
+    (dict(decoder_lr_final_ratio=2.0), "decoder_lr_final_ratio"),
     (dict(identity_on_student=True, consistency=False), "identity_on_student"),
     (dict(identity_on_teacher_check=True, use_decoder=False), "identity_on_teacher_check"),
     (dict(extra_hidden=("camera", "coffee", "chelsea", "moon")), "extra_hidden holds at most 3"),

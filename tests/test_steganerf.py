@@ -68,7 +68,7 @@ def test_networks_take_small_steps_on_vanishing_gradients():
   still take lr-sized first steps."""
   s = _settings(decoder_lr=1e-3, classifier_lr=1e-3)
   networks = steganerf.init_networks(jax.random.key(0), s)
-  tx = steganerf.networks_optimizer(s)
+  tx = steganerf.networks_optimizer(s, 100)
   for scale, bound in ((1e-12, 1e-3), (1e-2, 1.0)):
     grads = jax.tree.map(lambda p: jnp.full_like(p, scale), networks)
     step = max(float(jnp.max(jnp.abs(u))) for u in jax.tree.leaves(tx.update(grads, tx.init(networks), networks)[0]))
@@ -115,7 +115,7 @@ def test_objective_is_the_sum_of_stega_nerfs_terms(protocol):
 def test_step_lowers_the_loss_and_keeps_the_state_on_overflow():
   teacher, _, data = _objective_inputs()
   s = _settings(decoder_lr=3e-3, classifier_lr=3e-3, mask_at="update")
-  sh_tx, networks_tx = steganerf.sh_optimizer(LR, s.mask_at), steganerf.networks_optimizer(s)
+  sh_tx, networks_tx = steganerf.sh_optimizer(LR, s.mask_at), steganerf.networks_optimizer(s, 100)
   fresh = lambda: steganerf_train.create_state(jnp.array(teacher.sh, copy=True),
                                                 steganerf.init_networks(jax.random.key(0), s), sh_tx, networks_tx)
   step = steganerf_train.make_steganerf_step(s, RenderOptions(max_per_tile=None, pair_capacity=4096), sh_tx,
@@ -239,6 +239,7 @@ def test_bench_rows_of_both_protocols_feed_the_reproduction(all_views_runs, chec
     ("classifier_width", 0, "baseline.steganerf.classifier_width"),
     ("decoder_lr", 0.0, "baseline.steganerf.decoder_lr"), ("classifier_lr", -1e-3, "baseline.steganerf.classifier_lr"),
     ("log_every", 0, "baseline.steganerf.log_every"), ("checkpoint_every", -1, "baseline.steganerf.checkpoint_every"),
+    ("networks_lr_final_ratio", 0.0, "baseline.steganerf.networks_lr_final_ratio"),
     ("hidden_size", 12, "conceal.hidden_size")])
 def test_bad_steganerf_config_is_named_before_anything_is_written(tiny, tmp_path, field, value, message):
   config = stega_config(tiny, "all_views")

@@ -158,6 +158,25 @@ def test_position_learning_rate_decays_over_the_run_unless_given_a_length():
     optimizer.gaussian_optimizer(lr, 1.0, run_steps=0)
 
 
+def test_decaying_adam_steps_follow_the_schedule():
+  """With a constant gradient Adam's normalised step is 1, so each update is -lr(t): 1e-3 decaying to 1e-4 over
+  10 steps and held there; ratio 1 keeps lr (with no schedule state) and a ratio outside (0, 1] is named."""
+  params = dict(w=jnp.zeros(2))
+  grads = dict(w=jnp.ones(2))
+  for ratio, expected in ((0.1, [1e-3 * 0.1**(min(t, 10) / 10) for t in (0, 5, 10, 20)]), (1.0, [1e-3] * 4)):
+    tx = optimizer.decaying_adam(1e-3, ratio, 10, 1e-15)
+    state, steps = tx.init(params), []
+    for t in range(21):
+      update, state = tx.update(grads, state, params)
+      if t in (0, 5, 10, 20):
+        steps.append(-float(update["w"][0]))
+    np.testing.assert_allclose(steps, expected, rtol=1e-4)
+  assert len(jax.tree.leaves(optimizer.decaying_adam(1e-3, 1.0, 10, 1e-15).init(params))) == 3
+  for ratio in (0.0, 1.5, float("nan")):
+    with pytest.raises(ValueError, match="my.ratio"):
+      optimizer.decaying_adam(1e-3, ratio, 10, 1e-15, "my.ratio")
+
+
 def test_learning_rates_per_field():
   """After one Adam step from zero moments each update is -lr * sign(grad) (up to eps)."""
   config = demo.get_config()

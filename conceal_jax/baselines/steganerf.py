@@ -71,6 +71,7 @@ class StegaNerfSettings:
   classifier_width: int = 16
   decoder_lr: float = 1e-3
   classifier_lr: float = 1e-3
+  networks_lr_final_ratio: float = 1.0
   mask_at: str = "gradient"
   hidden_size: int = 64
 
@@ -87,6 +88,7 @@ class StegaNerfSettings:
         raise ValueError(f"baseline.steganerf.{name} must be positive, got {getattr(self, name)!r}")
     for name in ("decoder_width", "classifier_width"):
       settings_lib.check_count(f"baseline.steganerf.{name}", getattr(self, name))
+    networks_optimizer(self, 1)  # checks networks_lr_final_ratio
     settings_lib.check_count("conceal.hidden_size", self.hidden_size)
     if self.hidden_size % unet.DOWNSAMPLE:
       raise ValueError(f"conceal.hidden_size must be a multiple of {unet.DOWNSAMPLE} for the StegaNeRF decoder, "
@@ -170,9 +172,11 @@ def sh_optimizer(lr: ml_collections.ConfigDict, mask_at: str) -> optax.GradientT
   return optax.chain(*steps, optax.stateless(scale_by_rates))
 
 
-def networks_optimizer(settings: StegaNerfSettings) -> optax.GradientTransformation:
-  """Adam (eps NETWORKS_ADAM_EPS) on {'decoder', 'classifier'} with their own learning rates."""
-  adam = lambda rate: optax.adam(rate, eps=NETWORKS_ADAM_EPS)
+def networks_optimizer(settings: StegaNerfSettings, iterations: int) -> optax.GradientTransformation:
+  """Adam (eps NETWORKS_ADAM_EPS) on {'decoder', 'classifier'} with their own learning rates, each decaying to
+  networks_lr_final_ratio of itself over the run's `iterations` steps."""
+  adam = lambda rate: optimizer.decaying_adam(rate, settings.networks_lr_final_ratio, iterations, NETWORKS_ADAM_EPS,
+                                              "baseline.steganerf.networks_lr_final_ratio")
   return optax.multi_transform(dict(decoder=adam(settings.decoder_lr), classifier=adam(settings.classifier_lr)),
                                dict(decoder="decoder", classifier="classifier"))
 

@@ -93,7 +93,8 @@ def train_steganerf(config: ml_collections.ConfigDict, workdir: str, iterations:
   median_step_s, resumed_from, steganerf: the summary without its history)."""
   s = steganerf.settings_from_config(config)
   data = conceal.build_data(scene, teacher, options, check_camera, None, hidden, s.hidden_size)
-  sh_tx, networks_tx = steganerf.sh_optimizer(config.conceal.lr, s.mask_at), steganerf.networks_optimizer(s)
+  sh_tx = steganerf.sh_optimizer(config.conceal.lr, s.mask_at)
+  networks_tx = steganerf.networks_optimizer(s, iterations)
   traces = loop.TraceCounter()
   steps = capacity.GrowingSteps(lambda _, opts: make_steganerf_step(s, opts, sh_tx, networks_tx, traces), options)
   steps.grow(render_lib.initial_capacity(teacher.num, options))

@@ -121,9 +121,12 @@ def loop_settings(config: ml_collections.ConfigDict) -> loop.LoopSettings:
 
 
 def decoder_optimizer(config: ml_collections.ConfigDict) -> optax.GradientTransformation:
-  """Adam on the decoder at conceal.decoder_lr with eps conceal.decoder_adam_eps: 1e-15 as the released code,
-  where a weight whose gradient has all but vanished still takes steps of the full rate."""
-  return optax.adam(config.conceal.decoder_lr, eps=config.conceal.decoder_adam_eps)
+  """Adam on the decoder at conceal.decoder_lr, decaying to decoder_lr * conceal.decoder_lr_final_ratio over
+  the run (1: constant, as released), with eps conceal.decoder_adam_eps: 1e-15 as the released code, where a
+  weight whose gradient has all but vanished still takes steps of the full rate."""
+  c = config.conceal
+  return optimizer.decaying_adam(c.decoder_lr, c.decoder_lr_final_ratio, c.iterations, c.decoder_adam_eps,
+                                 "conceal.decoder_lr_final_ratio")
 
 
 def validate(config: ml_collections.ConfigDict) -> None:
@@ -138,6 +141,7 @@ def validate(config: ml_collections.ConfigDict) -> None:
     raise ValueError(f"conceal.key_kind must be one of {key_lib.KEY_KINDS}, got {c.key_kind!r}")
   if not (c.lr.means_init > 0 and c.decoder_lr > 0 and c.decoder_adam_eps > 0):
     raise ValueError("conceal.lr.means_init, conceal.decoder_lr and conceal.decoder_adam_eps must be positive")
+  decoder_optimizer(config)
   if c.decoy_views < 0 or (c.decoy_fraction > 0) != (c.decoy_views > 0):
     raise ValueError("conceal.decoy_views must be positive exactly when conceal.decoy_fraction is, got "
                      f"{c.decoy_views} and {c.decoy_fraction}")

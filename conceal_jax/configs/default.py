@@ -112,6 +112,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.conceal.decoder_vgg_init = True  # ImageNet VGG16 conv1_2..conv4_3 (width 64 only)
   config.conceal.decoder_lr = 1e-4
   config.conceal.decoder_adam_eps = 1e-15  # the released code's (the Gaussians' Adam); torch's default is 1e-8
+  config.conceal.decoder_lr_final_ratio = 1.0  # log-linear decay of decoder_lr to this fraction (1: constant)
   config.conceal.use_decoder = True    # ablation switches
   config.conceal.consistency = True
   config.conceal.guidance = True
@@ -178,6 +179,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.baseline.steganerf.classifier_width = 16   # channels of the classifier's first conv (then x2, x4)
   config.baseline.steganerf.decoder_lr = 1e-3     # fresh networks (no VGG16 start): 1e-4 learns I ~3x slower
   config.baseline.steganerf.classifier_lr = 1e-3
+  config.baseline.steganerf.networks_lr_final_ratio = 1.0  # log-linear decay of both rates to this fraction
   config.baseline.steganerf.mask_at = "gradient"    # adaptive SH mask on the 'gradient' (StegaNeRF) or Adam's 'update'
   config.baseline.steganerf.log_every = 10
   config.baseline.steganerf.checkpoint_every = 1000

@@ -25,6 +25,19 @@ def log_linear_schedule(init: float, final: float, max_steps: int) -> optax.Sche
   return schedule
 
 
+def decaying_adam(lr: float, final_ratio: float, steps: int, eps: float,
+                  name: str = "final_ratio") -> optax.GradientTransformation:
+  """Adam at rate `lr` decaying log-linearly to lr * final_ratio over `steps` (then held); a constant rate,
+  with no schedule state, when final_ratio is 1. Late large steps kill an unnormalised conv+ReLU U-Net
+  (every unit dead, one constant image out), which a decayed rate avoids. `name`: the config key of
+  final_ratio, for the error message."""
+  if not 0 < final_ratio <= 1:
+    raise ValueError(f"{name} must be in (0, 1], got {final_ratio!r}")
+  if final_ratio == 1:
+    return optax.adam(lr, eps=eps)
+  return optax.adam(log_linear_schedule(lr, lr * final_ratio, steps), eps=eps)
+
+
 def means_decay_steps(lr: ml_collections.ConfigDict, run_steps: int) -> int:
   """lr.means_steps, or the run's length `run_steps` where it is 0 (3D-GS decays the position learning
   rate over the whole run: position_lr_max_steps = iterations = 30k)."""
