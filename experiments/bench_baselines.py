@@ -57,7 +57,7 @@ def run_config(scene: str, teacher: pathlib.Path, row: str, iterations: int, eva
   if iterations:
     config.baseline.iterations = iterations
   if ROWS[row]["method"] in CONTAINER_METHODS:
-    conceal_ours.gentle_student(config, baseline.run_length(config))
+    conceal_ours.gentle_student(config)
   for name, value in ROWS[row].items():
     *sections, key = name.split(".")
     section = config.baseline

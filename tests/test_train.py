@@ -249,3 +249,18 @@ def test_warmup_ramps_every_update_linearly():
   lr.warmup_steps = -1
   with pytest.raises(ValueError, match="warmup_steps"):
     optimizer.gaussian_optimizer(lr, 1.0, run_steps=10)
+
+
+def test_warmup_fraction_takes_the_longer_of_the_two_lengths():
+  """lr.warmup_fraction of the run's length, unless lr.warmup_steps is longer; a fraction outside [0, 1] is
+  named."""
+  lr = demo.get_config().train.lr
+  lr.warmup_steps, lr.warmup_fraction = 200, 0.1
+  assert optimizer.warmup_length(lr, 10_000) == 1000
+  assert optimizer.warmup_length(lr, 1300) == 200
+  lr.warmup_steps = 0
+  assert optimizer.warmup_length(lr, 1300) == 130
+  for fraction in (-0.1, 1.5, float("nan")):
+    lr.warmup_fraction = fraction
+    with pytest.raises(ValueError, match="warmup_fraction"):
+      optimizer.gaussian_optimizer(lr, 1.0, run_steps=10)

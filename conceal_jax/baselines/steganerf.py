@@ -88,7 +88,7 @@ class StegaNerfSettings:
         raise ValueError(f"baseline.steganerf.{name} must be positive, got {getattr(self, name)!r}")
     for name in ("decoder_width", "classifier_width"):
       settings_lib.check_count(f"baseline.steganerf.{name}", getattr(self, name))
-    networks_optimizer(self, 1)  # checks networks_lr_final_ratio
+    optimizer.check_final_ratio("baseline.steganerf.networks_lr_final_ratio", self.networks_lr_final_ratio)
     settings_lib.check_count("conceal.hidden_size", self.hidden_size)
     if self.hidden_size % unet.DOWNSAMPLE:
       raise ValueError(f"conceal.hidden_size must be a multiple of {unet.DOWNSAMPLE} for the StegaNeRF decoder, "

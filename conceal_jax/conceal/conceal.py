@@ -141,7 +141,7 @@ def validate(config: ml_collections.ConfigDict) -> None:
     raise ValueError(f"conceal.key_kind must be one of {key_lib.KEY_KINDS}, got {c.key_kind!r}")
   if not (c.lr.means_init > 0 and c.decoder_lr > 0 and c.decoder_adam_eps > 0):
     raise ValueError("conceal.lr.means_init, conceal.decoder_lr and conceal.decoder_adam_eps must be positive")
-  decoder_optimizer(config)
+  optimizer.check_final_ratio("conceal.decoder_lr_final_ratio", c.decoder_lr_final_ratio)
   if c.decoy_views < 0 or (c.decoy_fraction > 0) != (c.decoy_views > 0):
     raise ValueError("conceal.decoy_views must be positive exactly when conceal.decoy_fraction is, got "
                      f"{c.decoy_views} and {c.decoy_fraction}")

@@ -23,7 +23,7 @@
 # The demo's measured augmentation (augment.py): the paper's mild blur and JPEG then cost 0.003 hidden SSIM.
 ROBUST_BLUR, ROBUST_NOISE = 1.5, 0.02
 DECODER_LR_FINAL_RATIO = 0.1
-MIN_WARMUP_STEPS = 200
+MIN_WARMUP_STEPS, WARMUP_FRACTION = 200, 0.1
 
 
 def apply(config, decoy_views: int):
@@ -47,15 +47,16 @@ def robust(config, decoy_views: int):
   return config
 
 
-def gentle_student(config, run_steps: int | None = None):
+def gentle_student(config):
   """The gentle student's rates alone (conceal.lr): bench-baselines trains LSB's and DeepStega's containers
   from the teacher with them, the recipe of the ConcealGS row they are compared with. The warmup spans a
-  tenth of the run (`run_steps`, else conceal.iterations: set it first), at least 200 steps: until the decoder tells the check render
-  from the teacher's, L_d^+ pushes the whole student; on lego (first 1000 of 10k steps, 3 runs) a 200-step
-  warmup let the normal-view PSNR fall to 20-24 dB and test PSNR to 31.7 dB at step 1000, a 1000-step one
-  kept them at 30-31 and 32.7-32.8 dB, the hidden image as far along (27.0-27.5 dB)."""
+  tenth of the run, at least 200 steps (gs/optimizer.warmup_length, resolved with the run's length): until
+  the decoder tells the check render from the teacher's, L_d^+ pushes the whole student; on lego (first
+  1000 of 10k steps, 3 runs) a 200-step warmup let the normal-view PSNR fall to 20-24 dB and test PSNR to
+  31.7 dB at step 1000, a 1000-step one kept them at 30-31 and 32.7-32.8 dB, the hidden image as far along
+  (27.0-27.5 dB)."""
   lr = config.conceal.lr
-  lr.warmup_steps = max(MIN_WARMUP_STEPS, (run_steps or config.conceal.iterations) // 10)
+  lr.warmup_steps, lr.warmup_fraction = MIN_WARMUP_STEPS, WARMUP_FRACTION
   lr.opacity, lr.scales, lr.quats = 0.0125, 1.25e-3, 2.5e-4
   lr.sh_dc, lr.sh_rest = 6.25e-4, 3.125e-5
   return config

@@ -67,6 +67,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.train.lr.scales = 5e-3
   config.train.lr.quats = 1e-3
   config.train.lr.warmup_steps = 0       # linear ramp of every update (not in 3D-GS; see gs/optimizer.py)
+  config.train.lr.warmup_fraction = 0.0  # ... over this fraction of the run instead, where that is longer
   config.train.densify = ml_collections.ConfigDict()
   config.train.densify.start = 500
   config.train.densify.until = 15_000

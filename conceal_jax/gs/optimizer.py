@@ -25,14 +25,19 @@ def log_linear_schedule(init: float, final: float, max_steps: int) -> optax.Sche
   return schedule
 
 
+def check_final_ratio(name: str, final_ratio: float) -> None:
+  """ValueError naming the config key `name` unless the decay's final ratio is in (0, 1]."""
+  if not 0 < final_ratio <= 1:
+    raise ValueError(f"{name} must be in (0, 1], got {final_ratio!r}")
+
+
 def decaying_adam(lr: float, final_ratio: float, steps: int, eps: float,
                   name: str = "final_ratio") -> optax.GradientTransformation:
   """Adam at rate `lr` decaying log-linearly to lr * final_ratio over `steps` (then held); a constant rate,
   with no schedule state, when final_ratio is 1. Late large steps kill an unnormalised conv+ReLU U-Net
   (every unit dead, one constant image out), which a decayed rate avoids. `name`: the config key of
   final_ratio, for the error message."""
-  if not 0 < final_ratio <= 1:
-    raise ValueError(f"{name} must be in (0, 1], got {final_ratio!r}")
+  check_final_ratio(name, final_ratio)
   if final_ratio == 1:
     return optax.adam(lr, eps=eps)
   return optax.adam(log_linear_schedule(lr, lr * final_ratio, steps), eps=eps)
@@ -79,6 +84,16 @@ def scale_by_gaussian_learning_rates(lr: ml_collections.ConfigDict, extent: floa
   return optax.GradientTransformation(init, update)
 
 
+def warmup_length(lr: ml_collections.ConfigDict, run_steps: int) -> int:
+  """lr.warmup_steps, or lr.warmup_fraction of the run's `run_steps` where that is longer."""
+  steps, fraction = int(lr.get("warmup_steps", 0)), float(lr.get("warmup_fraction", 0.0))
+  if steps < 0:
+    raise ValueError(f"lr.warmup_steps must be >= 0, got {steps}")
+  if not 0 <= fraction <= 1:
+    raise ValueError(f"lr.warmup_fraction must be in [0, 1], got {fraction}")
+  return max(steps, int(fraction * run_steps))
+
+
 def linear_warmup(steps: int) -> optax.Schedule:
   """Factor min(1, (t + 1) / steps) on the t-th update (t from 0)."""
   return lambda count: jnp.minimum(1.0, (count + 1) / steps)
@@ -88,14 +103,13 @@ def gaussian_optimizer(lr: ml_collections.ConfigDict, extent: float, run_steps: 
   """Adam (b1 0.9, b2 0.999, eps 1e-15) with the 3D-GS learning rates of `lr`, scaled by scene extent;
   run_steps: the run's length, over which the means decay when lr.means_steps is 0.
 
-  lr.warmup_steps > 0 (not in 3D-GS) ramps every update linearly from 1/warmup_steps to full size. Fresh
+  A warmup (not in 3D-GS; `warmup_length`: lr.warmup_steps, or lr.warmup_fraction of run_steps where
+  longer) ramps every update linearly from 1/warmup to full size. Fresh
   Adam on a converged scene moves every parameter that has a gradient by about its learning rate at once
   (the first moment over the root of the second is +-1), which costs a trained scene several dB in the
   first steps of concealment.
   """
-  warmup = int(lr.get("warmup_steps", 0))
-  if warmup < 0:
-    raise ValueError(f"lr.warmup_steps must be >= 0, got {warmup}")
+  warmup = warmup_length(lr, run_steps)
   chain = [optax.scale_by_adam(b1=0.9, b2=0.999, eps=ADAM_EPS), scale_by_gaussian_learning_rates(lr, extent, run_steps)]
   if warmup:
     chain.append(optax.scale_by_schedule(linear_warmup(warmup)))
