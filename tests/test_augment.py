@@ -1,5 +1,5 @@
-"""Training-time distortions of the check render (conceal/augment.py) against the float64 attacks of
-robust/image_attacks.py, and a concealment run that trains through them."""
+"""Training-time distortions of the check render and of the model it is rendered from (conceal/augment.py)
+against the float64 attacks of robust/, and a concealment run that trains through them."""
 from __future__ import annotations
 
 import jax
@@ -9,6 +9,7 @@ import pytest
 
 from conceal_jax.conceal import augment, conceal
 from conceal_jax.robust import image_attacks
+from conceal_jax.splat.gaussians import Gaussians
 from tests.test_conceal import tiny, tiny_config  # noqa: F401  (tiny is a fixture)
 
 
@@ -30,8 +31,13 @@ def test_blur_of_sigma_zero_is_the_identity_with_finite_gradients():
 
 def test_distort_adds_noise_of_the_drawn_level_and_draws_stay_in_range():
   rng = np.random.default_rng(2)
-  draws = [augment.draw(rng, 1.5, 0.05) for _ in range(200)]
+  draws = [augment.draw(rng, 1.5, 0.05, 0.3, 0.02) for _ in range(200)]
   assert all(0 <= d["blur"] <= 1.5 and 0 <= d["noise"] <= 0.05 for d in draws)
+  assert all(0 <= d["dropout"] <= 0.3 and 0 <= d["param_noise"] <= 0.02 for d in draws)
+  # the image's draws come first: a run that adds the model's keeps its image distortions
+  image_only = augment.draw(np.random.default_rng(7), 1.5, 0.05)
+  with_model = augment.draw(np.random.default_rng(7), 1.5, 0.05, 0.3, 0.02)
+  assert all(image_only[k] == with_model[k] for k in ("blur", "noise", "seed"))
   image = jnp.full((64, 64, 3), 0.5, jnp.float32)
   drawn = dict(blur=np.float32(0.0), noise=np.float32(0.1), seed=np.uint32(3))
   out = augment.distort(image, drawn, 0.0, 0.1)
@@ -40,9 +46,54 @@ def test_distort_adds_noise_of_the_drawn_level_and_draws_stay_in_range():
   np.testing.assert_array_equal(np.asarray(augment.distort(image, drawn, 0.0, 0.0)), np.asarray(image))
 
 
+def _random_gaussians(n, seed=0):
+  rng = np.random.default_rng(seed)
+  f32 = lambda *shape, scale=1.0: jnp.asarray(scale * rng.normal(size=shape), jnp.float32)
+  return Gaussians(means=f32(n, 3, scale=2.0), log_scales=f32(n, 3, scale=0.5) - 4.0, quats=f32(n, 4),
+                   opacity_logits=f32(n), sh=f32(n, 4, 3, scale=0.3))
+
+
+def test_perturb_gaussians_noises_by_the_fields_spread_and_drops_at_the_drawn_rate():
+  """Against float64 statistics: the noise of each field and channel, over its float64 spread, has standard
+  deviation param_noise (as robust.model_attacks.parameter_noise's); a share `dropout` of the Gaussians is
+  dropped (opacity logit DROPPED_LOGIT), the rest keep their noised logits."""
+  g = _random_gaussians(20_000)
+  level, rate = 0.05, 0.3
+  drawn = dict(dropout=np.float32(0.0), param_noise=np.float32(level), model_seed=np.uint32(4))
+  noised = augment.perturb_gaussians(g, drawn, 0.5, 0.1)
+  for name in augment.MODEL_FIELDS:
+    x = np.asarray(getattr(g, name), np.float64)
+    relative = (np.asarray(getattr(noised, name), np.float64) - x) / (level * x.std(axis=0, keepdims=True))
+    assert np.all(np.abs(relative.reshape(len(x), -1).std(axis=0) - 1.0) < 0.03), name
+    assert np.all(np.abs(relative.reshape(len(x), -1).mean(axis=0)) < 0.03), name
+  both = augment.perturb_gaussians(g, dict(drawn, dropout=np.float32(rate)), 0.5, 0.1)
+  dropped = np.asarray(both.opacity_logits) == augment.DROPPED_LOGIT
+  assert abs(dropped.mean() - rate) < 0.015
+  np.testing.assert_array_equal(np.asarray(both.opacity_logits)[~dropped], np.asarray(noised.opacity_logits)[~dropped])
+  np.testing.assert_array_equal(np.asarray(both.means), np.asarray(noised.means))
+
+
+def test_perturb_gaussians_at_level_zero_is_the_identity_with_finite_gradients():
+  g = _random_gaussians(500, seed=1)
+  zero = dict(dropout=np.float32(0.0), param_noise=np.float32(0.0), model_seed=np.uint32(9))
+  for a, b in zip(jax.tree.leaves(augment.perturb_gaussians(g, zero, 0.5, 0.1)), jax.tree.leaves(g)):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  # the noise's scale is a constant and a dropped Gaussian's opacity gets no gradient
+  drawn = dict(zero, dropout=np.float32(0.4), param_noise=np.float32(0.1))
+  loss = lambda gs: sum(jnp.sum(x) for x in jax.tree.leaves(augment.perturb_gaussians(gs, drawn, 0.5, 0.1)))
+  grads = jax.grad(loss)(g)
+  kept = np.asarray(augment.perturb_gaussians(g, drawn, 0.5, 0.1).opacity_logits) != augment.DROPPED_LOGIT
+  np.testing.assert_array_equal(np.asarray(grads.opacity_logits), kept.astype(np.float32))
+  for name in ("means", "log_scales", "quats", "sh"):
+    np.testing.assert_array_equal(np.asarray(getattr(grads, name)), 1.0)
+
+
 def test_conceal_trains_through_distortions_in_one_trace(tiny, tmp_path):  # noqa: F811
-  config = tiny_config(tiny, iterations=4, check_blur_max=1.0, check_noise_max=0.02)
+  config = tiny_config(tiny, iterations=4, check_blur_max=1.0, check_noise_max=0.02, check_dropout_max=0.2,
+                       check_param_noise_max=0.02, identity_on_student=True, identity_perturbed=True)
   result = conceal.conceal_and_evaluate(config, str(tmp_path))
   assert result["traces"] == dict(conceal_step=1) and np.isfinite(result["metrics"]["hidden"]["psnr"])
-  with pytest.raises(ValueError, match="check_blur_max"):
-    conceal.conceal_and_evaluate(tiny_config(tiny, check_blur_max=-1.0), str(tmp_path / "bad"))
+  for key, bad in (("check_blur_max", -1.0), ("check_dropout_max", 1.0), ("check_param_noise_max", -0.1),
+                   ("identity_perturbed", True)):  # the last without a model perturbation
+    with pytest.raises(ValueError, match=key):
+      conceal.conceal_and_evaluate(tiny_config(tiny, **{key: bad}), str(tmp_path / "bad"))

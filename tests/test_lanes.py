@@ -66,7 +66,7 @@ def reference_gradients(student, decoder, data, view, normal_view, s, distortion
   (total, aux), (g_student, g_plus) = jax.value_and_grad(objective.student_objective, argnums=(0, 1), has_aux=True)(
       student, decoder, data, view, s, OPTIONS, distortion)
   if s.identity_loss:
-    inputs = objective.identity_inputs(data, normal_view, s, aux["rgb"], distortion)
+    inputs = objective.identity_inputs(data, normal_view, s, aux["identity_rgb"], distortion)
     minus, g_minus = jax.value_and_grad(objective.decoder_identity_objective)(decoder, inputs, s)
   else:
     minus, g_minus = 0.0, jax.tree.map(jnp.zeros_like, decoder)
@@ -83,7 +83,16 @@ SETTINGS = {
     "distorted": dict(identity_on_student=True, check_blur_max=1.5, check_noise_max=0.05),
     "identity_distorted": dict(identity_on_student=True, check_blur_max=1.5, check_noise_max=0.05,
                                identity_distorted=True),
+    # the model perturbation reaches the check lane only, also where lane 0's image is distorted
+    "perturbed": dict(identity_on_student=True, check_blur_max=1.5, check_noise_max=0.05, identity_distorted=True,
+                      check_dropout_max=0.5, check_param_noise_max=0.1),
+    # ... and lane 0's L_d^- reads a second render, of the perturbed student
+    "identity_perturbed": dict(identity_on_student=True, identity_on_teacher_check=True, check_blur_max=1.5,
+                               identity_distorted=True, check_dropout_max=0.5, check_param_noise_max=0.1,
+                               identity_perturbed=True),
 }
+DISTORTION = dict(blur=np.float32(0.8), noise=np.float32(0.03), seed=np.uint32(7), dropout=np.float32(0.3),
+                  param_noise=np.float32(0.05), model_seed=np.uint32(11))
 
 
 @pytest.mark.parametrize("row", sorted(SETTINGS))
@@ -92,10 +101,10 @@ def test_lane_gradients_are_the_objectives(row):
   s = objective.ConcealSettings(decoder_width=4, hidden_size=16, weight_kd=0.7, weight_plus=2.0, weight_minus=1.5,
                                 weight_check=0.5, **SETTINGS[row])
   decoder = decoder if s.use_decoder else {}
-  distortion = dict(blur=np.float32(0.8), noise=np.float32(0.03), seed=np.uint32(7)) if s.distorts_check else None
+  distortion = DISTORTION if s.distorts_check else None
   expected = reference_gradients(student, decoder, data, 1, 2, s, distortion)
   # Side by side only where the lanes' data differ most (the program is the same for every row).
-  two = jax.local_device_count() >= 2 and row in ("ours", "distorted")
+  two = jax.local_device_count() >= 2 and row in ("ours", "identity_perturbed")
   meshes = [None] + ([lanes.lane_mesh(2)] if two else [])
   for mesh in meshes:
     fn = jax.jit(lambda *a: lanes_objective.gradients(*a, s, OPTIONS, distortion, mesh))

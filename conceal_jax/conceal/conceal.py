@@ -35,7 +35,8 @@ Robustness, an option beyond the paper: conceal.check_blur_max / check_noise_max
 render (a blur and a noise level drawn per step, augment.py) before the decoder reads it for L_d^+, so that
 the hidden image survives blur, JPEG and noise of the check render; conceal.identity_distorted puts the student's
 normal render (decoy poses included) through the same distortion for L_d^-, so that the decoder stays the identity
-on distorted views near the key.
+on distorted views near the key. conceal.check_dropout_max / check_param_noise_max render the check view from a
+perturbed student (Gaussians dropped, parameters noised; augment.perturb_gaussians), against the model attacks.
 
 conceal.key_at_decoder_size (off: as the paper) renders the key directly at the decoder's size (hidden_size
 squared) with the check pose's field of view, instead of rendering it at the training resolution and resizing.
@@ -313,8 +314,9 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   def step(state, iteration):
     rng = np.random.default_rng([config.seed, iteration])
     views = [normal_view(rng, num_views, len(decoys), settings.decoy_fraction) for _ in range(2)]
-    distortion = (augment.draw(rng, settings.check_blur_max, settings.check_noise_max) if settings.distorts_check
-                  else None)
+    s = settings
+    distortion = (augment.draw(rng, s.check_blur_max, s.check_noise_max, s.check_dropout_max, s.check_param_noise_max)
+                  if s.distorts_check else None)
     return steps(None, lanes.replicate(state, mesh), data, *views, (iteration - 1) % num_keys, distortion)
 
   eval_cameras, eval_targets, _ = evaluate.held_out_views(scene, c.eval_views)

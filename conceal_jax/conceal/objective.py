@@ -53,9 +53,15 @@ class ConcealSettings:
   # Robustness, an option beyond the paper (augment.py): the check render blurred and noised for L_d^+.
   check_blur_max: float = 0.0
   check_noise_max: float = 0.0
+  # ... and rendered from a perturbed student: Gaussians dropped, parameters noised (augment.perturb_gaussians).
+  check_dropout_max: float = 0.0
+  check_param_noise_max: float = 0.0
   # L_d^- also reads the student's normal render through the step's distortion, so that a decoder taught to
   # see through blur and noise at the key still gives the identity on blurred views near it.
   identity_distorted: bool = False
+  # ... and that render made from the step's perturbed student (a second, forward-only render), so that a
+  # decoder taught to see through dropped and noised Gaussians at the key still gives the identity near it.
+  identity_perturbed: bool = False
 
   def __post_init__(self):
     if self.variant not in VARIANTS:
@@ -72,12 +78,17 @@ class ConcealSettings:
     if self.decoy_fraction and not self.distill:
       raise ValueError("conceal.decoy_fraction needs L_kd (variant 'paper' with consistency): decoy poses have "
                        "no ground truth, only the teacher's renders")
-    if not (self.check_blur_max >= 0 and self.check_noise_max >= 0):
-      raise ValueError(f"conceal.check_blur_max and check_noise_max must be >= 0, got {self.check_blur_max} and "
-                       f"{self.check_noise_max}")
-    if self.identity_distorted and not (self.identity_on_student and self.distorts_check):
+    if not (self.check_blur_max >= 0 and self.check_noise_max >= 0 and self.check_param_noise_max >= 0):
+      raise ValueError("conceal.check_blur_max, check_noise_max and check_param_noise_max must be >= 0, got "
+                       f"{self.check_blur_max}, {self.check_noise_max} and {self.check_param_noise_max}")
+    if not 0.0 <= self.check_dropout_max < 1.0:
+      raise ValueError(f"conceal.check_dropout_max must be in [0, 1), got {self.check_dropout_max}")
+    if self.identity_distorted and not (self.identity_on_student and self.distorts_check_image):
       raise ValueError("conceal.identity_distorted needs identity_on_student and a distortion (check_blur_max or "
                        "check_noise_max > 0)")
+    if self.identity_perturbed and not (self.identity_on_student and self.perturbs_check_model):
+      raise ValueError("conceal.identity_perturbed needs identity_on_student and a model perturbation "
+                       "(check_dropout_max or check_param_noise_max > 0)")
     if (self.identity_on_student or self.identity_on_teacher_check) and not self.identity_loss:
       raise ValueError("conceal.identity_on_student and identity_on_teacher_check need L_d^- (a decoder and "
                        "consistency)")
@@ -88,9 +99,19 @@ class ConcealSettings:
     return self.variant == "paper" and self.consistency
 
   @property
-  def distorts_check(self) -> bool:
-    """Whether a step distorts the check render before decoding it (augment.py)."""
+  def distorts_check_image(self) -> bool:
+    """Whether a step blurs or noises the check render before decoding it (augment.distort)."""
     return self.check_blur_max > 0 or self.check_noise_max > 0
+
+  @property
+  def perturbs_check_model(self) -> bool:
+    """Whether a step renders the check view from a perturbed student (augment.perturb_gaussians)."""
+    return self.check_dropout_max > 0 or self.check_param_noise_max > 0
+
+  @property
+  def distorts_check(self) -> bool:
+    """Whether a step draws a distortion for its check render (augment.draw), of the image or of the model."""
+    return self.distorts_check_image or self.perturbs_check_model
 
   @property
   def identity_loss(self) -> bool:
@@ -114,15 +135,17 @@ def student_objective(student, decoder, data: dict, view, settings: ConcealSetti
                       options: RenderOptions, distortion: dict | None = None) -> tuple[jax.Array, dict]:
   """L_kd (eq. 3) at training view `view` + lambda+ L_d^+ (eq. 5) at the check view -> (total, aux).
 
-  `distortion` (augment.draw, with settings.distorts_check): L_d^+ decodes the check render blurred and
-  noised by it. The step computes the gradients of this objective and of `decoder_identity_objective` as two
-  lanes (lanes_objective.py); these functions are their plain statement.
+  `distortion` (augment.draw, with settings.distorts_check): L_d^+ decodes the check render, made from the
+  student perturbed by it and then blurred and noised by it. The step computes the gradients of this
+  objective and of `decoder_identity_objective` as two lanes (lanes_objective.py); these functions are their
+  plain statement.
 
   Without consistency, or in the released variant, the normal view is supervised by its ground-truth
   image with the 3D-GS photometric loss instead of L_kd; the released variant adds an L1 between the
   student's check render and the check view's image. aux: normal (the normal-view term), plus (L_d^+),
-  rgb (the student's normal render [H, W, 3]), num_pairs and overflowed (the larger need of the two
-  renders and whether either exceeded its static pair capacity; see gs.capacity).
+  rgb (the student's normal render [H, W, 3]), identity_rgb (the render of the normal view that L_d^- reads:
+  `rgb`, or with identity_perturbed, a constant render of the perturbed student), num_pairs and overflowed
+  (the largest need of the renders and whether any exceeded its static pair capacity; see gs.capacity).
   """
   s = settings
   camera = jax.tree.map(lambda x: x[view], data["cameras"])
@@ -132,22 +155,34 @@ def student_objective(student, decoder, data: dict, view, settings: ConcealSetti
     normal = s.weight_kd * losses.distillation_loss(rgb, data["teacher"][view])
   else:
     normal = losses.photometric_loss(rgb, data["images"][view])
-  check_out = render(student, data["check_camera"], options)
+  check_out = render(check_student(student, distortion, s), data["check_camera"], options)
   check_rgb = check_out.rgb
   plus = losses.hidden_image_loss(decoded(decoder, check_decoder_input(check_rgb, distortion, s), s), data["hidden"])
   total = normal + s.weight_plus * plus
   if s.variant == "released":
     total = total + s.weight_check * losses.l1(check_rgb, data["check_image"])
-  return total, dict(normal=normal, plus=plus, rgb=rgb,
-                     num_pairs=jnp.maximum(normal_out.num_pairs, check_out.num_pairs),
-                     overflowed=normal_out.overflowed | check_out.overflowed)
+  identity_out = render(check_student(student, distortion, s), camera, options) if s.identity_perturbed else normal_out
+  outs = (normal_out, check_out, identity_out)
+  return total, dict(normal=normal, plus=plus, rgb=rgb, identity_rgb=jax.lax.stop_gradient(identity_out.rgb),
+                     num_pairs=jnp.max(jnp.stack([o.num_pairs for o in outs])),
+                     overflowed=jnp.any(jnp.stack([o.overflowed for o in outs])))
+
+
+def check_student(student, distortion: dict | None, settings: ConcealSettings):
+  """The student [N] the check view is rendered from: perturbed by `distortion` (augment.perturb_gaussians)
+  when settings.perturbs_check_model."""
+  s = settings
+  if not s.perturbs_check_model:
+    return student
+  return augment.perturb_gaussians(student, distortion, s.check_dropout_max, s.check_param_noise_max)
 
 
 def check_decoder_input(check_rgb: jax.Array, distortion: dict | None, settings: ConcealSettings) -> jax.Array:
-  """[S, S, 3] the student's check render [H, W, 3] as F reads it for L_d^+: distorted by `distortion`
-  (augment.py) when settings.distorts_check, resized to the decoder's size."""
+  """[S, S, 3] the student's check render [H, W, 3] as F reads it for L_d^+: blurred and noised by `distortion`
+  (augment.distort) when settings.distorts_check_image, resized to the decoder's size."""
   s = settings
-  seen = augment.distort(check_rgb, distortion, s.check_blur_max, s.check_noise_max) if s.distorts_check else check_rgb
+  seen = (augment.distort(check_rgb, distortion, s.check_blur_max, s.check_noise_max) if s.distorts_check_image
+          else check_rgb)
   return reveal.resize_for_decoder(seen, s.hidden_size)
 
 
@@ -174,7 +209,8 @@ def identity_sources(settings: ConcealSettings) -> tuple[str, ...]:
 def identity_inputs(data: dict, normal_view, settings: ConcealSettings, student_rgb=None,
                     distortion: dict | None = None) -> jax.Array:
   """[B, S, S, 3] the `identity_sources` at the decoder size; the student's render `student_rgb` [H, W, 3]
-  enters as a constant (L_d^- trains F only), distorted as the check render is with identity_distorted."""
+  (student_objective's identity_rgb) enters as a constant (L_d^- trains F only), distorted as the check render
+  is with identity_distorted."""
   s = settings
   student = lambda: (check_decoder_input(student_rgb, distortion, s) if s.identity_distorted
                      else reveal.resize_for_decoder(student_rgb, s.hidden_size))

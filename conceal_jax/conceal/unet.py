@@ -4,7 +4,8 @@
 Shaped like the decoder of the authors' released ConcealGS code (github.com/zxk1212/ConcealGS): a VGG16
 encoder cut after conv4_3 (stages of base * (1, 2, 4, 8) channels with 2, 2, 3, 3 conv3x3+ReLU, 2x2 max
 pools between stages), three decoder blocks (stride-2 transposed conv, concatenate the skip, two
-conv3x3+ReLU) and a 1x1 conv to 3 channels. The output has no activation, so the identity on normal views (L_d^-) is not squashed near 0 and 1.
+conv3x3+ReLU) and a 1x1 conv to 3 channels. The output has no activation, so the identity on normal views
+(L_d^-) is not squashed near 0 and 1.
 base_channels = 64 is the paper width, the only one ImageNet VGG16 weights fit.
 """
 from __future__ import annotations

@@ -18,6 +18,9 @@
   step-6000 checkpoint, collapses at a constant 1e-3 and not with this decay. Lego with the decay: no
   collapse, hidden 36.58 dB (42.42 at the constant rate), near-key leakage 0.191 (0.362). Short runs lose
   more than they gain: demo.py keeps the rate constant.
+
+Lego 200x200, 10k steps, width 16, all of the above (make bench-conceal, --rows=ours): student 33.00 dB
+against its teacher's 33.11, hidden 37.28 dB / SSIM 0.9941, leakage at most 0.188, 59.4 min on 2 CPU cores.
 """
 
 # The demo's measured augmentation (augment.py): the paper's mild blur and JPEG then cost 0.003 hidden SSIM.

@@ -133,6 +133,11 @@ def get_config() -> ml_collections.ConfigDict:
   config.conceal.check_blur_max = 0.0
   config.conceal.check_noise_max = 0.0
   config.conceal.identity_distorted = False  # L_d^- on the student's normal render distorted the same way
+  # ... and the check view rendered from the student with each Gaussian dropped with a probability ~ U[0, max]
+  # and every parameter noised by ~ U[0, max] times its spread over the scene (against the model attacks)
+  config.conceal.check_dropout_max = 0.0
+  config.conceal.check_param_noise_max = 0.0
+  config.conceal.identity_perturbed = False  # L_d^- on the student's normal render made from the perturbed model
   # student learning rates: the 3D-GS schedule continued from step 10k of 30k, as the released run does
   config.conceal.lr = ml_collections.ConfigDict(config.train.lr.to_dict())
   config.conceal.lr.means_init = 3.45e-5
