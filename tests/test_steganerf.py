@@ -57,9 +57,15 @@ def test_the_mask_scales_adams_update_but_not_through_its_gradient():
                          optax.stateless(lambda u, p=None: -optimizer.sh_learning_rates(LR, 4)[None, :, None] * u))
   plain = _first_sh_step(unmasked, sh, grad)
   np.testing.assert_allclose(plain[:, 0], -0.01 * np.sign(grad[:, 0]), rtol=1e-5)  # Adam's first step: lr sign(g)
-  np.testing.assert_allclose(_first_sh_step(steganerf.sh_optimizer(LR, "update"), sh, grad),
+  np.testing.assert_allclose(_first_sh_step(steganerf.sh_optimizer(LR, "update", optimizer.ADAM_EPS), sh, grad),
                              plain * weights[None, :, None], rtol=1e-5)
-  np.testing.assert_allclose(_first_sh_step(steganerf.sh_optimizer(LR, "gradient"), sh, grad), plain, rtol=1e-5)
+  np.testing.assert_allclose(_first_sh_step(steganerf.sh_optimizer(LR, "gradient", optimizer.ADAM_EPS), sh, grad),
+                             plain, rtol=1e-5)
+  # at eps 1e-8 (StegaNerfSettings' default) a gradient far below eps takes a step shrunk with it, not lr-sized
+  tiny_grad = grad * 1e-12
+  step = _first_sh_step(steganerf.sh_optimizer(LR, "gradient", 1e-8), sh, tiny_grad)
+  assert np.abs(step).max() < 1e-3 * np.abs(plain).max()
+  np.testing.assert_allclose(_first_sh_step(steganerf.sh_optimizer(LR, "gradient", 1e-8), sh, grad), plain, rtol=1e-4)
 
 
 def test_networks_take_small_steps_on_vanishing_gradients():
@@ -115,7 +121,7 @@ def test_objective_is_the_sum_of_stega_nerfs_terms(protocol):
 def test_step_lowers_the_loss_and_keeps_the_state_on_overflow():
   teacher, _, data = _objective_inputs()
   s = _settings(decoder_lr=3e-3, classifier_lr=3e-3, mask_at="update")
-  sh_tx, networks_tx = steganerf.sh_optimizer(LR, s.mask_at), steganerf.networks_optimizer(s, 100)
+  sh_tx, networks_tx = steganerf.sh_optimizer(LR, s.mask_at, s.sh_adam_eps), steganerf.networks_optimizer(s, 100)
   fresh = lambda: steganerf_train.create_state(jnp.array(teacher.sh, copy=True),
                                                 steganerf.init_networks(jax.random.key(0), s), sh_tx, networks_tx)
   step = steganerf_train.make_steganerf_step(s, RenderOptions(max_per_tile=None, pair_capacity=4096), sh_tx,
@@ -240,6 +246,7 @@ def test_bench_rows_of_both_protocols_feed_the_reproduction(all_views_runs, chec
     ("decoder_lr", 0.0, "baseline.steganerf.decoder_lr"), ("classifier_lr", -1e-3, "baseline.steganerf.classifier_lr"),
     ("log_every", 0, "baseline.steganerf.log_every"), ("checkpoint_every", -1, "baseline.steganerf.checkpoint_every"),
     ("networks_lr_final_ratio", 0.0, "baseline.steganerf.networks_lr_final_ratio"),
+    ("sh_adam_eps", 0.0, "baseline.steganerf.sh_adam_eps"),
     ("hidden_size", 12, "conceal.hidden_size")])
 def test_bad_steganerf_config_is_named_before_anything_is_written(tiny, tmp_path, field, value, message):
   config = stega_config(tiny, "all_views")

@@ -93,7 +93,7 @@ def train_steganerf(config: ml_collections.ConfigDict, workdir: str, iterations:
   median_step_s, resumed_from, steganerf: the summary without its history)."""
   s = steganerf.settings_from_config(config)
   data = conceal.build_data(scene, teacher, options, check_camera, None, hidden, s.hidden_size)
-  sh_tx = steganerf.sh_optimizer(config.conceal.lr, s.mask_at)
+  sh_tx = steganerf.sh_optimizer(config.conceal.lr, s.mask_at, s.sh_adam_eps)
   networks_tx = steganerf.networks_optimizer(s, iterations)
   traces = loop.TraceCounter()
   steps = capacity.GrowingSteps(lambda _, opts: make_steganerf_step(s, opts, sh_tx, networks_tx, traces), options)

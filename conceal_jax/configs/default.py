@@ -186,6 +186,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.baseline.steganerf.decoder_lr = 1e-3     # fresh networks (no VGG16 start): 1e-4 learns I ~3x slower
   config.baseline.steganerf.classifier_lr = 1e-3
   config.baseline.steganerf.networks_lr_final_ratio = 1.0  # log-linear decay of both rates to this fraction
+  config.baseline.steganerf.sh_adam_eps = 1e-8  # Adam eps of the SH colour (torch's default; 3D-GS uses 1e-15)
   config.baseline.steganerf.mask_at = "gradient"    # adaptive SH mask on the 'gradient' (StegaNeRF) or Adam's 'update'
   config.baseline.steganerf.log_every = 10
   config.baseline.steganerf.checkpoint_every = 1000
