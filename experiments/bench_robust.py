@@ -103,13 +103,13 @@ def finetune_rows(run: pathlib.Path, lengths: list[int], densify: bool, test_vie
 
 def views_of(run: pathlib.Path, poses: int, test_views: int) -> dict:
   """What a clean trial renders from run's scene: its teacher and student, its key, its test cameras and
-  `poses` random cameras on its training orbit (wrong keys)."""
+  `poses` random cameras on its training orbit (wrong keys); `mark` names its teacher and hidden image."""
   config, student, owner = load_run(run)
   scene = evaluate.load_scene_data(config)
   cameras, _, _ = evaluate.held_out_views(scene, test_views)
   orbit = [key_lib.orbit_camera(scene.train_cameras, 1000 + seed) for seed in range(poses)]
   return dict(student=student, teacher=ply.load_ply(config.conceal.teacher), owner=owner, test=cameras,
-              orbit=orbit)
+              orbit=orbit, mark=(config.conceal.teacher, config.conceal.hidden))
 
 
 def scores_of(owner: robustness.Owner, gaussians, cameras) -> list[float]:
@@ -121,7 +121,7 @@ def calibration_trials(runs: list[pathlib.Path], results: list[dict], poses: int
                        clean_models: list[pathlib.Path] = ()) -> dict:
   """Labelled clean and marked scores over every run (see the module doc); each of `clean_models` (scenes
   never marked: teachers trained with other seeds, other scenes) is also seen through every run's decoder at
-  its key and its orbit poses."""
+  its key and its orbit poses. Runs that share a teacher and a hidden image are not each other's clean trials."""
   views = {run: views_of(run, poses, test_views) for run in runs}
   models = {path: ply.load_ply(str(path)) for path in clean_models}
   clean, marked = [], []
@@ -138,7 +138,9 @@ def calibration_trials(runs: list[pathlib.Path], results: list[dict], poses: int
     trials += [(f"clean model {path}", gaussians, [owner.check_camera] + mine["orbit"])
                for path, gaussians in models.items()]
     for other, theirs in views.items():
-      if other != run:
+      # a run that hid the same image in the same teacher is no clean model for this one: its student may
+      # well reveal I through this decoder, and its teacher is this run's own
+      if other != run and theirs["mark"] != mine["mark"]:
         cameras = [theirs["owner"].check_camera] + list(theirs["test"])
         trials += [(f"{other} student", theirs["student"], cameras), (f"{other} teacher", theirs["teacher"], cameras)]
     for name, gaussians, cameras in trials:

@@ -2,6 +2,8 @@
 calibration with clean models (experiments/bench_robust.py)."""
 from __future__ import annotations
 
+import shutil
+
 import numpy as np
 import pytest
 
@@ -45,3 +47,15 @@ def test_calibration_counts_clean_models_at_the_key_and_orbit_poses(run, tiny): 
   np.testing.assert_allclose(sorted(t["score"] for t in added), sorted(teacher_scores), rtol=1e-5)
   assert more["num_clean"] == len(more["clean"]) and more["marked"] == plain["marked"]
   assert 0.0 <= more["false_positive_rate"] <= 1.0
+
+
+def test_runs_of_one_mark_are_not_each_others_clean_trials(run, tmp_path):
+  """A second run that hid the same image in the same teacher (here a copy of the run) adds no cross-run
+  clean trials: its student carries I."""
+  result = bench_robust.bench_run(run, test_views=1)
+  twin = tmp_path / "twin"
+  shutil.copytree(run, twin)
+  one = bench_robust.calibration_trials([run], [result], poses=2, test_views=1)
+  both = bench_robust.calibration_trials([run, twin], [result, result], poses=2, test_views=1)
+  assert len(both["clean"]) == 2 * len(one["clean"])
+  assert not any(t["trial"].startswith(str(twin)) for t in both["clean_trials"])
