@@ -48,17 +48,14 @@ def identity_weights(settings: ConcealSettings) -> dict:
 
 def lane_inputs(data: dict, view, normal_view, settings: ConcealSettings, distortion=None) -> list[dict]:
   """The two lanes' data (objective.key_data already applied): camera, pixel target [H, W, 3] with its L1
-  and photometric weights, the distortion of the own render's image (lane 0's only with identity_distorted)
-  and of the model it is rendered from (the check lane's only; with identity_perturbed, lane 0 decodes a
-  second render, of the model perturbed by decoded_model, in its own's place), the own render's decoded target
-  and weights
-  (plus: lambda+ of L_d^+, minus: its L_d^- share, target_is_input: 1 for an identity target), and the teacher
-  render decoded beside it with its L_d^- share."""
+  and photometric weights, the distortion (augment.draw's) of the own render's image (lane 0's only with
+  identity_distorted) and of the model it is rendered from (the check lane's only), the own render's decoded
+  target and weights (plus: lambda+ of L_d^+, minus: its L_d^- share, target_is_input: 1 for an identity
+  target, which with identity_perturbed is read from a second render, of the model perturbed by
+  identity_model), and the teacher render decoded beside it with its L_d^- share."""
   s = settings
   w = identity_weights(s)
-  # both lanes' inputs share one structure: a distortion lacking keys (of a run that draws no model
-  # perturbation) is completed with the identity's
-  distortion = dict(NO_DISTORTION, **distortion) if distortion is not None else NO_DISTORTION
+  distortion = NO_DISTORTION if distortion is None else distortion
   check = data["check_camera"]
   check_target = data["check_image"] if s.variant == "released" else jnp.zeros((check.height, check.width, 3))
   normal_target = data["teacher"][view] if s.distill else data["images"][view]
@@ -66,13 +63,11 @@ def lane_inputs(data: dict, view, normal_view, settings: ConcealSettings, distor
   normal = dict(camera=jax.tree.map(lambda x: x[view], data["cameras"]), pixel_target=normal_target,
                 l1=f32(s.weight_kd if s.distill else 0.0), photometric=f32(0.0 if s.distill else 1.0),
                 distortion=distortion if s.identity_distorted else NO_DISTORTION, model=NO_DISTORTION,
-                decoded_model=distortion, decoded_second=f32(1.0),
-                own_target=data["hidden"], own_plus=f32(0.0), own_minus=f32(w["student"]),
+                identity_model=distortion, own_target=data["hidden"], own_plus=f32(0.0), own_minus=f32(w["student"]),
                 target_is_input=f32(1.0), teacher_small=data["teacher_small"][normal_view],
                 teacher_minus=f32(w["teacher_normal"]))
   check = dict(camera=check, pixel_target=check_target, l1=f32(s.weight_check if s.variant == "released" else 0.0),
-               photometric=f32(0.0), distortion=distortion, model=distortion, decoded_model=NO_DISTORTION,
-               decoded_second=f32(0.0),
+               photometric=f32(0.0), distortion=distortion, model=distortion, identity_model=NO_DISTORTION,
                own_target=data["hidden"], own_plus=f32(s.weight_plus), own_minus=f32(0.0), target_is_input=f32(0.0),
                teacher_small=data["teacher_check_small"], teacher_minus=f32(w["teacher_check"]))
   return [normal, check]
@@ -97,18 +92,24 @@ def lane_gradients(shared, lane: dict, settings: ConcealSettings, options: Rende
 
   pixel, pixel_ct = jax.value_and_grad(pixel_loss)(rgb)
 
-  if s.identity_perturbed:  # lane 0 decodes a constant second render of the perturbed student (identity_rgb)
-    out = render(objective.check_student(student, lane["decoded_model"], s), lane["camera"], options)
-    second = jax.lax.stop_gradient(out.rgb)
-    num_pairs, overflowed = jnp.maximum(num_pairs, out.num_pairs), overflowed | out.overflowed
-    decoded_render = lambda image: lane["decoded_second"] * second + (1 - lane["decoded_second"]) * image
+  identity = lane["target_is_input"]
+  if s.identity_perturbed:
+    # the identity target's image is a constant second render, of the perturbed student (identity_rgb); only
+    # the lane with that target renders it (a cond: on the mesh each device takes its own branch)
+    def perturbed():
+      out = render(objective.check_student(student, lane["identity_model"], s), lane["camera"], options)
+      return jax.lax.stop_gradient(out.rgb), out.num_pairs, out.overflowed
+
+    second, second_pairs, second_overflowed = jax.lax.cond(
+        identity > 0, perturbed, lambda: (jax.lax.stop_gradient(rgb), num_pairs, overflowed))
+    num_pairs, overflowed = jnp.maximum(num_pairs, second_pairs), overflowed | second_overflowed
+    decoded_render = lambda image: identity * second + (1 - identity) * image
   else:
     decoded_render = lambda image: image
   small, prepared_vjp = jax.vjp(
       lambda image: objective.check_decoder_input(decoded_render(image), lane["distortion"], s), rgb)
   images = jnp.stack([small, lane["teacher_small"]])
-  own_target = lane["target_is_input"] * jax.lax.stop_gradient(small) + (1 - lane["target_is_input"]) * lane[
-      "own_target"]
+  own_target = identity * jax.lax.stop_gradient(small) + (1 - identity) * lane["own_target"]
   targets = jnp.stack([own_target, lane["teacher_small"]])
 
   def image_loss(params, image, target):

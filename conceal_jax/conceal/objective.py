@@ -155,13 +155,14 @@ def student_objective(student, decoder, data: dict, view, settings: ConcealSetti
     normal = s.weight_kd * losses.distillation_loss(rgb, data["teacher"][view])
   else:
     normal = losses.photometric_loss(rgb, data["images"][view])
-  check_out = render(check_student(student, distortion, s), data["check_camera"], options)
+  perturbed = check_student(student, distortion, s)
+  check_out = render(perturbed, data["check_camera"], options)
   check_rgb = check_out.rgb
   plus = losses.hidden_image_loss(decoded(decoder, check_decoder_input(check_rgb, distortion, s), s), data["hidden"])
   total = normal + s.weight_plus * plus
   if s.variant == "released":
     total = total + s.weight_check * losses.l1(check_rgb, data["check_image"])
-  identity_out = render(check_student(student, distortion, s), camera, options) if s.identity_perturbed else normal_out
+  identity_out = render(perturbed, camera, options) if s.identity_perturbed else normal_out
   outs = (normal_out, check_out, identity_out)
   return total, dict(normal=normal, plus=plus, rgb=rgb, identity_rgb=jax.lax.stop_gradient(identity_out.rgb),
                      num_pairs=jnp.max(jnp.stack([o.num_pairs for o in outs])),
