@@ -46,6 +46,33 @@ def test_distort_adds_noise_of_the_drawn_level_and_draws_stay_in_range():
   np.testing.assert_array_equal(np.asarray(augment.distort(image, drawn, 0.0, 0.0)), np.asarray(image))
 
 
+@pytest.mark.parametrize("brightness,contrast", [(-0.1, 1.0), (0.0, 0.8), (0.07, 1.2), (-0.05, 0.9)])
+def test_photometric_matches_the_float64_attack_where_it_does_not_clip(brightness, contrast):
+  # values in [0.2, 0.8] stay inside [0, 1] under every level here, so the attack's clip is idle
+  image = np.random.default_rng(3).uniform(0.2, 0.8, size=(9, 11, 3))
+  drawn = dict(brightness=np.float32(brightness), contrast=np.float32(contrast))
+  ours = augment.distort(jnp.asarray(image, jnp.float32), drawn, 0.0, 0.0, 0.1, 0.2)
+  expected = image_attacks.brightness_contrast(image, brightness=brightness, contrast=contrast)
+  np.testing.assert_allclose(np.asarray(ours), expected, atol=1e-6)
+
+
+def test_photometric_draws_stay_in_range_keep_earlier_draws_and_level_zero_is_the_identity():
+  rng = np.random.default_rng(5)
+  draws = [augment.draw(rng, 1.5, 0.05, 0.3, 0.02, 0.1, 0.2) for _ in range(400)]
+  assert all(-0.1 <= d["brightness"] <= 0.1 and 0.8 <= d["contrast"] <= 1.2 for d in draws)
+  assert min(d["brightness"] for d in draws) < -0.09 and max(d["contrast"] for d in draws) > 1.18
+  before = augment.draw(np.random.default_rng(7), 1.5, 0.05, 0.3, 0.02)
+  after = augment.draw(np.random.default_rng(7), 1.5, 0.05, 0.3, 0.02, 0.1, 0.2)
+  assert all(before[k] == after[k] for k in ("blur", "noise", "seed", "dropout", "param_noise", "model_seed"))
+  # a run without photometric draws gets brightness 0 and contrast 1: the identity, values and gradients
+  plain = augment.draw(np.random.default_rng(7), 1.5, 0.05)
+  image = jnp.asarray(np.random.default_rng(6).uniform(-0.2, 1.3, size=(8, 8, 3)), jnp.float32)
+  np.testing.assert_array_equal(np.asarray(augment.photometric(image, plain["brightness"], plain["contrast"])),
+                                np.asarray(image))
+  grad = jax.grad(lambda x: jnp.sum(augment.photometric(x, jnp.float32(-0.1), jnp.float32(1.2)) ** 2))(image)
+  assert np.all(np.isfinite(np.asarray(grad))) and np.all(np.asarray(grad) != 0)
+
+
 def _random_gaussians(n, seed=0):
   rng = np.random.default_rng(seed)
   f32 = lambda *shape, scale=1.0: jnp.asarray(scale * rng.normal(size=shape), jnp.float32)
@@ -90,10 +117,12 @@ def test_perturb_gaussians_at_level_zero_is_the_identity_with_finite_gradients()
 
 def test_conceal_trains_through_distortions_in_one_trace(tiny, tmp_path):  # noqa: F811
   config = tiny_config(tiny, iterations=4, check_blur_max=1.0, check_noise_max=0.02, check_dropout_max=0.2,
-                       check_param_noise_max=0.02, identity_on_student=True, identity_perturbed=True)
+                       check_param_noise_max=0.02, check_brightness_max=0.1, check_contrast_max=0.2,
+                       identity_on_student=True, identity_perturbed=True)
   result = conceal.conceal_and_evaluate(config, str(tmp_path))
   assert result["traces"] == dict(conceal_step=1) and np.isfinite(result["metrics"]["hidden"]["psnr"])
   for key, bad in (("check_blur_max", -1.0), ("check_dropout_max", 1.0), ("check_param_noise_max", -0.1),
+                   ("check_brightness_max", -0.1), ("check_contrast_max", 1.0),
                    ("identity_perturbed", True)):  # the last without a model perturbation
     with pytest.raises(ValueError, match=key):
       conceal.conceal_and_evaluate(tiny_config(tiny, **{key: bad}), str(tmp_path / "bad"))

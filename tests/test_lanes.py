@@ -83,6 +83,9 @@ SETTINGS = {
     "distorted": dict(identity_on_student=True, check_blur_max=1.5, check_noise_max=0.05),
     "identity_distorted": dict(identity_on_student=True, check_blur_max=1.5, check_noise_max=0.05,
                                identity_distorted=True),
+    # brightness and contrast alone are a distortion of both lanes' images
+    "photometric": dict(identity_on_student=True, check_brightness_max=0.1, check_contrast_max=0.2,
+                        identity_distorted=True),
     # the model perturbation reaches the check lane only, also where lane 0's image is distorted
     "perturbed": dict(identity_on_student=True, check_blur_max=1.5, check_noise_max=0.05, identity_distorted=True,
                       check_dropout_max=0.5, check_param_noise_max=0.1),
@@ -92,7 +95,8 @@ SETTINGS = {
                                identity_perturbed=True),
 }
 DISTORTION = dict(blur=np.float32(0.8), noise=np.float32(0.03), seed=np.uint32(7), dropout=np.float32(0.3),
-                  param_noise=np.float32(0.05), model_seed=np.uint32(11))
+                  param_noise=np.float32(0.05), model_seed=np.uint32(11), brightness=np.float32(-0.08),
+                  contrast=np.float32(1.15))
 
 
 @pytest.mark.parametrize("row", sorted(SETTINGS))

@@ -31,10 +31,12 @@ from conceal_jax.core import lanes
 from conceal_jax.gs import losses, metrics
 from conceal_jax.splat.render import RenderOptions, render
 
-# augment.distort and perturb_gaussians with these are the identity (a point kernel, zero noise, no dropout):
+# augment.distort and perturb_gaussians with these are the identity (a point kernel, zero noise, no dropout,
+# brightness 0, contrast 1):
 # lane 0's render is not distorted
 NO_DISTORTION = dict(blur=np.float32(0.0), noise=np.float32(0.0), seed=np.uint32(0), dropout=np.float32(0.0),
-                     param_noise=np.float32(0.0), model_seed=np.uint32(0))
+                     param_noise=np.float32(0.0), model_seed=np.uint32(0), brightness=np.float32(0.0),
+                     contrast=np.float32(1.0))
 
 
 def identity_weights(settings: ConcealSettings) -> dict:

@@ -50,9 +50,12 @@ class ConcealSettings:
   identity_on_student: bool = False
   identity_on_teacher_check: bool = False
   decoy_fraction: float = 0.0
-  # Robustness, an option beyond the paper (augment.py): the check render blurred and noised for L_d^+.
+  # Robustness, an option beyond the paper (augment.py): the check render blurred and noised for L_d^+,
   check_blur_max: float = 0.0
   check_noise_max: float = 0.0
+  # with its brightness and contrast changed first (augment.photometric).
+  check_brightness_max: float = 0.0
+  check_contrast_max: float = 0.0
   # ... and rendered from a perturbed student: Gaussians dropped, parameters noised (augment.perturb_gaussians).
   check_dropout_max: float = 0.0
   check_param_noise_max: float = 0.0
@@ -81,11 +84,14 @@ class ConcealSettings:
     if not (self.check_blur_max >= 0 and self.check_noise_max >= 0 and self.check_param_noise_max >= 0):
       raise ValueError("conceal.check_blur_max, check_noise_max and check_param_noise_max must be >= 0, got "
                        f"{self.check_blur_max}, {self.check_noise_max} and {self.check_param_noise_max}")
+    if not (self.check_brightness_max >= 0 and 0 <= self.check_contrast_max < 1):
+      raise ValueError("conceal.check_brightness_max must be >= 0 and check_contrast_max in [0, 1), got "
+                       f"{self.check_brightness_max} and {self.check_contrast_max}")
     if not 0.0 <= self.check_dropout_max < 1.0:
       raise ValueError(f"conceal.check_dropout_max must be in [0, 1), got {self.check_dropout_max}")
     if self.identity_distorted and not (self.identity_on_student and self.distorts_check_image):
-      raise ValueError("conceal.identity_distorted needs identity_on_student and a distortion (check_blur_max or "
-                       "check_noise_max > 0)")
+      raise ValueError("conceal.identity_distorted needs identity_on_student and a distortion (check_blur_max, "
+                       "check_noise_max, check_brightness_max or check_contrast_max > 0)")
     if self.identity_perturbed and not (self.identity_on_student and self.perturbs_check_model):
       raise ValueError("conceal.identity_perturbed needs identity_on_student and a model perturbation "
                        "(check_dropout_max or check_param_noise_max > 0)")
@@ -100,8 +106,8 @@ class ConcealSettings:
 
   @property
   def distorts_check_image(self) -> bool:
-    """Whether a step blurs or noises the check render before decoding it (augment.distort)."""
-    return self.check_blur_max > 0 or self.check_noise_max > 0
+    """Whether a step changes the check render's image before decoding it (augment.distort)."""
+    return max(self.check_blur_max, self.check_noise_max, self.check_brightness_max, self.check_contrast_max) > 0
 
   @property
   def perturbs_check_model(self) -> bool:
@@ -136,7 +142,7 @@ def student_objective(student, decoder, data: dict, view, settings: ConcealSetti
   """L_kd (eq. 3) at training view `view` + lambda+ L_d^+ (eq. 5) at the check view -> (total, aux).
 
   `distortion` (augment.draw, with settings.distorts_check): L_d^+ decodes the check render, made from the
-  student perturbed by it and then blurred and noised by it. The step computes the gradients of this
+  student perturbed by it and then changed in image by it (augment.distort). The step computes the gradients of this
   objective and of `decoder_identity_objective` as two lanes (lanes_objective.py); these functions are their
   plain statement.
 
@@ -179,11 +185,11 @@ def check_student(student, distortion: dict | None, settings: ConcealSettings):
 
 
 def check_decoder_input(check_rgb: jax.Array, distortion: dict | None, settings: ConcealSettings) -> jax.Array:
-  """[S, S, 3] the student's check render [H, W, 3] as F reads it for L_d^+: blurred and noised by `distortion`
-  (augment.distort) when settings.distorts_check_image, resized to the decoder's size."""
+  """[S, S, 3] the student's check render [H, W, 3] as F reads it for L_d^+: distorted by `distortion`
+  (augment.distort: brightness, contrast, blur, noise) when settings.distorts_check_image, resized to the decoder's size."""
   s = settings
-  seen = (augment.distort(check_rgb, distortion, s.check_blur_max, s.check_noise_max) if s.distorts_check_image
-          else check_rgb)
+  seen = (augment.distort(check_rgb, distortion, s.check_blur_max, s.check_noise_max, s.check_brightness_max,
+                          s.check_contrast_max) if s.distorts_check_image else check_rgb)
   return reveal.resize_for_decoder(seen, s.hidden_size)
 
 

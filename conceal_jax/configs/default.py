@@ -132,6 +132,9 @@ def get_config() -> ml_collections.ConfigDict:
   # robustness beyond the paper (conceal/augment.py): per step, blur sigma ~ U[0, max] px and noise ~ U[0, max]
   config.conceal.check_blur_max = 0.0
   config.conceal.check_noise_max = 0.0
+  # ... brightness ~ U[-max, max] and contrast ~ 1 + U[-max, max] (applied first, as (x - 0.5) * c + 0.5 + b)
+  config.conceal.check_brightness_max = 0.0
+  config.conceal.check_contrast_max = 0.0
   config.conceal.identity_distorted = False  # L_d^- on the student's normal render distorted the same way
   # ... and the check view rendered from the student with each Gaussian dropped with a probability ~ U[0, max]
   # and every parameter noised by ~ U[0, max] times its spread over the scene (against the model attacks)
