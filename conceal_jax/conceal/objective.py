@@ -186,7 +186,8 @@ def check_student(student, distortion: dict | None, settings: ConcealSettings):
 
 def check_decoder_input(check_rgb: jax.Array, distortion: dict | None, settings: ConcealSettings) -> jax.Array:
   """[S, S, 3] the student's check render [H, W, 3] as F reads it for L_d^+: distorted by `distortion`
-  (augment.distort: brightness, contrast, blur, noise) when settings.distorts_check_image, resized to the decoder's size."""
+  (augment.distort: brightness, contrast, blur, noise) when settings.distorts_check_image, resized to the
+  decoder's size."""
   s = settings
   seen = (augment.distort(check_rgb, distortion, s.check_blur_max, s.check_noise_max, s.check_brightness_max,
                           s.check_contrast_max) if s.distorts_check_image else check_rgb)
