@@ -51,18 +51,19 @@ def test_photometric_matches_the_float64_attack_where_it_does_not_clip(brightnes
   # values in [0.2, 0.8] stay inside [0, 1] under every level here, so the attack's clip is idle
   image = np.random.default_rng(3).uniform(0.2, 0.8, size=(9, 11, 3))
   drawn = dict(brightness=np.float32(brightness), contrast=np.float32(contrast))
-  ours = augment.distort(jnp.asarray(image, jnp.float32), drawn, 0.0, 0.0, 0.1, 0.2)
+  ours = augment.distort(jnp.asarray(image, jnp.float32), drawn, 0.0, 0.0, brightness_max=0.1, contrast_max=0.2)
   expected = image_attacks.brightness_contrast(image, brightness=brightness, contrast=contrast)
   np.testing.assert_allclose(np.asarray(ours), expected, atol=1e-6)
 
 
 def test_photometric_draws_stay_in_range_keep_earlier_draws_and_level_zero_is_the_identity():
   rng = np.random.default_rng(5)
-  draws = [augment.draw(rng, 1.5, 0.05, 0.3, 0.02, 0.1, 0.2) for _ in range(400)]
+  draws = [augment.draw(rng, 1.5, 0.05, 0.3, 0.02, brightness_max=0.1, contrast_max=0.2) for _ in range(400)]
   assert all(-0.1 <= d["brightness"] <= 0.1 and 0.8 <= d["contrast"] <= 1.2 for d in draws)
   assert min(d["brightness"] for d in draws) < -0.09 and max(d["contrast"] for d in draws) > 1.18
   before = augment.draw(np.random.default_rng(7), 1.5, 0.05, 0.3, 0.02)
-  after = augment.draw(np.random.default_rng(7), 1.5, 0.05, 0.3, 0.02, 0.1, 0.2)
+  after = augment.draw(np.random.default_rng(7), 1.5, 0.05, 0.3, 0.02, brightness_max=0.1,
+                       contrast_max=0.2)
   assert all(before[k] == after[k] for k in ("blur", "noise", "seed", "dropout", "param_noise", "model_seed"))
   # a run without photometric draws gets brightness 0 and contrast 1: the identity, values and gradients
   plain = augment.draw(np.random.default_rng(7), 1.5, 0.05)

@@ -95,7 +95,7 @@ def photometric(image: jax.Array, brightness: jax.Array, contrast: jax.Array) ->
   return image * contrast + (0.5 * (1.0 - contrast) + brightness)
 
 
-def distort(image: jax.Array, distortion: dict, blur_max: float, noise_max: float, brightness_max: float = 0.0,
+def distort(image: jax.Array, distortion: dict, blur_max: float, noise_max: float, *, brightness_max: float = 0.0,
             contrast_max: float = 0.0) -> jax.Array:
   """image [H, W, 3] with brightness and contrast changed by distortion["brightness"] and ["contrast"], then
   blurred by distortion["blur"] pixels and plus normal noise of standard deviation distortion["noise"] drawn
@@ -136,7 +136,7 @@ def perturb_gaussians(gaussians, distortion: dict, dropout_max: float, param_noi
 
 
 def draw(rng: np.random.Generator, blur_max: float, noise_max: float, dropout_max: float = 0.0,
-         param_noise_max: float = 0.0, brightness_max: float = 0.0, contrast_max: float = 0.0) -> dict:
+         param_noise_max: float = 0.0, *, brightness_max: float = 0.0, contrast_max: float = 0.0) -> dict:
   """One step's distortion: blur sigma ~ U[0, blur_max], noise sigma ~ U[0, noise_max], a noise seed; of
   the model (`perturb_gaussians`) a dropout probability ~ U[0, dropout_max], a relative parameter noise
   ~ U[0, param_noise_max] and their seed; brightness ~ U[-brightness_max, brightness_max] and contrast

@@ -316,7 +316,8 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
     views = [normal_view(rng, num_views, len(decoys), settings.decoy_fraction) for _ in range(2)]
     s = settings
     distortion = (augment.draw(rng, s.check_blur_max, s.check_noise_max, s.check_dropout_max, s.check_param_noise_max,
-                               s.check_brightness_max, s.check_contrast_max) if s.distorts_check else None)
+                               brightness_max=s.check_brightness_max, contrast_max=s.check_contrast_max)
+                  if s.distorts_check else None)
     return steps(None, lanes.replicate(state, mesh), data, *views, (iteration - 1) % num_keys, distortion)
 
   eval_cameras, eval_targets, _ = evaluate.held_out_views(scene, c.eval_views)

@@ -189,8 +189,9 @@ def check_decoder_input(check_rgb: jax.Array, distortion: dict | None, settings:
   (augment.distort: brightness, contrast, blur, noise) when settings.distorts_check_image, resized to the
   decoder's size."""
   s = settings
-  seen = (augment.distort(check_rgb, distortion, s.check_blur_max, s.check_noise_max, s.check_brightness_max,
-                          s.check_contrast_max) if s.distorts_check_image else check_rgb)
+  seen = (augment.distort(check_rgb, distortion, s.check_blur_max, s.check_noise_max,
+                          brightness_max=s.check_brightness_max, contrast_max=s.check_contrast_max)
+          if s.distorts_check_image else check_rgb)
   return reveal.resize_for_decoder(seen, s.hidden_size)
 
 
