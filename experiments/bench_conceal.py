@@ -36,6 +36,9 @@ ROWS = {
     "tensor": dict(granularity="tensor"),
     "ours": lambda config: conceal_ours.apply(config, decoy_views=64),
     "ours_robust": lambda config: conceal_ours.robust(config, decoy_views=64),
+    # ... with a decoder that reads each image less its mean (unet.UNet input_norm 'center'), against the
+    # brightness attack that ours_robust does not survive
+    "ours_robust_center": lambda config: conceal_ours.robust(config, decoy_views=64, input_norm="center"),
 }
 # The released decoder (width 64) starts from VGG16 with lr 1e-4; a narrow one starts from scratch and
 # learns at 5e-4 (the demo's rate).

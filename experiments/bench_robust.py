@@ -52,7 +52,8 @@ def load_run(run: pathlib.Path):
   decoder = reveal.load_decoder(str(run / "decoder.msgpack")) if info.get("uses_decoder", True) else None
   hidden = hidden_lib.load_hidden_image(config.conceal.hidden, int(info["hidden_size"]))
   owner = robustness.Owner(decoder=decoder, decoder_width=int(info.get("decoder_width", 0)), hidden=hidden,
-                           check_camera=camera, options=reveal.options_from_key(info))
+                           check_camera=camera, options=reveal.options_from_key(info),
+                           decoder_input_norm=reveal.decoder_input_norm(info))
   return config, ply.load_ply(str(run / "student.ply")), owner
 
 

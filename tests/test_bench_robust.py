@@ -59,3 +59,13 @@ def test_runs_of_one_mark_are_not_each_others_clean_trials(run, tmp_path):
   both = bench_robust.calibration_trials([run, twin], [result, result], poses=2, test_views=1)
   assert len(both["clean"]) == 2 * len(one["clean"])
   assert not any(t["trial"].startswith(str(twin)) for t in both["clean_trials"])
+
+
+def test_owner_reads_the_decoders_input_norm_from_the_key(tiny, tmp_path):  # noqa: F811
+  """A run whose decoder centres its input is scored as its own job scored it (the norm comes from key.json)."""
+  workdir = tmp_path / "conceal"
+  result = main_lib.run(tiny_config(tiny, iterations=3, decoder_input_norm="center"), str(workdir))
+  _, _, owner = bench_robust.load_run(workdir)
+  assert owner.decoder_input_norm == "center"
+  np.testing.assert_allclose(bench_robust.bench_run(workdir, test_views=1)["hidden_ssim"],
+                             result["metrics"]["hidden"]["ssim"], rtol=1e-4)

@@ -86,6 +86,9 @@ SETTINGS = {
     # brightness and contrast alone are a distortion of both lanes' images
     "photometric": dict(identity_on_student=True, check_brightness_max=0.1, check_contrast_max=0.2,
                         identity_distorted=True),
+    # the decoder normalises what it reads in both lanes
+    "standardized": dict(identity_on_student=True, identity_on_teacher_check=True, decoder_input_norm="standardize",
+                         check_blur_max=1.5, identity_distorted=True),
     # the model perturbation reaches the check lane only, also where lane 0's image is distorted
     "perturbed": dict(identity_on_student=True, check_blur_max=1.5, check_noise_max=0.05, identity_distorted=True,
                       check_dropout_max=0.5, check_param_noise_max=0.1),

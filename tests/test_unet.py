@@ -145,3 +145,56 @@ def test_jit_and_finite_gradients(small_params):
   # The network is connected end to end: every layer, enc1_1 included, gets a nonzero gradient.
   for path, g in jax.tree_util.tree_leaves_with_path(grads):
     assert np.any(np.asarray(g) != 0), jax.tree_util.keystr(path)
+
+
+
+def _reference_statistics(images, input_norm):
+  """float64 numpy: each image's mean over pixels and channels, and sqrt(variance + floor^2) or 1."""
+  x = np.asarray(images, np.float64)
+  mean = x.mean(axis=(1, 2, 3), keepdims=True)
+  std = np.sqrt(((x - mean)**2).mean(axis=(1, 2, 3), keepdims=True) + unet.STD_FLOOR**2)
+  return mean, std if input_norm == "standardize" else np.ones_like(std)
+
+
+@pytest.mark.parametrize("input_norm", ["center", "standardize"])
+def test_input_statistics_match_float64_reference_and_invert(input_norm):
+  x = jax.random.uniform(jax.random.key(4), (3, 16, 16, 3))
+  mean, std = unet.image_statistics(x, input_norm)
+  ref_mean, ref_std = _reference_statistics(x, input_norm)
+  np.testing.assert_allclose(mean, ref_mean, rtol=1e-6)
+  np.testing.assert_allclose(std, ref_std, rtol=1e-6)
+  np.testing.assert_allclose(unet.standardize_images(x, mean, std), (np.asarray(x, np.float64) - ref_mean) / ref_std,
+                             rtol=1e-5, atol=1e-5)
+  np.testing.assert_allclose(unet.unstandardize_images(unet.standardize_images(x, mean, std), mean, std), x,
+                             atol=1e-6)
+
+
+@pytest.mark.parametrize("input_norm, changes", [("center", ((1.0, -0.1), (1.0, 0.07))),
+                                                 ("standardize", ((1.0, -0.1), (1.2, 0.0), (0.8, 0.05)))])
+def test_normalised_unet_is_equivariant(small_params, input_norm, changes):
+  """F(a x + b) = a F(x) + b for the changes the norm undoes: the U-Net reads the same image (up to the std
+  floor, far below these images' spread); the plain U-Net does not."""
+  model = unet.UNet(SMALL, input_norm=input_norm)
+  x = jax.random.uniform(jax.random.key(5), (2, 64, 64, 3), minval=0.2, maxval=0.8)
+  base = model.apply({"params": small_params}, x)
+  for a, b in changes:
+    np.testing.assert_allclose(model.apply({"params": small_params}, a * x + b), a * base + b, atol=2e-3)
+  plain = unet.UNet(SMALL).apply({"params": small_params}, x - 0.1)
+  assert np.max(np.abs(plain - (unet.UNet(SMALL).apply({"params": small_params}, x) - 0.1))) > 1e-2
+
+
+@pytest.mark.parametrize("input_norm", ["center", "standardize"])
+def test_normalised_unet_uses_the_same_params_and_stays_finite_on_flat_images(small_params, input_norm):
+  """A flat image (zero spread) is the hard case: the floor keeps values and gradients finite."""
+  model = unet.UNet(SMALL, input_norm=input_norm)
+  flat = jnp.full((1, 64, 64, 3), 0.7)
+  out = model.apply({"params": small_params}, flat)
+  assert np.all(np.isfinite(out))
+  grads = jax.grad(lambda p, x: jnp.mean(model.apply({"params": p}, x)), argnums=(0, 1))(small_params, flat)
+  assert_finite_tree(grads, "gradient")
+  assert jax.tree.structure(grads[0]) == jax.tree.structure(small_params)
+
+
+def test_unknown_input_norm_is_named(small_params):
+  with pytest.raises(ValueError, match="input_norm"):
+    unet.UNet(SMALL, input_norm="whiten").apply({"params": small_params}, jnp.zeros((1, 8, 8, 3)))

@@ -328,7 +328,7 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
     student, decoder = lanes.on_one_device((state.student, state.decoder), mesh)  # not the Adam moments
     decoder = decoder if settings.use_decoder else None
     revealed = [reveal.reveal_image(student, camera, options, decoder, settings.decoder_width,
-                                    settings.hidden_size) for camera, _ in keys]
+                                    settings.hidden_size, settings.decoder_input_norm) for camera, _ in keys]
     record = dict(hidden_psnr=float(metrics.psnr(revealed[0], hiddens[0])),
                   hidden_ssim=float(metrics.ssim(revealed[0], hiddens[0])),
                   test_psnr=evaluate.views_psnr(student, eval_cameras, eval_targets, options))
@@ -348,7 +348,8 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   if decoder is not None:
     reveal.save_decoder(os.path.join(workdir, DECODER_FILE), decoder)
   key_info.update(hidden_size=settings.hidden_size, uses_decoder=settings.use_decoder,
-                  decoder_width=settings.decoder_width, render_options=dataclasses.asdict(options))
+                  decoder_width=settings.decoder_width, decoder_input_norm=settings.decoder_input_norm,
+                  render_options=dataclasses.asdict(options))
   # reveal.key_number k reveals the k-th extra image
   key_lib.save_key(os.path.join(workdir, KEY_FILE), check_camera, key_info,
                    [(camera, dict(info, number=k, hidden=source))
@@ -361,7 +362,8 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
                  traces=dict(traces.counts), pair_capacity=steps.capacity, capacity_reruns=steps.reruns,
                  capacity_shrinks=steps.shrinks, history=result.history)
   fileio.write_json(os.path.join(workdir, SUMMARY_FILE), summary)
-  reveal_fn = reveal.decoder_reveal(decoder, settings.decoder_width, settings.hidden_size)
+  reveal_fn = reveal.decoder_reveal(decoder, settings.decoder_width, settings.hidden_size,
+                                    settings.decoder_input_norm)
   scored = evaluate_concealment(config, workdir, scene, teacher, state.student, reveal_fn, check_camera, options,
                                 hiddens[0], [(camera, hidden) for (camera, _), hidden in zip(keys[1:], hiddens[1:])])
   return dict(summary, metrics=scored)

@@ -39,6 +39,7 @@ class ConcealSettings:
   guidance: bool = True
   granularity: str = "layer"
   decoder_width: int = unet.PAPER_WIDTH
+  decoder_input_norm: str = "none"  # (unet.UNet, beyond the paper)
   hidden_size: int = 64
   weight_kd: float = 1.0
   weight_plus: float = 1.0
@@ -71,6 +72,8 @@ class ConcealSettings:
       raise ValueError(f"conceal.variant must be one of {VARIANTS}, got {self.variant!r}")
     if self.granularity not in guidance.GRANULARITIES:
       raise ValueError(f"conceal.granularity must be one of {guidance.GRANULARITIES}, got {self.granularity!r}")
+    if self.decoder_input_norm not in unet.INPUT_NORMS:
+      raise ValueError(f"conceal.decoder_input_norm must be one of {unet.INPUT_NORMS}, got {self.decoder_input_norm!r}")
     if self.decoder_width < 1 or self.hidden_size < 8 or self.hidden_size % unet.DOWNSAMPLE:
       raise ValueError("conceal.decoder_width must be positive and conceal.hidden_size a multiple of "
                        f"{unet.DOWNSAMPLE} (at least 8)")
@@ -197,7 +200,8 @@ def check_decoder_input(check_rgb: jax.Array, distortion: dict | None, settings:
 
 def decoded(decoder, images: jax.Array, settings: ConcealSettings) -> jax.Array:
   """F(images) [..., S, S, 3]; the images themselves without a decoder (the "w/o decoder" ablation)."""
-  return reveal.decode(decoder, settings.decoder_width, images) if settings.use_decoder else images
+  s = settings
+  return reveal.decode(decoder, s.decoder_width, images, s.decoder_input_norm) if s.use_decoder else images
 
 
 def identity_sources(settings: ConcealSettings) -> tuple[str, ...]:

@@ -32,27 +32,28 @@ def resize_for_decoder(image: jax.Array, size: int) -> jax.Array:
   return jax.image.resize(image, image.shape[:-3] + (size, size, image.shape[-1]), "linear")
 
 
-def decode(decoder_params, base_channels: int, images: jax.Array) -> jax.Array:
+def decode(decoder_params, base_channels: int, images: jax.Array, input_norm: str = "none") -> jax.Array:
   """F: [..., S, S, C] -> [..., S, S, 3] with the U-Net decoder (C: the input channels its params were made
-  for, 3 for a render)."""
+  for, 3 for a render); `input_norm`: how the U-Net normalises each image it reads (unet.UNet)."""
   batch = images[None] if images.ndim == 3 else images
-  out = unet.UNet(base_channels).apply({"params": decoder_params}, batch)
+  out = unet.UNet(base_channels, input_norm).apply({"params": decoder_params}, batch)
   return out[0] if images.ndim == 3 else out
 
 
-@functools.partial(jax.jit, static_argnames=("base_channels", "size"))
-def reveal_renders(decoder_params, renders: jax.Array, base_channels: int, size: int) -> jax.Array:
+@functools.partial(jax.jit, static_argnames=("base_channels", "size", "input_norm"))
+def reveal_renders(decoder_params, renders: jax.Array, base_channels: int, size: int,
+                   input_norm: str = "none") -> jax.Array:
   """[..., H, W, 3] renders -> [..., size, size, 3] revealed images clipped to [0, 1]; decoder_params
-  None: the resized render itself (the "without decoder" ablation)."""
+  None: the resized render itself (the "without decoder" ablation). `input_norm` as in `decode`."""
   small = resize_for_decoder(renders, size)
-  out = small if decoder_params is None else decode(decoder_params, base_channels, small)
+  out = small if decoder_params is None else decode(decoder_params, base_channels, small, input_norm)
   return jnp.clip(out, 0.0, 1.0)
 
 
 def reveal_image(gaussians: Gaussians, camera: Camera, options: RenderOptions, decoder_params,
-                 base_channels: int, size: int) -> jax.Array:
+                 base_channels: int, size: int, input_norm: str = "none") -> jax.Array:
   """[size, size, 3] revealed image at `camera`."""
-  return reveal_renders(decoder_params, render(gaussians, camera, options).rgb, base_channels, size)
+  return reveal_renders(decoder_params, render(gaussians, camera, options).rgb, base_channels, size, input_norm)
 
 
 def scores_to_hidden(revealed, hidden) -> dict[str, np.ndarray]:
@@ -67,11 +68,12 @@ def scores_to_hidden(revealed, hidden) -> dict[str, np.ndarray]:
               ssim=np.asarray(metrics.batched_ssim(revealed, hidden), np.float64))
 
 
-def decoder_reveal(decoder_params, base_channels: int, size: int):
+def decoder_reveal(decoder_params, base_channels: int, size: int, input_norm: str = "none"):
   """The reveal function of a ConcealGS decoder: renders [V, H, W, 3] -> revealed images [V, size, size, 3]
   (decoder_params None: the resized renders). Scoring code takes such a function, so that a baseline with
   another way of reading the image out of a render is scored the same way."""
-  return functools.partial(reveal_renders, decoder_params, base_channels=base_channels, size=size)
+  return functools.partial(reveal_renders, decoder_params, base_channels=base_channels, size=size,
+                           input_norm=input_norm)
 
 
 def near_key_rows(gaussians: Gaussians, check_camera: Camera, options: RenderOptions, reveal_fn, hidden,
@@ -108,6 +110,11 @@ def load_decoder(path: str):
   return jax.tree.map(jnp.asarray, params)
 
 
+def decoder_input_norm(info: dict) -> str:
+  """How the key's decoder normalises what it reads (unet.UNet); keys written before the option: 'none'."""
+  return str(info.get("decoder_input_norm", "none"))
+
+
 def options_from_key(info: dict) -> RenderOptions:
   """The render options saved in a key (fields this version does not know are ignored)."""
   return settings.from_section(RenderOptions, info["render_options"])
@@ -130,7 +137,8 @@ def reveal_from_files(r: ml_collections.ConfigDict) -> np.ndarray:
     raise ValueError("reveal.decoder is required: this key was made with a decoder")
   decoder = load_decoder(r.decoder) if info.get("uses_decoder", True) else None
   return np.asarray(reveal_image(ply.load_ply(r.ply), camera, options_from_key(info), decoder,
-                                 int(info.get("decoder_width", 0)), int(info["hidden_size"])))
+                                 int(info.get("decoder_width", 0)), int(info["hidden_size"]),
+                                 decoder_input_norm(info)))
 
 
 def reveal(config: ml_collections.ConfigDict, workdir: str) -> dict:

@@ -111,6 +111,10 @@ def get_config() -> ml_collections.ConfigDict:
   config.conceal.key_at_decoder_size = False  # render the key at hidden_size^2 directly (cheaper; see conceal.py)
   config.conceal.decoder_width = 64    # U-Net base channels (64 = the released decoder)
   config.conceal.decoder_vgg_init = True  # ImageNet VGG16 conv1_2..conv4_3 (width 64 only)
+  # beyond the paper: 'center' (F reads each image less its mean and adds it back) or 'standardize' (also over
+  # its std): a brightness (and contrast) change of the check render changes the revealed image alike
+  # (conceal/unet.py); saved in key.json. 'none': the paper's decoder
+  config.conceal.decoder_input_norm = "none"
   config.conceal.decoder_lr = 1e-4
   config.conceal.decoder_adam_eps = 1e-15  # the released code's (the Gaussians' Adam); torch's default is 1e-8
   config.conceal.decoder_lr_final_ratio = 1.0  # log-linear decay of decoder_lr to this fraction (1: constant)
