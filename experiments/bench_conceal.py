@@ -39,6 +39,9 @@ ROWS = {
     # ... with a decoder that reads each image less its mean (unet.UNet input_norm 'center'), against the
     # brightness attack that ours_robust does not survive
     "ours_robust_center": lambda config: conceal_ours.robust(config, decoy_views=64, input_norm="center"),
+    # ... with a decoder that reads renders clipped to [0, 1] (reveal.Reading): ours_robust_center's student hid
+    # its image in whites above 1, which every attack clips away
+    "ours_robust_clip": lambda config: conceal_ours.robust(config, decoy_views=64, clip_input=True),
 }
 # The released decoder (width 64) starts from VGG16 with lr 1e-4; a narrow one starts from scratch and
 # learns at 5e-4 (the demo's rate).

@@ -53,7 +53,7 @@ def load_run(run: pathlib.Path):
   hidden = hidden_lib.load_hidden_image(config.conceal.hidden, int(info["hidden_size"]))
   owner = robustness.Owner(decoder=decoder, decoder_width=int(info.get("decoder_width", 0)), hidden=hidden,
                            check_camera=camera, options=reveal.options_from_key(info),
-                           decoder_input_norm=reveal.decoder_input_norm(info))
+                           reading=reveal.Reading.from_key(info))
   return config, ply.load_ply(str(run / "student.ply")), owner
 
 

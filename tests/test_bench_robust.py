@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from conceal_jax import main as main_lib
+from conceal_jax.conceal import reveal
 from experiments import bench_robust
 from tests.test_conceal import tiny, tiny_config  # noqa: F401  (tiny is a fixture)
 
@@ -62,10 +63,12 @@ def test_runs_of_one_mark_are_not_each_others_clean_trials(run, tmp_path):
 
 
 def test_owner_reads_the_decoders_input_norm_from_the_key(tiny, tmp_path):  # noqa: F811
-  """A run whose decoder centres its input is scored as its own job scored it (the norm comes from key.json)."""
+  """A run whose decoder centres its clipped input is scored as its own job scored it (the reading comes from
+  key.json)."""
   workdir = tmp_path / "conceal"
-  result = main_lib.run(tiny_config(tiny, iterations=3, decoder_input_norm="center"), str(workdir))
+  result = main_lib.run(tiny_config(tiny, iterations=3, decoder_input_norm="center", decoder_clip_input=True),
+                        str(workdir))
   _, _, owner = bench_robust.load_run(workdir)
-  assert owner.decoder_input_norm == "center"
+  assert owner.reading == reveal.Reading("center", clip=True)
   np.testing.assert_allclose(bench_robust.bench_run(workdir, test_views=1)["hidden_ssim"],
                              result["metrics"]["hidden"]["ssim"], rtol=1e-4)

@@ -323,13 +323,14 @@ def test_two_hidden_images_each_at_its_own_key(tiny, tmp_path):
                                        dict(variant="released", granularity="tensor", key_kind="orbit"),
                                        dict(identity_on_student=True, identity_on_teacher_check=True, decoy_views=3,
                                             decoy_fraction=0.5),
-                                       dict(decoder_input_norm="center")])
+                                       dict(decoder_input_norm="center", decoder_clip_input=True)])
 def test_ablations_and_variants_run(tiny, tmp_path, overrides):
   result = conceal.conceal_and_evaluate(tiny_config(tiny, iterations=3, **overrides), str(tmp_path))
   assert np.isfinite(result["metrics"]["hidden"]["psnr"])
   saved_key = json.loads((tmp_path / "key.json").read_text())
   assert saved_key["uses_decoder"] == overrides.get("use_decoder", True)
   assert saved_key["decoder_input_norm"] == overrides.get("decoder_input_norm", "none")
+  assert saved_key["decoder_clip_input"] == overrides.get("decoder_clip_input", False)
   if saved_key["decoder_input_norm"] != "none":  # the reveal job reads the decoder as it was trained, from the key
     reveal_config = demo.get_config()
     reveal_config.mode = "reveal"

@@ -86,8 +86,9 @@ SETTINGS = {
     # brightness and contrast alone are a distortion of both lanes' images
     "photometric": dict(identity_on_student=True, check_brightness_max=0.1, check_contrast_max=0.2,
                         identity_distorted=True),
-    # the decoder normalises what it reads in both lanes
+    # the decoder normalises what it reads, clipped to [0, 1], in both lanes
     "standardized": dict(identity_on_student=True, identity_on_teacher_check=True, decoder_input_norm="standardize",
+                         decoder_clip_input=True,
                          check_blur_max=1.5, identity_distorted=True),
     # the model perturbation reaches the check lane only, also where lane 0's image is distorted
     "perturbed": dict(identity_on_student=True, check_blur_max=1.5, check_noise_max=0.05, identity_distorted=True,

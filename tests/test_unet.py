@@ -198,3 +198,22 @@ def test_normalised_unet_uses_the_same_params_and_stays_finite_on_flat_images(sm
 def test_unknown_input_norm_is_named(small_params):
   with pytest.raises(ValueError, match="input_norm"):
     unet.UNet(SMALL, input_norm="whiten").apply({"params": small_params}, jnp.zeros((1, 8, 8, 3)))
+
+
+def test_clipped_reading_ignores_values_outside_the_unit_range(small_params):
+  """Reading.clip: a render with whites above 1 and blacks below 0 reveals exactly what its clipped image
+  does (no signal can live outside [0, 1]); the paper's reading sees the difference. Gradients stay finite."""
+  from conceal_jax.conceal import reveal
+  rng = np.random.default_rng(6)
+  renders = jnp.asarray(rng.uniform(-0.2, 1.3, (2, 32, 32, 3)), jnp.float32)
+  clipped = jnp.clip(renders, 0.0, 1.0)
+  reading = reveal.Reading("center", clip=True)
+  np.testing.assert_allclose(reveal.reveal_renders(small_params, renders, SMALL, 16, reading),
+                             reveal.reveal_renders(small_params, clipped, SMALL, 16, reading), atol=1e-6)
+  paper = lambda x: reveal.reveal_renders(small_params, x, SMALL, 16)
+  assert np.max(np.abs(paper(renders) - paper(clipped))) > 1e-3
+  grads = jax.grad(lambda x: jnp.sum(reveal.decode(small_params, SMALL, reveal.resize_for_decoder(x, 16, True))))(
+      renders)
+  assert np.all(np.isfinite(grads)) and np.all(np.asarray(grads)[np.asarray(renders) > 1.0] == 0)
+  info = dict(hidden_size=16, **reading.key_fields())
+  assert reveal.Reading.from_key(info) == reading and reveal.Reading.from_key({}) == reveal.PAPER_READING

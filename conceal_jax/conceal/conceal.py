@@ -224,21 +224,23 @@ def initial_decoder(config: ml_collections.ConfigDict, settings: ConcealSettings
 
 
 def build_data(scene, teacher, options: RenderOptions, check_camera, check_image, hidden: np.ndarray,
-               size: int, decoys=(), extra_keys=()) -> dict:
+               size: int, decoys=(), extra_keys=(), clip: bool = False) -> dict:
   """The device-resident inputs of the step; the teacher renders are computed here once, on the device.
 
   Normal views are the V training cameras followed by the D `decoys` (cameras, see key.decoy_cameras):
   cameras and teacher renders [V + D, ...], ground-truth images [V, H, W, 3] of the training views only.
   `extra_keys`: (camera, check image, hidden image [S, S, 3]) of further keys (conceal.extra_hidden); with
   any, data["keys"] stacks objective.KEY_FIELDS over all K keys, this check view first (check_camera [K],
-  check_image [K, H, W, 3] or None, hidden and teacher_check_small [K, S, S, 3]).
+  check_image [K, H, W, 3] or None, hidden and teacher_check_small [K, S, S, 3]). `clip`: the teacher renders
+  at the decoder size are clipped to [0, 1] first (reveal.Reading.clip).
   """
   normal_cameras = list(scene.train_cameras) + list(decoys)
   teacher_renders = evaluate.render_images(teacher, normal_cameras, options)
   keys = [(check_camera, check_image, hidden)] + list(extra_keys)
-  teacher_checks = [reveal.resize_for_decoder(render(teacher, camera, options).rgb, size) for camera, _, _ in keys]
+  teacher_checks = [reveal.resize_for_decoder(render(teacher, camera, options).rgb, size, clip)
+                    for camera, _, _ in keys]
   data = dict(images=jnp.asarray(np.stack(scene.train_images)), teacher=teacher_renders,
-              teacher_small=reveal.resize_for_decoder(teacher_renders, size),
+              teacher_small=reveal.resize_for_decoder(teacher_renders, size, clip),
               cameras=camera_lib.stack(normal_cameras), check_camera=check_camera, check_image=check_image,
               teacher_check_small=teacher_checks[0], hidden=jnp.asarray(hidden))
   if extra_keys:
@@ -297,7 +299,7 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   extra_keys = [(camera, image, hidden) for (camera, _), image, hidden in zip(keys[1:], check_images[1:], hiddens[1:])]
   mesh = lanes.lane_mesh(lanes.resolve(c.lanes))
   data = lanes.replicate(build_data(scene, teacher, options, check_camera, check_images[0], hiddens[0],
-                                    settings.hidden_size, decoys, extra_keys), mesh)
+                                    settings.hidden_size, decoys, extra_keys, settings.decoder_clip_input), mesh)
 
   student_tx = optimizer.gaussian_optimizer(c.lr, scene.scene_extent(), c.iterations)
   decoder_tx = decoder_optimizer(config)
@@ -328,7 +330,7 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
     student, decoder = lanes.on_one_device((state.student, state.decoder), mesh)  # not the Adam moments
     decoder = decoder if settings.use_decoder else None
     revealed = [reveal.reveal_image(student, camera, options, decoder, settings.decoder_width,
-                                    settings.hidden_size, settings.decoder_input_norm) for camera, _ in keys]
+                                    settings.hidden_size, settings.reading) for camera, _ in keys]
     record = dict(hidden_psnr=float(metrics.psnr(revealed[0], hiddens[0])),
                   hidden_ssim=float(metrics.ssim(revealed[0], hiddens[0])),
                   test_psnr=evaluate.views_psnr(student, eval_cameras, eval_targets, options))
@@ -348,7 +350,7 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   if decoder is not None:
     reveal.save_decoder(os.path.join(workdir, DECODER_FILE), decoder)
   key_info.update(hidden_size=settings.hidden_size, uses_decoder=settings.use_decoder,
-                  decoder_width=settings.decoder_width, decoder_input_norm=settings.decoder_input_norm,
+                  decoder_width=settings.decoder_width, **settings.reading.key_fields(),
                   render_options=dataclasses.asdict(options))
   # reveal.key_number k reveals the k-th extra image
   key_lib.save_key(os.path.join(workdir, KEY_FILE), check_camera, key_info,
@@ -363,7 +365,7 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
                  capacity_shrinks=steps.shrinks, history=result.history)
   fileio.write_json(os.path.join(workdir, SUMMARY_FILE), summary)
   reveal_fn = reveal.decoder_reveal(decoder, settings.decoder_width, settings.hidden_size,
-                                    settings.decoder_input_norm)
+                                    settings.reading)
   scored = evaluate_concealment(config, workdir, scene, teacher, state.student, reveal_fn, check_camera, options,
                                 hiddens[0], [(camera, hidden) for (camera, _), hidden in zip(keys[1:], hiddens[1:])])
   return dict(summary, metrics=scored)

@@ -40,6 +40,7 @@ class ConcealSettings:
   granularity: str = "layer"
   decoder_width: int = unet.PAPER_WIDTH
   decoder_input_norm: str = "none"  # (unet.UNet, beyond the paper)
+  decoder_clip_input: bool = False  # (reveal.Reading, beyond the paper)
   hidden_size: int = 64
   weight_kd: float = 1.0
   weight_plus: float = 1.0
@@ -101,6 +102,11 @@ class ConcealSettings:
     if (self.identity_on_student or self.identity_on_teacher_check) and not self.identity_loss:
       raise ValueError("conceal.identity_on_student and identity_on_teacher_check need L_d^- (a decoder and "
                        "consistency)")
+
+  @property
+  def reading(self) -> reveal.Reading:
+    """How the decoder reads a render (saved in the key)."""
+    return reveal.Reading(self.decoder_input_norm, self.decoder_clip_input)
 
   @property
   def distill(self) -> bool:
@@ -195,7 +201,7 @@ def check_decoder_input(check_rgb: jax.Array, distortion: dict | None, settings:
   seen = (augment.distort(check_rgb, distortion, s.check_blur_max, s.check_noise_max,
                           brightness_max=s.check_brightness_max, contrast_max=s.check_contrast_max)
           if s.distorts_check_image else check_rgb)
-  return reveal.resize_for_decoder(seen, s.hidden_size)
+  return reveal.resize_for_decoder(seen, s.hidden_size, s.decoder_clip_input)
 
 
 def decoded(decoder, images: jax.Array, settings: ConcealSettings) -> jax.Array:
@@ -226,7 +232,7 @@ def identity_inputs(data: dict, normal_view, settings: ConcealSettings, student_
   is with identity_distorted."""
   s = settings
   student = lambda: (check_decoder_input(student_rgb, distortion, s) if s.identity_distorted
-                     else reveal.resize_for_decoder(student_rgb, s.hidden_size))
+                     else reveal.resize_for_decoder(student_rgb, s.hidden_size, s.decoder_clip_input))
   images = dict(teacher_normal=lambda: data["teacher_small"][normal_view],
                 teacher_check=lambda: data["teacher_check_small"],
                 student=lambda: jax.lax.stop_gradient(student()))

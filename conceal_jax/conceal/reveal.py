@@ -6,6 +6,7 @@ are read from the key, so the check view is rendered exactly as during concealme
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 import os
 
@@ -26,9 +27,31 @@ from conceal_jax.splat.render import RenderOptions, render
 REVEAL_FILE = "reveal.json"
 
 
-def resize_for_decoder(image: jax.Array, size: int) -> jax.Array:
+@dataclasses.dataclass(frozen=True)
+class Reading:
+  """How a decoder reads a render, beyond the paper (both saved in key.json): `input_norm` (unet.UNet,
+  conceal.decoder_input_norm) and `clip` (conceal.decoder_clip_input): the render clipped to [0, 1] first,
+  as an image file holds it, so that no hidden signal can live in values outside it (a lego student hid
+  its image in whites above 1 that any saved or attacked image loses: clipped, SSIM 0.994 -> 0.725)."""
+  input_norm: str = "none"
+  clip: bool = False
+
+  @classmethod
+  def from_key(cls, info: dict) -> "Reading":
+    """The reading a key.json records; keys written before these options: the paper's."""
+    return cls(str(info.get("decoder_input_norm", "none")), bool(info.get("decoder_clip_input", False)))
+
+  def key_fields(self) -> dict:
+    return dict(decoder_input_norm=self.input_norm, decoder_clip_input=self.clip)
+
+
+PAPER_READING = Reading()
+
+
+def resize_for_decoder(image: jax.Array, size: int, clip: bool = False) -> jax.Array:
   """[..., H, W, 3] render -> [..., size, size, 3] decoder input (antialiased bilinear, as the released
-  code's resize to 64x64)."""
+  code's resize to 64x64); `clip`: clipped to [0, 1] first (Reading.clip)."""
+  image = jnp.clip(image, 0.0, 1.0) if clip else image
   return jax.image.resize(image, image.shape[:-3] + (size, size, image.shape[-1]), "linear")
 
 
@@ -40,20 +63,20 @@ def decode(decoder_params, base_channels: int, images: jax.Array, input_norm: st
   return out[0] if images.ndim == 3 else out
 
 
-@functools.partial(jax.jit, static_argnames=("base_channels", "size", "input_norm"))
+@functools.partial(jax.jit, static_argnames=("base_channels", "size", "reading"))
 def reveal_renders(decoder_params, renders: jax.Array, base_channels: int, size: int,
-                   input_norm: str = "none") -> jax.Array:
+                   reading: Reading = PAPER_READING) -> jax.Array:
   """[..., H, W, 3] renders -> [..., size, size, 3] revealed images clipped to [0, 1]; decoder_params
-  None: the resized render itself (the "without decoder" ablation). `input_norm` as in `decode`."""
-  small = resize_for_decoder(renders, size)
-  out = small if decoder_params is None else decode(decoder_params, base_channels, small, input_norm)
+  None: the resized render itself (the "without decoder" ablation)."""
+  small = resize_for_decoder(renders, size, reading.clip)
+  out = small if decoder_params is None else decode(decoder_params, base_channels, small, reading.input_norm)
   return jnp.clip(out, 0.0, 1.0)
 
 
 def reveal_image(gaussians: Gaussians, camera: Camera, options: RenderOptions, decoder_params,
-                 base_channels: int, size: int, input_norm: str = "none") -> jax.Array:
+                 base_channels: int, size: int, reading: Reading = PAPER_READING) -> jax.Array:
   """[size, size, 3] revealed image at `camera`."""
-  return reveal_renders(decoder_params, render(gaussians, camera, options).rgb, base_channels, size, input_norm)
+  return reveal_renders(decoder_params, render(gaussians, camera, options).rgb, base_channels, size, reading)
 
 
 def scores_to_hidden(revealed, hidden) -> dict[str, np.ndarray]:
@@ -68,12 +91,12 @@ def scores_to_hidden(revealed, hidden) -> dict[str, np.ndarray]:
               ssim=np.asarray(metrics.batched_ssim(revealed, hidden), np.float64))
 
 
-def decoder_reveal(decoder_params, base_channels: int, size: int, input_norm: str = "none"):
+def decoder_reveal(decoder_params, base_channels: int, size: int, reading: Reading = PAPER_READING):
   """The reveal function of a ConcealGS decoder: renders [V, H, W, 3] -> revealed images [V, size, size, 3]
   (decoder_params None: the resized renders). Scoring code takes such a function, so that a baseline with
   another way of reading the image out of a render is scored the same way."""
   return functools.partial(reveal_renders, decoder_params, base_channels=base_channels, size=size,
-                           input_norm=input_norm)
+                           reading=reading)
 
 
 def near_key_rows(gaussians: Gaussians, check_camera: Camera, options: RenderOptions, reveal_fn, hidden,
@@ -110,11 +133,6 @@ def load_decoder(path: str):
   return jax.tree.map(jnp.asarray, params)
 
 
-def decoder_input_norm(info: dict) -> str:
-  """How the key's decoder normalises what it reads (unet.UNet); keys written before the option: 'none'."""
-  return str(info.get("decoder_input_norm", "none"))
-
-
 def options_from_key(info: dict) -> RenderOptions:
   """The render options saved in a key (fields this version does not know are ignored)."""
   return settings.from_section(RenderOptions, info["render_options"])
@@ -138,7 +156,7 @@ def reveal_from_files(r: ml_collections.ConfigDict) -> np.ndarray:
   decoder = load_decoder(r.decoder) if info.get("uses_decoder", True) else None
   return np.asarray(reveal_image(ply.load_ply(r.ply), camera, options_from_key(info), decoder,
                                  int(info.get("decoder_width", 0)), int(info["hidden_size"]),
-                                 decoder_input_norm(info)))
+                                 Reading.from_key(info)))
 
 
 def reveal(config: ml_collections.ConfigDict, workdir: str) -> dict:

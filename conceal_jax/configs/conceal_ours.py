@@ -39,7 +39,7 @@ def apply(config, decoy_views: int):
   return gentle_student(config)
 
 
-def robust(config, decoy_views: int, input_norm: str = "none"):
+def robust(config, decoy_views: int, input_norm: str = "none", clip_input: bool = False):
   """`apply` plus training through the attacks of the robustness issue (conceal/augment.py): L_d^+ decodes
   the check render blurred by up to ROBUST_BLUR px and noised by up to ROBUST_NOISE, and L_d^- sees the
   student's normal renders (decoys included) distorted alike, so the decoder does not learn to reveal from
@@ -47,11 +47,12 @@ def robust(config, decoy_views: int, input_norm: str = "none"):
   student 33.02 dB against its teacher's 33.11, hidden 38.69 dB / SSIM 0.9945, leakage at most 0.188, 65.8 min;
   the paper's mild blur and JPEG cost 0.0007 hidden SSIM (0.0203 for `apply` alone), but a check render 0.1
   darker leaves SSIM 0.176 (0.888 for `apply` alone): see augment.py for brightness and contrast jitter.
-  `input_norm`: conceal.decoder_input_norm (conceal/unet.py), a decoder equivariant to such changes."""
+  `input_norm`: conceal.decoder_input_norm (conceal/unet.py), a decoder equivariant to such changes;
+  `clip_input`: conceal.decoder_clip_input (conceal/reveal.Reading), the decoder reads renders clipped to [0, 1]."""
   config = apply(config, decoy_views)
   c = config.conceal
   c.check_blur_max, c.check_noise_max, c.identity_distorted = ROBUST_BLUR, ROBUST_NOISE, True
-  c.decoder_input_norm = input_norm
+  c.decoder_input_norm, c.decoder_clip_input = input_norm, clip_input
   return config
 
 

@@ -115,6 +115,8 @@ def get_config() -> ml_collections.ConfigDict:
   # its std): a brightness (and contrast) change of the check render changes the revealed image alike
   # (conceal/unet.py); saved in key.json. 'none': the paper's decoder
   config.conceal.decoder_input_norm = "none"
+  # beyond the paper: the decoder reads every render clipped to [0, 1], as an image file holds it (saved in key.json)
+  config.conceal.decoder_clip_input = False
   config.conceal.decoder_lr = 1e-4
   config.conceal.decoder_adam_eps = 1e-15  # the released code's (the Gaussians' Adam); torch's default is 1e-8
   config.conceal.decoder_lr_final_ratio = 1.0  # log-linear decay of decoder_lr to this fraction (1: constant)

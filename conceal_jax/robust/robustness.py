@@ -25,14 +25,14 @@ from conceal_jax.splat.render import RenderOptions, render
 @dataclasses.dataclass(frozen=True)
 class Owner:
   """What the owner keeps: decoder params (None: the no-decoder ablation) of `decoder_width`, the hidden
-  image I [S, S, 3], the check camera and the render options of the key; `decoder_input_norm` as the key
-  says (reveal.decoder_input_norm)."""
+  image I [S, S, 3], the check camera and the render options of the key; how the decoder reads a render as
+  the key says (reveal.Reading.from_key)."""
   decoder: Any
   decoder_width: int
   hidden: np.ndarray
   check_camera: Camera
   options: RenderOptions
-  decoder_input_norm: str = "none"
+  reading: reveal.Reading = reveal.PAPER_READING
 
   @property
   def hidden_size(self) -> int:
@@ -41,7 +41,7 @@ class Owner:
   def reveal_renders(self, renders) -> jax.Array:
     """[V, H, W, 3] -> [V, S, S, 3] revealed images."""
     return reveal.reveal_renders(self.decoder, jnp.asarray(renders), self.decoder_width, self.hidden_size,
-                                 self.decoder_input_norm)
+                                 self.reading)
 
   def scores(self, revealed) -> dict[str, np.ndarray]:
     """PSNR and SSIM [V] of revealed images [V, S, S, 3] to I."""
