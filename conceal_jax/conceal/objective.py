@@ -193,6 +193,12 @@ def check_student(student, distortion: dict | None, settings: ConcealSettings):
   return augment.perturb_gaussians(student, distortion, s.check_dropout_max, s.check_param_noise_max)
 
 
+def decoder_view(rgb: jax.Array, settings: ConcealSettings) -> jax.Array:
+  """[S, S, 3] a render [H, W, 3] as the decoder is given it: clipped to [0, 1] with decoder_clip_input
+  (reveal.Reading), resized to the decoder's size."""
+  return reveal.resize_for_decoder(rgb, settings.hidden_size, settings.decoder_clip_input)
+
+
 def check_decoder_input(check_rgb: jax.Array, distortion: dict | None, settings: ConcealSettings) -> jax.Array:
   """[S, S, 3] the student's check render [H, W, 3] as F reads it for L_d^+: distorted by `distortion`
   (augment.distort: brightness, contrast, blur, noise) when settings.distorts_check_image, resized to the
@@ -201,7 +207,7 @@ def check_decoder_input(check_rgb: jax.Array, distortion: dict | None, settings:
   seen = (augment.distort(check_rgb, distortion, s.check_blur_max, s.check_noise_max,
                           brightness_max=s.check_brightness_max, contrast_max=s.check_contrast_max)
           if s.distorts_check_image else check_rgb)
-  return reveal.resize_for_decoder(seen, s.hidden_size, s.decoder_clip_input)
+  return decoder_view(seen, s)
 
 
 def decoded(decoder, images: jax.Array, settings: ConcealSettings) -> jax.Array:
@@ -232,7 +238,7 @@ def identity_inputs(data: dict, normal_view, settings: ConcealSettings, student_
   is with identity_distorted."""
   s = settings
   student = lambda: (check_decoder_input(student_rgb, distortion, s) if s.identity_distorted
-                     else reveal.resize_for_decoder(student_rgb, s.hidden_size, s.decoder_clip_input))
+                     else decoder_view(student_rgb, s))
   images = dict(teacher_normal=lambda: data["teacher_small"][normal_view],
                 teacher_check=lambda: data["teacher_check_small"],
                 student=lambda: jax.lax.stop_gradient(student()))
