@@ -6,7 +6,8 @@
 Trains with conceal_jax/configs/nerf_synthetic.py and colmap.py into <workdir>/<scene>/teacher (a killed
 run resumes from its checkpoint), then writes train_bench.json and train_bench.md (iterations,
 training wall time, median step time, Gaussian count, test PSNR / SSIM / LPIPS-VGG on every test view)
-and train_bench.png (test PSNR against training minutes, training PSNR against iterations) to --out. Scenes whose data is missing under ../shared/data are skipped with a note.
+and train_bench.png (test PSNR against training minutes, training PSNR against iterations) to --out. Scenes
+whose data is missing under ../shared/data are skipped with a note.
 """
 from __future__ import annotations
 
@@ -115,7 +116,8 @@ def plot(rows, path: pathlib.Path):
 
 def table(rows) -> str:
   """The rows as a Markdown table."""
-  lines = ["| scene | downscale | iterations | wall time (min) | median step (ms) | Gaussians (cap) | tile | test PSNR | "
+  lines = ["| scene | downscale | iterations | wall time (min) | median step (ms) | Gaussians (cap) | tile | "
+           "test PSNR | "
            "SSIM | LPIPS-VGG | test views | target |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
   for r in rows:

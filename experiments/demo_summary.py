@@ -19,7 +19,8 @@ def summary(root: pathlib.Path) -> str:
       f"LPIPS {teacher['mean']['lpips']:.4f}",
       f"student test PSNR {student['psnr']:.2f} dB  SSIM {student['ssim']:.4f}  LPIPS {student['lpips']:.4f}  "
       f"(vs teacher renders {concealed['student_vs_teacher']['psnr']:.2f} dB)",
-      f"hidden image at the check view: PSNR {concealed['hidden']['psnr']:.2f} dB  SSIM {concealed['hidden']['ssim']:.4f}"
+      f"hidden image at the check view: PSNR {concealed['hidden']['psnr']:.2f} dB  "
+      f"SSIM {concealed['hidden']['ssim']:.4f}"
       f"  (reveal job: {revealed['psnr']:.2f} dB / {revealed['ssim']:.4f})",
       f"leakage SSIM: student test views max {concealed['leakage']['max_ssim_student_test_views']:.4f}, "
       f"clean teacher at the check view {clean['ssim']:.4f}, student near the check view (2-5% of the extent, "

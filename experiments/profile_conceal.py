@@ -145,10 +145,12 @@ def profile(row: str, width: int, teacher: pathlib.Path, repeats: int, key_at_de
   counts = (1, 2) if jax.local_device_count() >= 2 else (1,)
   variants = {f"conceal_step_lanes{count}": (options, count) for count in counts}
   variants.update({f"conceal_step_lanes{counts[-1]}_headroom{h:g}": (
-      dataclasses.replace(options, pair_capacity=render_lib.round_capacity(views_need * h)), counts[-1]) for h in headrooms})
+      dataclasses.replace(options, pair_capacity=render_lib.round_capacity(views_need * h)), counts[-1])
+      for h in headrooms})
   times.update(step_ms(settings, variants, student_tx, decoder_tx, gaussians, decoder, data, len(scene.train_cameras),
                        repeats))
-  return dict(row=row, key_at_decoder_size=key_at_decoder_size, decoder_width=width, num_gaussians=int(gaussians.num), pair_capacity=options.pair_capacity,
+  return dict(row=row, key_at_decoder_size=key_at_decoder_size, decoder_width=width, num_gaussians=int(gaussians.num),
+              pair_capacity=options.pair_capacity,
               views_pair_need=views_need,
               tile_size=options.tile_size, image_size=[camera.width, camera.height],
               hidden_size=settings.hidden_size, settings=dataclasses.asdict(settings), repeats=repeats,

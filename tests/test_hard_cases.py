@@ -310,7 +310,8 @@ def test_every_splat_in_one_tile():
   rng = np.random.default_rng(12)
   cam = Camera.from_fov(np.eye(4), 0.8, 64, 48)
   options = dataclasses.replace(EXACT, tile_size=8)
-  g = _small_splats(rng, _points_in_pixel_box(rng, 400, (27, 29, 19, 21), depth=(4.0, 6.0), cam=cam), logit_range=(-3, 1))
+  g = _small_splats(rng, _points_in_pixel_box(rng, 400, (27, 29, 19, 21), depth=(4.0, 6.0), cam=cam),
+                    logit_range=(-3, 1))
   out = check(g, cam, options)
   assert int(out.num_pairs) == 400, "each splat stays inside tile (3, 2)"
   alpha = np.asarray(out.alpha)

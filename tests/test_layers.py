@@ -1,4 +1,5 @@
-"""The package's layer order (setup.cfg [importlinter]) holds: no module imports from a layer above it."""
+"""The package's layer order (setup.cfg [importlinter]) holds: no module imports from a layer above it; and
+every source line fits the line limit."""
 from __future__ import annotations
 
 import os
@@ -21,3 +22,18 @@ def test_import_contracts_are_kept():
                           text=True, check=False)
   assert result.returncode == 0, result.stdout + result.stderr
   assert "0 broken" in result.stdout
+
+
+MAX_LINE = 120  # the project's line limit (2-space indent), as the style guide sets it
+
+
+def test_source_lines_fit_the_limit():
+  long_lines = []
+  for top in ("conceal_jax", "experiments", "tests"):
+    for folder, _, files in os.walk(os.path.join(ROOT, top)):
+      for name in (f for f in files if f.endswith(".py")):
+        path = os.path.join(folder, name)
+        with open(path, encoding="utf-8") as f:
+          long_lines += [f"{os.path.relpath(path, ROOT)}:{i}" for i, line in enumerate(f, 1)
+                         if len(line.rstrip("\n")) > MAX_LINE]
+  assert not long_lines, f"lines over {MAX_LINE} characters: {long_lines}"

@@ -99,7 +99,8 @@ def linear_warmup(steps: int) -> optax.Schedule:
   return lambda count: jnp.minimum(1.0, (count + 1) / steps)
 
 
-def gaussian_optimizer(lr: ml_collections.ConfigDict, extent: float, run_steps: int = 0) -> optax.GradientTransformation:
+def gaussian_optimizer(lr: ml_collections.ConfigDict, extent: float,
+                       run_steps: int = 0) -> optax.GradientTransformation:
   """Adam (b1 0.9, b2 0.999, eps 1e-15) with the 3D-GS learning rates of `lr`, scaled by scene extent;
   run_steps: the run's length, over which the means decay when lr.means_steps is 0.
 

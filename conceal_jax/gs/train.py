@@ -181,8 +181,8 @@ def make_train_step(tx: optax.GradientTransformation, options: RenderOptions, ss
                     traces: loop.TraceCounter | None = None):
   """Builds step(state, images [V, H, W, 3], cameras (stacked), view) -> (state, stats), jitted with the
   state donated; `options` must carry a pair capacity, and a step whose render overflowed it returns the
-  state unchanged (see gs.capacity). It also accumulates the densification statistics (3D-GS Sec. 5.2): the NDC norm of each
-  visible Gaussian's 2D-mean gradient, its view count, and its largest screen radius."""
+  state unchanged (see gs.capacity). It also accumulates the densification statistics (3D-GS Sec. 5.2): the
+  NDC norm of each visible Gaussian's 2D-mean gradient, its view count, and its largest screen radius."""
 
   def loss_fn(gaussians, offsets, alive, image, camera):
     out = render(masked(gaussians, alive), camera, options, means2d_offset=offsets)

@@ -94,7 +94,8 @@ def model_attack_rows(gaussians: Gaussians, owner: Owner, test_cameras: Sequence
   for name, level, severity in [("none", None, "none")] + list(levels):
     attacked = gaussians if name == "none" else model_attacks.attack(gaussians, name, level)
     padded = pad_like(attacked, num, gaussians.sh_degree)
-    rows.append(dict(attack=name, level=level, severity=severity, num_gaussians=int(np.asarray(attacked.means).shape[0]),
+    rows.append(dict(attack=name, level=level, severity=severity,
+                     num_gaussians=int(np.asarray(attacked.means).shape[0]),
                      **scene_scores(padded, owner, test_cameras, test_images)))
   return rows
 
