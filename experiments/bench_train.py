@@ -117,8 +117,7 @@ def plot(rows, path: pathlib.Path):
 def table(rows) -> str:
   """The rows as a Markdown table."""
   lines = ["| scene | downscale | iterations | wall time (min) | median step (ms) | Gaussians (cap) | tile | "
-           "test PSNR | "
-           "SSIM | LPIPS-VGG | test views | target |",
+           "test PSNR | SSIM | LPIPS-VGG | test views | target |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
   for r in rows:
     target = ", ".join(f"{k} {v:g}" for k, v in r.get("targets", {}).items())
