@@ -2,6 +2,7 @@
 against the float64 attacks of robust/, and a concealment run that trains through them."""
 from __future__ import annotations
 
+import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -10,7 +11,14 @@ import pytest
 from conceal_jax.conceal import augment, conceal
 from conceal_jax.robust import image_attacks
 from conceal_jax.splat.gaussians import Gaussians
+from conceal_jax.conceal.augment import Augmentation
 from tests.test_conceal import tiny, tiny_config  # noqa: F401  (tiny is a fixture)
+
+IMAGE = Augmentation(blur_max=1.5, noise_max=0.05)
+BOTH = dataclasses.replace(IMAGE, dropout_max=0.3, param_noise_max=0.02)
+ALL = dataclasses.replace(BOTH, brightness_max=0.1, contrast_max=0.2)
+PHOTOMETRIC = Augmentation(brightness_max=0.1, contrast_max=0.2)
+MODEL = Augmentation(dropout_max=0.5, param_noise_max=0.1)
 
 
 @pytest.mark.parametrize("sigma", [0.4, 1.0, 2.5])
@@ -31,19 +39,19 @@ def test_blur_of_sigma_zero_is_the_identity_with_finite_gradients():
 
 def test_distort_adds_noise_of_the_drawn_level_and_draws_stay_in_range():
   rng = np.random.default_rng(2)
-  draws = [augment.draw(rng, 1.5, 0.05, 0.3, 0.02) for _ in range(200)]
+  draws = [augment.draw(rng, BOTH) for _ in range(200)]
   assert all(0 <= d["blur"] <= 1.5 and 0 <= d["noise"] <= 0.05 for d in draws)
   assert all(0 <= d["dropout"] <= 0.3 and 0 <= d["param_noise"] <= 0.02 for d in draws)
   # the image's draws come first: a run that adds the model's keeps its image distortions
-  image_only = augment.draw(np.random.default_rng(7), 1.5, 0.05)
-  with_model = augment.draw(np.random.default_rng(7), 1.5, 0.05, 0.3, 0.02)
+  image_only = augment.draw(np.random.default_rng(7), IMAGE)
+  with_model = augment.draw(np.random.default_rng(7), BOTH)
   assert all(image_only[k] == with_model[k] for k in ("blur", "noise", "seed"))
   image = jnp.full((64, 64, 3), 0.5, jnp.float32)
   drawn = dict(blur=np.float32(0.0), noise=np.float32(0.1), seed=np.uint32(3))
-  out = augment.distort(image, drawn, 0.0, 0.1)
+  out = augment.distort(image, drawn, Augmentation(noise_max=0.1))
   assert abs(float(jnp.std(out)) - 0.1) < 0.005 and abs(float(jnp.mean(out)) - 0.5) < 0.005
   # a run that never draws noise (noise_max 0) adds none
-  np.testing.assert_array_equal(np.asarray(augment.distort(image, drawn, 0.0, 0.0)), np.asarray(image))
+  np.testing.assert_array_equal(np.asarray(augment.distort(image, drawn, Augmentation())), np.asarray(image))
 
 
 @pytest.mark.parametrize("brightness,contrast", [(-0.1, 1.0), (0.0, 0.8), (0.07, 1.2), (-0.05, 0.9)])
@@ -51,22 +59,21 @@ def test_photometric_matches_the_float64_attack_where_it_does_not_clip(brightnes
   # values in [0.2, 0.8] stay inside [0, 1] under every level here, so the attack's clip is idle
   image = np.random.default_rng(3).uniform(0.2, 0.8, size=(9, 11, 3))
   drawn = dict(brightness=np.float32(brightness), contrast=np.float32(contrast))
-  ours = augment.distort(jnp.asarray(image, jnp.float32), drawn, 0.0, 0.0, brightness_max=0.1, contrast_max=0.2)
+  ours = augment.distort(jnp.asarray(image, jnp.float32), drawn, PHOTOMETRIC)
   expected = image_attacks.brightness_contrast(image, brightness=brightness, contrast=contrast)
   np.testing.assert_allclose(np.asarray(ours), expected, atol=1e-6)
 
 
 def test_photometric_draws_stay_in_range_keep_earlier_draws_and_level_zero_is_the_identity():
   rng = np.random.default_rng(5)
-  draws = [augment.draw(rng, 1.5, 0.05, 0.3, 0.02, brightness_max=0.1, contrast_max=0.2) for _ in range(400)]
+  draws = [augment.draw(rng, ALL) for _ in range(400)]
   assert all(-0.1 <= d["brightness"] <= 0.1 and 0.8 <= d["contrast"] <= 1.2 for d in draws)
   assert min(d["brightness"] for d in draws) < -0.09 and max(d["contrast"] for d in draws) > 1.18
-  before = augment.draw(np.random.default_rng(7), 1.5, 0.05, 0.3, 0.02)
-  after = augment.draw(np.random.default_rng(7), 1.5, 0.05, 0.3, 0.02, brightness_max=0.1,
-                       contrast_max=0.2)
+  before = augment.draw(np.random.default_rng(7), BOTH)
+  after = augment.draw(np.random.default_rng(7), ALL)
   assert all(before[k] == after[k] for k in ("blur", "noise", "seed", "dropout", "param_noise", "model_seed"))
   # a run without photometric draws gets brightness 0 and contrast 1: the identity, values and gradients
-  plain = augment.draw(np.random.default_rng(7), 1.5, 0.05)
+  plain = augment.draw(np.random.default_rng(7), IMAGE)
   image = jnp.asarray(np.random.default_rng(6).uniform(-0.2, 1.3, size=(8, 8, 3)), jnp.float32)
   np.testing.assert_array_equal(np.asarray(augment.photometric(image, plain["brightness"], plain["contrast"])),
                                 np.asarray(image))
@@ -88,13 +95,13 @@ def test_perturb_gaussians_noises_by_the_fields_spread_and_drops_at_the_drawn_ra
   g = _random_gaussians(20_000)
   level, rate = 0.05, 0.3
   drawn = dict(dropout=np.float32(0.0), param_noise=np.float32(level), model_seed=np.uint32(4))
-  noised = augment.perturb_gaussians(g, drawn, 0.5, 0.1)
+  noised = augment.perturb_gaussians(g, drawn, MODEL)
   for name in augment.MODEL_FIELDS:
     x = np.asarray(getattr(g, name), np.float64)
     relative = (np.asarray(getattr(noised, name), np.float64) - x) / (level * x.std(axis=0, keepdims=True))
     assert np.all(np.abs(relative.reshape(len(x), -1).std(axis=0) - 1.0) < 0.03), name
     assert np.all(np.abs(relative.reshape(len(x), -1).mean(axis=0)) < 0.03), name
-  both = augment.perturb_gaussians(g, dict(drawn, dropout=np.float32(rate)), 0.5, 0.1)
+  both = augment.perturb_gaussians(g, dict(drawn, dropout=np.float32(rate)), MODEL)
   dropped = np.asarray(both.opacity_logits) == augment.DROPPED_LOGIT
   assert abs(dropped.mean() - rate) < 0.015
   np.testing.assert_array_equal(np.asarray(both.opacity_logits)[~dropped], np.asarray(noised.opacity_logits)[~dropped])
@@ -104,13 +111,13 @@ def test_perturb_gaussians_noises_by_the_fields_spread_and_drops_at_the_drawn_ra
 def test_perturb_gaussians_at_level_zero_is_the_identity_with_finite_gradients():
   g = _random_gaussians(500, seed=1)
   zero = dict(dropout=np.float32(0.0), param_noise=np.float32(0.0), model_seed=np.uint32(9))
-  for a, b in zip(jax.tree.leaves(augment.perturb_gaussians(g, zero, 0.5, 0.1)), jax.tree.leaves(g)):
+  for a, b in zip(jax.tree.leaves(augment.perturb_gaussians(g, zero, MODEL)), jax.tree.leaves(g)):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
   # the noise's scale is a constant and a dropped Gaussian's opacity gets no gradient
   drawn = dict(zero, dropout=np.float32(0.4), param_noise=np.float32(0.1))
-  loss = lambda gs: sum(jnp.sum(x) for x in jax.tree.leaves(augment.perturb_gaussians(gs, drawn, 0.5, 0.1)))
+  loss = lambda gs: sum(jnp.sum(x) for x in jax.tree.leaves(augment.perturb_gaussians(gs, drawn, MODEL)))
   grads = jax.grad(loss)(g)
-  kept = np.asarray(augment.perturb_gaussians(g, drawn, 0.5, 0.1).opacity_logits) != augment.DROPPED_LOGIT
+  kept = np.asarray(augment.perturb_gaussians(g, drawn, MODEL).opacity_logits) != augment.DROPPED_LOGIT
   np.testing.assert_array_equal(np.asarray(grads.opacity_logits), kept.astype(np.float32))
   for name in ("means", "log_scales", "quats", "sh"):
     np.testing.assert_array_equal(np.asarray(getattr(grads, name)), 1.0)
@@ -123,7 +130,7 @@ def test_conceal_trains_through_distortions_in_one_trace(tiny, tmp_path):  # noq
   result = conceal.conceal_and_evaluate(config, str(tmp_path))
   assert result["traces"] == dict(conceal_step=1) and np.isfinite(result["metrics"]["hidden"]["psnr"])
   for key, bad in (("check_blur_max", -1.0), ("check_dropout_max", 1.0), ("check_param_noise_max", -0.1),
-                   ("check_brightness_max", -0.1), ("check_contrast_max", 1.0),
+                   ("check_brightness_max", -0.1), ("check_contrast_max", 1.0), ("check_noise_max", float("nan")),
                    ("identity_perturbed", True)):  # the last without a model perturbation
     with pytest.raises(ValueError, match=key):
       conceal.conceal_and_evaluate(tiny_config(tiny, **{key: bad}), str(tmp_path / "bad"))

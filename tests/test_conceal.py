@@ -138,9 +138,10 @@ def test_identity_distorted_reads_the_students_render_through_the_steps_distorti
   _, _, data = _objective_inputs()
   rgb = jax.random.uniform(jax.random.key(3), (32, 32, 3))
   distortion = dict(blur=np.float32(1.2), noise=np.float32(0.04), seed=np.uint32(5))
-  base = dict(decoder_width=4, hidden_size=16, identity_on_student=True, check_blur_max=2.0, check_noise_max=0.05)
+  augmentation = augment.Augmentation(blur_max=2.0, noise_max=0.05)
+  base = dict(decoder_width=4, hidden_size=16, identity_on_student=True, augmentation=augmentation)
   s = objective.ConcealSettings(**base, identity_distorted=True)
-  expected = reveal.resize_for_decoder(augment.distort(rgb, distortion, 2.0, 0.05), 16)
+  expected = reveal.resize_for_decoder(augment.distort(rgb, distortion, augmentation), 16)
   np.testing.assert_allclose(objective.identity_inputs(data, 2, s, rgb, distortion)[-1], expected, rtol=1e-6)
   plain = objective.identity_inputs(data, 2, objective.ConcealSettings(**base), rgb, distortion)[-1]
   np.testing.assert_allclose(plain, reveal.resize_for_decoder(rgb, 16), rtol=1e-6)

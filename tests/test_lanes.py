@@ -9,6 +9,7 @@ import optax
 import pytest
 
 from conceal_jax.conceal import conceal, lanes_objective, objective
+from conceal_jax.conceal.augment import Augmentation
 from conceal_jax.configs import default
 from conceal_jax.core import lanes
 from conceal_jax.gs import optimizer
@@ -80,22 +81,22 @@ SETTINGS = {
     "released": dict(variant="released", identity_on_student=True),
     "no_consistency": dict(consistency=False),
     "no_decoder": dict(use_decoder=False),
-    "distorted": dict(identity_on_student=True, check_blur_max=1.5, check_noise_max=0.05),
-    "identity_distorted": dict(identity_on_student=True, check_blur_max=1.5, check_noise_max=0.05,
+    "distorted": dict(identity_on_student=True, augmentation=Augmentation(blur_max=1.5, noise_max=0.05)),
+    "identity_distorted": dict(identity_on_student=True, augmentation=Augmentation(blur_max=1.5, noise_max=0.05),
                                identity_distorted=True),
     # brightness and contrast alone are a distortion of both lanes' images
-    "photometric": dict(identity_on_student=True, check_brightness_max=0.1, check_contrast_max=0.2,
+    "photometric": dict(identity_on_student=True, augmentation=Augmentation(brightness_max=0.1, contrast_max=0.2),
                         identity_distorted=True),
     # the decoder normalises what it reads, clipped to [0, 1], in both lanes
     "standardized": dict(identity_on_student=True, identity_on_teacher_check=True, decoder_input_norm="standardize",
                          decoder_clip_input=True,
-                         check_blur_max=1.5, identity_distorted=True),
+                         augmentation=Augmentation(blur_max=1.5), identity_distorted=True),
     # the model perturbation reaches the check lane only, also where lane 0's image is distorted
-    "perturbed": dict(identity_on_student=True, check_blur_max=1.5, check_noise_max=0.05, identity_distorted=True,
-                      check_dropout_max=0.5, check_param_noise_max=0.1),
+    "perturbed": dict(identity_on_student=True, identity_distorted=True,
+                      augmentation=Augmentation(blur_max=1.5, noise_max=0.05, dropout_max=0.5, param_noise_max=0.1)),
     # ... and lane 0's L_d^- reads a second render, of the perturbed student
-    "identity_perturbed": dict(identity_on_student=True, identity_on_teacher_check=True, check_blur_max=1.5,
-                               identity_distorted=True, check_dropout_max=0.5, check_param_noise_max=0.1,
+    "identity_perturbed": dict(identity_on_student=True, identity_on_teacher_check=True, identity_distorted=True,
+                               augmentation=Augmentation(blur_max=1.5, dropout_max=0.5, param_noise_max=0.1),
                                identity_perturbed=True),
 }
 DISTORTION = dict(blur=np.float32(0.8), noise=np.float32(0.03), seed=np.uint32(7), dropout=np.float32(0.3),
@@ -109,7 +110,7 @@ def test_lane_gradients_are_the_objectives(row):
   s = objective.ConcealSettings(decoder_width=4, hidden_size=16, weight_kd=0.7, weight_plus=2.0, weight_minus=1.5,
                                 weight_check=0.5, **SETTINGS[row])
   decoder = decoder if s.use_decoder else {}
-  distortion = DISTORTION if s.distorts_check else None
+  distortion = DISTORTION if s.augmentation.draws else None
   expected = reference_gradients(student, decoder, data, 1, 2, s, distortion)
   # Side by side only where the lanes' data differ most (the program is the same for every row).
   two = jax.local_device_count() >= 2 and row in ("ours", "identity_perturbed")

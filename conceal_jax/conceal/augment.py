@@ -49,7 +49,9 @@ turns fragile to brightness and contrast, so configs/conceal_ours.robust leaves 
 """
 from __future__ import annotations
 
+import dataclasses
 import math
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -95,31 +97,79 @@ def photometric(image: jax.Array, brightness: jax.Array, contrast: jax.Array) ->
   return image * contrast + (0.5 * (1.0 - contrast) + brightness)
 
 
-def distort(image: jax.Array, distortion: dict, blur_max: float, noise_max: float, *, brightness_max: float = 0.0,
-            contrast_max: float = 0.0) -> jax.Array:
+@dataclasses.dataclass(frozen=True)
+class Augmentation:
+  """The maxima of a run's distortions of its check render (config conceal.check_<field>). Static: a kind
+  whose maximum is 0 is left out of the step at trace time, and never drawn from."""
+  blur_max: float = 0.0         # blur sigma ~ U[0, max] pixels
+  noise_max: float = 0.0        # noise sigma ~ U[0, max]
+  brightness_max: float = 0.0   # offset ~ U[-max, max] (`photometric`)
+  contrast_max: float = 0.0     # factor ~ 1 + U[-max, max]
+  dropout_max: float = 0.0      # each Gaussian dropped with probability ~ U[0, max] (`perturb_gaussians`)
+  param_noise_max: float = 0.0  # relative parameter noise ~ U[0, max]
+
+  CONFIG_PREFIX = "check_"
+
+  def __post_init__(self):
+    named = {f"conceal.{self.CONFIG_PREFIX}{f.name}": getattr(self, f.name) for f in dataclasses.fields(self)}
+    bounded = {"conceal.check_contrast_max", "conceal.check_dropout_max"}  # a factor or a probability
+    bad = [f"{name} = {value}" for name, value in named.items()
+           if not (value >= 0 and (name not in bounded or value < 1))]
+    if bad:
+      raise ValueError(f"{', '.join(bad)}: every conceal.check_*_max must be >= 0, and check_contrast_max and "
+                       "check_dropout_max below 1")
+
+  @classmethod
+  def from_section(cls, section: Any) -> Augmentation:
+    """The maxima of a config section's check_<field> keys (absent keys: 0)."""
+    keys = {f.name: cls.CONFIG_PREFIX + f.name for f in dataclasses.fields(cls)}
+    return cls(**{name: section[key] for name, key in keys.items() if key in section})
+
+  @property
+  def distorts_image(self) -> bool:
+    """Whether a step changes the check render's image (`distort`)."""
+    return max(self.blur_max, self.noise_max, self.brightness_max, self.contrast_max) > 0
+
+  @property
+  def perturbs_model(self) -> bool:
+    """Whether a step renders the check view from a perturbed student (`perturb_gaussians`)."""
+    return self.dropout_max > 0 or self.param_noise_max > 0
+
+  @property
+  def draws(self) -> bool:
+    """Whether a step draws a distortion (`draw`), of the image or of the model."""
+    return self.distorts_image or self.perturbs_model
+
+
+def distort(image: jax.Array, distortion: dict | None, augmentation: Augmentation) -> jax.Array:
   """image [H, W, 3] with brightness and contrast changed by distortion["brightness"] and ["contrast"], then
   blurred by distortion["blur"] pixels and plus normal noise of standard deviation distortion["noise"] drawn
-  from the PRNG seed distortion["seed"] (all traced; see `draw`). The static maxima leave out, at trace
-  time, the changes a run never draws."""
-  if brightness_max > 0 or contrast_max > 0:
+  from the PRNG seed distortion["seed"] (all traced; see `draw`). The kinds whose maximum in `augmentation`
+  is 0 are left out at trace time; without any, the image itself (and `distortion` may be None)."""
+  a = augmentation
+  if a.brightness_max > 0 or a.contrast_max > 0:
     image = photometric(image, distortion["brightness"], distortion["contrast"])
-  if blur_max > 0:
-    image = gaussian_blur(image, distortion["blur"], blur_radius(blur_max))
-  if noise_max > 0:
+  if a.blur_max > 0:
+    image = gaussian_blur(image, distortion["blur"], blur_radius(a.blur_max))
+  if a.noise_max > 0:
     image = image + distortion["noise"] * jax.random.normal(jax.random.key(distortion["seed"]), image.shape,
                                                             image.dtype)
   return image
 
 
-def perturb_gaussians(gaussians, distortion: dict, dropout_max: float, param_noise_max: float):
+def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmentation):
   """Gaussians [N] as the check render sees them: every field of MODEL_FIELDS plus normal noise of
   distortion["param_noise"] times that field's per-channel standard deviation over the N Gaussians (a
   constant: the noise's scale is not trained), then each Gaussian dropped (opacity logit DROPPED_LOGIT, no
   gradient) with probability distortion["dropout"]; drawn from the PRNG seed distortion["model_seed"]. The
-  static maxima leave out, at trace time, the noise or the dropout a run never draws; at level 0 either is
-  the identity, values and gradients."""
+  noise or the dropout whose maximum in `augmentation` is 0 is left out at trace time (without either, the
+  Gaussians themselves, and `distortion` may be None); at level 0 either is the identity, values and
+  gradients."""
+  a = augmentation
+  if not a.perturbs_model:
+    return gaussians
   noise_key, drop_key = jax.random.split(jax.random.key(distortion["model_seed"]))
-  if param_noise_max > 0:
+  if a.param_noise_max > 0:
     keys = dict(zip(MODEL_FIELDS, jax.random.split(noise_key, len(MODEL_FIELDS))))
     level = distortion["param_noise"]
 
@@ -129,22 +179,22 @@ def perturb_gaussians(gaussians, distortion: dict, dropout_max: float, param_noi
       return x + level * spread * jax.random.normal(keys[name], x.shape, x.dtype)
 
     gaussians = gaussians.replace(**{name: noisy(name) for name in MODEL_FIELDS})
-  if dropout_max > 0:
+  if a.dropout_max > 0:
     keep = jax.random.uniform(drop_key, gaussians.opacity_logits.shape) >= distortion["dropout"]
     gaussians = gaussians.replace(opacity_logits=jnp.where(keep, gaussians.opacity_logits, DROPPED_LOGIT))
   return gaussians
 
 
-def draw(rng: np.random.Generator, blur_max: float, noise_max: float, dropout_max: float = 0.0,
-         param_noise_max: float = 0.0, *, brightness_max: float = 0.0, contrast_max: float = 0.0) -> dict:
-  """One step's distortion: blur sigma ~ U[0, blur_max], noise sigma ~ U[0, noise_max], a noise seed; of
-  the model (`perturb_gaussians`) a dropout probability ~ U[0, dropout_max], a relative parameter noise
-  ~ U[0, param_noise_max] and their seed; brightness ~ U[-brightness_max, brightness_max] and contrast
-  ~ 1 + U[-contrast_max, contrast_max]. Later kinds are drawn after earlier ones, so a run without them
-  sees the distortions it always did."""
-  image = dict(blur=np.float32(rng.uniform(0.0, blur_max)), noise=np.float32(rng.uniform(0.0, noise_max)),
+def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
+  """One step's distortion within `augmentation`'s maxima: blur sigma ~ U[0, blur_max], noise sigma
+  ~ U[0, noise_max], a noise seed; of the model (`perturb_gaussians`) a dropout probability ~ U[0, dropout_max],
+  a relative parameter noise ~ U[0, param_noise_max] and their seed; brightness ~ U[-brightness_max,
+  brightness_max] and contrast ~ 1 + U[-contrast_max, contrast_max]. Later kinds are drawn after earlier ones,
+  so a run without them sees the distortions it always did."""
+  a = augmentation
+  image = dict(blur=np.float32(rng.uniform(0.0, a.blur_max)), noise=np.float32(rng.uniform(0.0, a.noise_max)),
                seed=np.uint32(rng.integers(2**32)))
-  model = dict(dropout=np.float32(rng.uniform(0.0, dropout_max)),
-               param_noise=np.float32(rng.uniform(0.0, param_noise_max)), model_seed=np.uint32(rng.integers(2**32)))
-  return dict(image, **model, brightness=np.float32(rng.uniform(-brightness_max, brightness_max)),
-              contrast=np.float32(1.0 + rng.uniform(-contrast_max, contrast_max)))
+  model = dict(dropout=np.float32(rng.uniform(0.0, a.dropout_max)),
+               param_noise=np.float32(rng.uniform(0.0, a.param_noise_max)), model_seed=np.uint32(rng.integers(2**32)))
+  return dict(image, **model, brightness=np.float32(rng.uniform(-a.brightness_max, a.brightness_max)),
+              contrast=np.float32(1.0 + rng.uniform(-a.contrast_max, a.contrast_max)))

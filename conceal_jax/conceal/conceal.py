@@ -119,7 +119,8 @@ class ConcealState:
 
 
 def settings_from_config(config: ml_collections.ConfigDict) -> ConcealSettings:
-  return settings_lib.from_section(ConcealSettings, config.conceal)
+  return settings_lib.from_section(ConcealSettings, config.conceal,
+                                   augmentation=augment.Augmentation.from_section(config.conceal))
 
 
 def loop_settings(config: ml_collections.ConfigDict) -> loop.LoopSettings:
@@ -176,7 +177,7 @@ def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student
                       traces: loop.TraceCounter | None = None, mesh=None):
   """Builds step(state, data, view, normal_view, key, distortion) -> (state, stats), jitted with the state
   donated; `key` picks the check view (and its hidden image) of a run with several (objective.key_data;
-  unused with one); `distortion` (augment.draw) is applied to the check render when settings.distorts_check.
+  unused with one); `distortion` (augment.draw) is applied to the check render when settings.augmentation draws.
   `options` carry a pair capacity; a step whose renders overflowed it returns the state unchanged (gs.capacity).
 
   The gradients come from lanes_objective.gradients: the student's of `student_objective`, and the
@@ -321,10 +322,7 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   def step(state, iteration):
     rng = np.random.default_rng([config.seed, iteration])
     views = [normal_view(rng, num_views, len(decoys), settings.decoy_fraction) for _ in range(2)]
-    s = settings
-    distortion = (augment.draw(rng, s.check_blur_max, s.check_noise_max, s.check_dropout_max, s.check_param_noise_max,
-                               brightness_max=s.check_brightness_max, contrast_max=s.check_contrast_max)
-                  if s.distorts_check else None)
+    distortion = augment.draw(rng, settings.augmentation) if settings.augmentation.draws else None
     return steps(None, lanes.replicate(state, mesh), data, *views, (iteration - 1) % num_keys, distortion)
 
   eval_cameras, eval_targets, _ = evaluate.held_out_views(scene, c.eval_views)

@@ -52,15 +52,9 @@ class ConcealSettings:
   identity_on_student: bool = False
   identity_on_teacher_check: bool = False
   decoy_fraction: float = 0.0
-  # Robustness, an option beyond the paper (augment.py): the check render blurred and noised for L_d^+,
-  check_blur_max: float = 0.0
-  check_noise_max: float = 0.0
-  # with its brightness and contrast changed first (augment.photometric).
-  check_brightness_max: float = 0.0
-  check_contrast_max: float = 0.0
-  # ... and rendered from a perturbed student: Gaussians dropped, parameters noised (augment.perturb_gaussians).
-  check_dropout_max: float = 0.0
-  check_param_noise_max: float = 0.0
+  # Robustness, an option beyond the paper (augment.py): the check render blurred, noised, its brightness and
+  # contrast changed for L_d^+, and rendered from a perturbed student (Gaussians dropped, parameters noised).
+  augmentation: augment.Augmentation = augment.Augmentation()
   # L_d^- also reads the student's normal render through the step's distortion, so that a decoder taught to
   # see through blur and noise at the key still gives the identity on blurred views near it.
   identity_distorted: bool = False
@@ -85,18 +79,10 @@ class ConcealSettings:
     if self.decoy_fraction and not self.distill:
       raise ValueError("conceal.decoy_fraction needs L_kd (variant 'paper' with consistency): decoy poses have "
                        "no ground truth, only the teacher's renders")
-    if not (self.check_blur_max >= 0 and self.check_noise_max >= 0 and self.check_param_noise_max >= 0):
-      raise ValueError("conceal.check_blur_max, check_noise_max and check_param_noise_max must be >= 0, got "
-                       f"{self.check_blur_max}, {self.check_noise_max} and {self.check_param_noise_max}")
-    if not (self.check_brightness_max >= 0 and 0 <= self.check_contrast_max < 1):
-      raise ValueError("conceal.check_brightness_max must be >= 0 and check_contrast_max in [0, 1), got "
-                       f"{self.check_brightness_max} and {self.check_contrast_max}")
-    if not 0.0 <= self.check_dropout_max < 1.0:
-      raise ValueError(f"conceal.check_dropout_max must be in [0, 1), got {self.check_dropout_max}")
-    if self.identity_distorted and not (self.identity_on_student and self.distorts_check_image):
+    if self.identity_distorted and not (self.identity_on_student and self.augmentation.distorts_image):
       raise ValueError("conceal.identity_distorted needs identity_on_student and a distortion (check_blur_max, "
                        "check_noise_max, check_brightness_max or check_contrast_max > 0)")
-    if self.identity_perturbed and not (self.identity_on_student and self.perturbs_check_model):
+    if self.identity_perturbed and not (self.identity_on_student and self.augmentation.perturbs_model):
       raise ValueError("conceal.identity_perturbed needs identity_on_student and a model perturbation "
                        "(check_dropout_max or check_param_noise_max > 0)")
     if (self.identity_on_student or self.identity_on_teacher_check) and not self.identity_loss:
@@ -112,21 +98,6 @@ class ConcealSettings:
   def distill(self) -> bool:
     """Normal views supervised by the teacher (L_kd) rather than by ground truth."""
     return self.variant == "paper" and self.consistency
-
-  @property
-  def distorts_check_image(self) -> bool:
-    """Whether a step changes the check render's image before decoding it (augment.distort)."""
-    return max(self.check_blur_max, self.check_noise_max, self.check_brightness_max, self.check_contrast_max) > 0
-
-  @property
-  def perturbs_check_model(self) -> bool:
-    """Whether a step renders the check view from a perturbed student (augment.perturb_gaussians)."""
-    return self.check_dropout_max > 0 or self.check_param_noise_max > 0
-
-  @property
-  def distorts_check(self) -> bool:
-    """Whether a step draws a distortion for its check render (augment.draw), of the image or of the model."""
-    return self.distorts_check_image or self.perturbs_check_model
 
   @property
   def identity_loss(self) -> bool:
@@ -150,7 +121,7 @@ def student_objective(student, decoder, data: dict, view, settings: ConcealSetti
                       options: RenderOptions, distortion: dict | None = None) -> tuple[jax.Array, dict]:
   """L_kd (eq. 3) at training view `view` + lambda+ L_d^+ (eq. 5) at the check view -> (total, aux).
 
-  `distortion` (augment.draw, with settings.distorts_check): L_d^+ decodes the check render, made from the
+  `distortion` (augment.draw, when settings.augmentation draws): L_d^+ decodes the check render, made from the
   student perturbed by it and then changed in image by it (augment.distort). The step computes the gradients of this
   objective and of `decoder_identity_objective` as two lanes (lanes_objective.py); these functions are their
   plain statement.
@@ -186,11 +157,8 @@ def student_objective(student, decoder, data: dict, view, settings: ConcealSetti
 
 def check_student(student, distortion: dict | None, settings: ConcealSettings):
   """The student [N] the check view is rendered from: perturbed by `distortion` (augment.perturb_gaussians)
-  when settings.perturbs_check_model."""
-  s = settings
-  if not s.perturbs_check_model:
-    return student
-  return augment.perturb_gaussians(student, distortion, s.check_dropout_max, s.check_param_noise_max)
+  when settings.augmentation perturbs the model."""
+  return augment.perturb_gaussians(student, distortion, settings.augmentation)
 
 
 def decoder_view(rgb: jax.Array, settings: ConcealSettings) -> jax.Array:
@@ -201,13 +169,9 @@ def decoder_view(rgb: jax.Array, settings: ConcealSettings) -> jax.Array:
 
 def check_decoder_input(check_rgb: jax.Array, distortion: dict | None, settings: ConcealSettings) -> jax.Array:
   """[S, S, 3] the student's check render [H, W, 3] as F reads it for L_d^+: distorted by `distortion`
-  (augment.distort: brightness, contrast, blur, noise) when settings.distorts_check_image, resized to the
-  decoder's size."""
-  s = settings
-  seen = (augment.distort(check_rgb, distortion, s.check_blur_max, s.check_noise_max,
-                          brightness_max=s.check_brightness_max, contrast_max=s.check_contrast_max)
-          if s.distorts_check_image else check_rgb)
-  return decoder_view(seen, s)
+  (augment.distort: brightness, contrast, blur, noise) as far as settings.augmentation distorts images,
+  resized to the decoder's size."""
+  return decoder_view(augment.distort(check_rgb, distortion, settings.augmentation), settings)
 
 
 def decoded(decoder, images: jax.Array, settings: ConcealSettings) -> jax.Array:
