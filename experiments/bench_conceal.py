@@ -52,6 +52,10 @@ ROWS = {
     # at 10k, and `full` at a constant rate reaches 43 dB
     "ours_robust_clip_dec03": lambda config: _overridden(
         conceal_ours.robust(config, decoy_views=64, clip_input=True), decoder_lr_final_ratio=0.3),
+    # ... and AMSGrad on the decoder: both decaying rates still saw bursts (ours_robust_clip at step 5390,
+    # ours_robust_clip_dec03 at 2500), the step of a weight whose gradient returns after Adam forgot its scale
+    "ours_robust_clip_dec03_amsgrad": lambda config: _overridden(
+        conceal_ours.robust(config, decoy_views=64, clip_input=True), decoder_lr_final_ratio=0.3, decoder_amsgrad=True),
 }
 # The released decoder (width 64) starts from VGG16 with lr 1e-4; a narrow one starts from scratch and
 # learns at 5e-4 (the demo's rate).

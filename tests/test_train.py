@@ -177,6 +177,25 @@ def test_decaying_adam_steps_follow_the_schedule():
       optimizer.decaying_adam(1e-3, ratio, 10, 1e-15, "my.ratio")
 
 
+def test_amsgrad_bounds_the_step_of_a_gradient_that_returns():
+  """A weight trained with gradient 1, then silent for 5000 steps, then given gradient 1 again: Adam (eps 1e-15)
+  has forgotten the scale and steps well over the rate, AMSGrad (decaying_adam's `amsgrad`) at most the rate."""
+  params = dict(w=jnp.zeros(()))
+  grads = jnp.concatenate([jnp.ones(100), jnp.zeros(5000), jnp.ones(1)])
+
+  def last_step(amsgrad):
+    tx = optimizer.decaying_adam(1e-3, 1.0, 10, 1e-15, amsgrad=amsgrad)
+
+    def body(state, g):
+      update, state = tx.update(dict(w=g), state, params)
+      return state, update["w"]
+
+    return -float(jax.lax.scan(body, tx.init(params), grads)[1][-1])
+
+  adam, amsgrad = last_step(False), last_step(True)
+  assert adam > 1.5e-3 and 0 < amsgrad <= 1.0001e-3, (adam, amsgrad)
+
+
 def test_learning_rates_per_field():
   """After one Adam step from zero moments each update is -lr * sign(grad) (up to eps)."""
   config = demo.get_config()

@@ -130,10 +130,11 @@ def loop_settings(config: ml_collections.ConfigDict) -> loop.LoopSettings:
 def decoder_optimizer(config: ml_collections.ConfigDict) -> optax.GradientTransformation:
   """Adam on the decoder at conceal.decoder_lr, decaying to decoder_lr * conceal.decoder_lr_final_ratio over
   the run (1: constant, as released), with eps conceal.decoder_adam_eps: 1e-15 as the released code, where a
-  weight whose gradient has all but vanished still takes steps of the full rate."""
+  weight whose gradient has all but vanished still takes steps of the full rate; AMSGrad with
+  conceal.decoder_amsgrad (beyond the paper), against the bursts that follow."""
   c = config.conceal
   return optimizer.decaying_adam(c.decoder_lr, c.decoder_lr_final_ratio, c.iterations, c.decoder_adam_eps,
-                                 "conceal.decoder_lr_final_ratio")
+                                 "conceal.decoder_lr_final_ratio", amsgrad=c.decoder_amsgrad)
 
 
 def validate(config: ml_collections.ConfigDict) -> None:

@@ -31,16 +31,17 @@ def check_final_ratio(name: str, final_ratio: float) -> None:
     raise ValueError(f"{name} must be in (0, 1], got {final_ratio!r}")
 
 
-def decaying_adam(lr: float, final_ratio: float, steps: int, eps: float,
-                  name: str = "final_ratio") -> optax.GradientTransformation:
+def decaying_adam(lr: float, final_ratio: float, steps: int, eps: float, name: str = "final_ratio",
+                  amsgrad: bool = False) -> optax.GradientTransformation:
   """Adam at rate `lr` decaying log-linearly to lr * final_ratio over `steps` (then held); a constant rate,
   with no schedule state, when final_ratio is 1. Late large steps kill an unnormalised conv+ReLU U-Net
-  (every unit dead, one constant image out), which a decayed rate avoids. `name`: the config key of
-  final_ratio, for the error message."""
+  (every unit dead, one constant image out), which a decayed rate avoids. `amsgrad`: AMSGrad (Reddi et al.
+  2018), which divides by the largest second moment seen, so a weight whose gradient vanished and returns
+  takes no step larger than its history allows (Adam's step is then up to ~3x the rate at a tiny eps).
+  `name`: the config key of final_ratio, for the error message."""
   check_final_ratio(name, final_ratio)
-  if final_ratio == 1:
-    return optax.adam(lr, eps=eps)
-  return optax.adam(log_linear_schedule(lr, lr * final_ratio, steps), eps=eps)
+  rate = lr if final_ratio == 1 else log_linear_schedule(lr, lr * final_ratio, steps)
+  return (optax.amsgrad if amsgrad else optax.adam)(rate, eps=eps)
 
 
 def means_decay_steps(lr: ml_collections.ConfigDict, run_steps: int) -> int:
