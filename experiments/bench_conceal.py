@@ -41,23 +41,21 @@ ROWS = {
     "ours_robust_center": lambda config: conceal_ours.robust(config, decoy_views=64, input_norm="center"),
     # ... with a decoder that reads renders clipped to [0, 1] (reveal.Reading): ours_robust_center's student hid
     # its image in whites above 1, which every attack clips away
-    "ours_robust_clip": lambda config: conceal_ours.robust(config, decoy_views=64, clip_input=True),
+    "ours_robust_clip": lambda config: _robust_clip(config),
     # ... with the decoder at StegaNeRF's schedule (1e-3 decaying to 1e-4, torch's Adam eps): StegaNeRF's
     # check-view row reaches 41 dB hidden with it, ours_robust_clip 38.5. Stopped at 4000 steps: the decoder
     # lagged (hidden 17.0 / 30.5 dB at 1k / 4k, ours_robust_clip 27.3 / 35.4) and L_d^+ pushed the student
     # down to 26.9 dB at 1k (32.2).
-    "ours_robust_clip_fastdec": lambda config: _overridden(
-        conceal_ours.robust(config, decoy_views=64, clip_input=True), decoder_lr=1e-3, decoder_adam_eps=1e-8),
+    "ours_robust_clip_fastdec": lambda config: _robust_clip(config, decoder_lr=1e-3, decoder_adam_eps=1e-8),
     # ... with the decoder rate decaying to 0.3x rather than 0.1x: ours_robust_clip's hidden PSNR still rises
     # at 10k, and `full` at a constant rate reaches 43 dB. Measured: hidden 40.74 dB / 0.9969 (38.48 / 0.9947),
     # student 32.97 dB (32.99), leakage <= 0.187
-    "ours_robust_clip_dec03": lambda config: _overridden(
-        conceal_ours.robust(config, decoy_views=64, clip_input=True), decoder_lr_final_ratio=0.3),
+    "ours_robust_clip_dec03": lambda config: _robust_clip(config, decoder_lr_final_ratio=0.3),
     # ... and AMSGrad on the decoder: both decaying rates still saw bursts (ours_robust_clip at step 5390,
     # ours_robust_clip_dec03 at 2500), the step of a weight whose gradient returns after Adam forgot its scale.
     # Measured: the decoder learns slower (hidden 37.10 dB / 0.9926) and the dips remain (step 3000, 5500)
-    "ours_robust_clip_dec03_amsgrad": lambda config: _overridden(
-        conceal_ours.robust(config, decoy_views=64, clip_input=True), decoder_lr_final_ratio=0.3, decoder_amsgrad=True),
+    "ours_robust_clip_dec03_amsgrad": lambda config: _robust_clip(config, decoder_lr_final_ratio=0.3,
+                                                                  decoder_amsgrad=True),
 }
 # The released decoder (width 64) starts from VGG16 with lr 1e-4; a narrow one starts from scratch and
 # learns at 5e-4 (the demo's rate).
@@ -73,6 +71,11 @@ def _overridden(config, **overrides):
   for name, value in overrides.items():
     config.conceal[name] = value
   return config
+
+
+def _robust_clip(config, **overrides):
+  """ours_robust_clip's settings, then conceal.* `overrides` (the decoder-schedule rows)."""
+  return _overridden(conceal_ours.robust(config, decoy_views=64, clip_input=True), **overrides)
 
 
 def run_config(scene: str, teacher: pathlib.Path, row: str, width: int, iterations: int, eval_views: int):

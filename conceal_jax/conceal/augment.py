@@ -57,12 +57,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from conceal_jax.core import settings as settings_lib
+
 # Below this a sigma is a point kernel: exp(-1 / (2 * 1e-3^2)) underflows to 0 off the centre.
 _MIN_SIGMA = 1e-3
 # Kernel half-width in standard deviations (skimage.filters.gaussian's default truncate).
 TRUNCATE = 4.0
 # A dropped Gaussian's opacity logit: sigmoid(-30) ~ 1e-13, far below any alpha the renderer composites.
 DROPPED_LOGIT = -30.0
+# An Augmentation field f is config key conceal.check_<f>; a contrast factor and a dropout probability stay below 1.
+CONFIG_PREFIX = "check_"
+UPPER_BOUNDS = dict(contrast_max=1.0, dropout_max=1.0)
 # Gaussians fields that parameter noise moves: all of them (robust.model_attacks.FIELDS).
 MODEL_FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 
@@ -108,22 +113,17 @@ class Augmentation:
   dropout_max: float = 0.0      # each Gaussian dropped with probability ~ U[0, max] (`perturb_gaussians`)
   param_noise_max: float = 0.0  # relative parameter noise ~ U[0, max]
 
-  CONFIG_PREFIX = "check_"
-
   def __post_init__(self):
-    named = {f"conceal.{self.CONFIG_PREFIX}{f.name}": getattr(self, f.name) for f in dataclasses.fields(self)}
-    bounded = {"conceal.check_contrast_max", "conceal.check_dropout_max"}  # a factor or a probability
-    bad = [f"{name} = {value}" for name, value in named.items()
-           if not (value >= 0 and (name not in bounded or value < 1))]
-    if bad:
-      raise ValueError(f"{', '.join(bad)}: every conceal.check_*_max must be >= 0, and check_contrast_max and "
-                       "check_dropout_max below 1")
+    for f in dataclasses.fields(self):
+      value, below = getattr(self, f.name), UPPER_BOUNDS.get(f.name, math.inf)
+      if not 0 <= value < below:  # NaN fails too
+        raise ValueError(f"conceal.{CONFIG_PREFIX}{f.name} must be in [0, {below:g}), got {value}")
 
   @classmethod
   def from_section(cls, section: Any) -> Augmentation:
     """The maxima of a config section's check_<field> keys (absent keys: 0)."""
-    keys = {f.name: cls.CONFIG_PREFIX + f.name for f in dataclasses.fields(cls)}
-    return cls(**{name: section[key] for name, key in keys.items() if key in section})
+    return settings_lib.from_section(cls, {key.removeprefix(CONFIG_PREFIX): value for key, value in section.items()
+                                           if key.startswith(CONFIG_PREFIX)})
 
   @property
   def distorts_image(self) -> bool:

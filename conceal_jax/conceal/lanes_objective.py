@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from conceal_jax.conceal import objective
+from conceal_jax.conceal import augment, objective
 from conceal_jax.conceal.objective import ConcealSettings
 from conceal_jax.core import lanes
 from conceal_jax.gs import losses, metrics
@@ -81,7 +81,7 @@ def lane_gradients(shared, lane: dict, settings: ConcealSettings, options: Rende
   student, decoder = shared
 
   def rendered(g):
-    out = render(objective.check_student(g, lane["model"], s), lane["camera"], options)
+    out = render(augment.perturb_gaussians(g, lane["model"], s.augmentation), lane["camera"], options)
     return out.rgb, (out.num_pairs, out.overflowed)
 
   rgb, render_vjp, (num_pairs, overflowed) = jax.vjp(rendered, student, has_aux=True)
@@ -99,7 +99,7 @@ def lane_gradients(shared, lane: dict, settings: ConcealSettings, options: Rende
     # the identity target's image is a constant second render, of the perturbed student (identity_rgb); only
     # the lane with that target renders it (a cond: on the mesh each device takes its own branch)
     def perturbed():
-      out = render(objective.check_student(student, lane["identity_model"], s), lane["camera"], options)
+      out = render(augment.perturb_gaussians(student, lane["identity_model"], s.augmentation), lane["camera"], options)
       return jax.lax.stop_gradient(out.rgb), out.num_pairs, out.overflowed
 
     second, second_pairs, second_overflowed = jax.lax.cond(

@@ -141,7 +141,7 @@ def student_objective(student, decoder, data: dict, view, settings: ConcealSetti
     normal = s.weight_kd * losses.distillation_loss(rgb, data["teacher"][view])
   else:
     normal = losses.photometric_loss(rgb, data["images"][view])
-  perturbed = check_student(student, distortion, s)
+  perturbed = augment.perturb_gaussians(student, distortion, s.augmentation)
   check_out = render(perturbed, data["check_camera"], options)
   check_rgb = check_out.rgb
   plus = losses.hidden_image_loss(decoded(decoder, check_decoder_input(check_rgb, distortion, s), s), data["hidden"])
@@ -153,12 +153,6 @@ def student_objective(student, decoder, data: dict, view, settings: ConcealSetti
   return total, dict(normal=normal, plus=plus, rgb=rgb, identity_rgb=jax.lax.stop_gradient(identity_out.rgb),
                      num_pairs=jnp.max(jnp.stack([o.num_pairs for o in outs])),
                      overflowed=jnp.any(jnp.stack([o.overflowed for o in outs])))
-
-
-def check_student(student, distortion: dict | None, settings: ConcealSettings):
-  """The student [N] the check view is rendered from: perturbed by `distortion` (augment.perturb_gaussians)
-  when settings.augmentation perturbs the model."""
-  return augment.perturb_gaussians(student, distortion, settings.augmentation)
 
 
 def decoder_view(rgb: jax.Array, settings: ConcealSettings) -> jax.Array:
