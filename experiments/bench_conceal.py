@@ -21,7 +21,7 @@ import pathlib
 
 from conceal_jax.conceal import conceal
 from conceal_jax.configs import conceal_ours
-from conceal_jax.core import fileio
+from conceal_jax.core import checkpoint, fileio, loop
 from conceal_jax.gs import evaluate
 from experiments import results_io
 from experiments.bench_train import scene_config
@@ -56,7 +56,16 @@ ROWS = {
     # Measured: the decoder learns slower (hidden 37.10 dB / 0.9926) and the dips remain (step 3000, 5500)
     "ours_robust_clip_dec03_amsgrad": lambda config: _robust_clip(config, decoder_lr_final_ratio=0.3,
                                                                   decoder_amsgrad=True),
+  # ours_robust_clip_dec03 again with another seed (decoder init, view order, distortions): the spread of a row
+  "ours_robust_clip_dec03_seed1": lambda config: _seeded(_robust_clip(config, decoder_lr_final_ratio=0.3), 1),
+  # ... then 2000 steps that train the decoder alone on the finished student (conceal.decoder_polish_steps),
+  # continued from ours_robust_clip_dec03_seed1's run (CONTINUES)
+  "ours_robust_clip_dec03_seed1_polish": lambda config: _seeded(
+      _robust_clip(config, decoder_lr_final_ratio=0.3, decoder_polish_steps=2000), 1),
 }
+# A row that continues another's run starts from that run's checkpoint at the end of its joint steps, where its
+# config is the other's up to the continuation (conceal.decoder_polish_steps), so it costs only its extra steps.
+CONTINUES = dict(ours_robust_clip_dec03_seed1_polish="ours_robust_clip_dec03_seed1")
 # The released decoder (width 64) starts from VGG16 with lr 1e-4; a narrow one starts from scratch and
 # learns at 5e-4 (the demo's rate).
 DECODER_LR = {64: 1e-4, 16: 5e-4}
@@ -73,9 +82,30 @@ def _overridden(config, **overrides):
   return config
 
 
+def _seeded(config, seed: int):
+  config.seed = seed
+  return config
+
+
 def _robust_clip(config, **overrides):
   """ours_robust_clip's settings, then conceal.* `overrides` (the decoder-schedule rows)."""
   return _overridden(conceal_ours.robust(config, decoy_views=64, clip_input=True), **overrides)
+
+
+def continue_from(source_dir: pathlib.Path, run_dir: pathlib.Path, config) -> bool:
+  """Copies the checkpoint of `source_dir`'s run at conceal.iterations into `run_dir` (which has none), if that
+  run's config.json is `config` without its polish steps; whether it did (if not, the row trains from step 0)."""
+  ckpt_dir = run_dir / loop.CHECKPOINT_DIR
+  source = pathlib.Path(checkpoint.checkpoint_path(str(source_dir / loop.CHECKPOINT_DIR), config.conceal.iterations))
+  if checkpoint.list_steps(str(ckpt_dir)) or not source.is_file():
+    return False
+  expected = json.loads(json.dumps(config.to_dict()))
+  expected["conceal"]["decoder_polish_steps"] = 0
+  if json.loads((source_dir / "config.json").read_text()) != expected:
+    print(f"not continuing {source_dir}: its config.json is not this row's without the polish")
+    return False
+  fileio.write_bytes(str(ckpt_dir / source.name), source.read_bytes())
+  return True
 
 
 def run_config(scene: str, teacher: pathlib.Path, row: str, width: int, iterations: int, eval_views: int):
@@ -107,6 +137,7 @@ def summary_row(scene: str, row: str, width: int, result: dict) -> dict:
   history = result["history"]
   overrides = ROWS[row] if isinstance(ROWS[row], dict) else f"configs/conceal_ours.py ({row})"
   return dict(scene=scene, row=row, decoder_width=width, overrides=overrides, iterations=result["iterations"],
+              decoder_polish_steps=result.get("decoder_polish_steps", 0),
               wall_time_s=result["wall_time_s"], median_step_s=result["median_step_s"],
               num_decoys=result.get("num_decoys", 0), **m,
               student_psnr_loss=m["teacher_vs_ground_truth"]["psnr"] - m["student_vs_ground_truth"]["psnr"],
@@ -138,6 +169,8 @@ def run(scene, rows, widths, iterations, eval_views, workdir: pathlib.Path, out:
         run_dir.mkdir(parents=True, exist_ok=True)
         # as the command line would write it (bench-robust reads it)
         fileio.write_json(run_dir / "config.json", config.to_dict())
+        if row in CONTINUES and continue_from(workdir / scene / f"conceal_{CONTINUES[row]}_w{width}", run_dir, config):
+          print(f"{row}: continuing {CONTINUES[row]}'s run from step {config.conceal.iterations}")
         result = conceal.conceal_and_evaluate(config, str(run_dir))
       results.append(summary_row(scene, row, width, result))
       print(json.dumps({k: v for k, v in results[-1].items() if k not in ("curve", "near_check")}))
@@ -156,7 +189,8 @@ def table(rows) -> str:
            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
   for r in rows:
     s, t, v, h = r["student_vs_ground_truth"], r["teacher_vs_ground_truth"], r["student_vs_teacher"], r["hidden"]
-    lines.append(f"| {r['scene']} | {r['row']} | {r['decoder_width']} | {r['iterations']} | "
+    polish = f" + {r['decoder_polish_steps']} polish" if r.get("decoder_polish_steps") else ""
+    lines.append(f"| {r['scene']} | {r['row']} | {r['decoder_width']} | {r['iterations']}{polish} | "
                  f"{r['wall_time_s'] / 60:.1f} | {1e3 * r['median_step_s']:.0f} | "
                  f"{s['psnr']:.2f} / {s['ssim']:.4f} / {s['lpips']:.4f} | {t['psnr']:.2f} | "
                  f"{r['student_psnr_loss']:.2f} | {v['psnr']:.2f} | {h['psnr']:.2f} / {h['ssim']:.4f} | "

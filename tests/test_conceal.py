@@ -3,6 +3,7 @@ generated scene (resume, ablation switches, clear errors)."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -17,6 +18,8 @@ from conceal_jax import RenderOptions, render
 from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat.camera import Camera, camera_centers, look_at
 from conceal_jax.configs import demo
+from conceal_jax.core import fileio
+from experiments import bench_conceal
 
 
 @pytest.fixture(scope="module")
@@ -274,6 +277,37 @@ def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
   assert (tmp_path / "reveal" / "revealed.png").read_bytes() == (a / "revealed.png").read_bytes()
 
 
+def test_decoder_polish_trains_the_decoder_alone_and_resumes_across_phases(tiny, tmp_path):
+  joint = conceal.conceal_and_evaluate(tiny_config(tiny, iterations=20), str(tmp_path / "joint"))
+  config = tiny_config(tiny, iterations=20, decoder_polish_steps=20)
+  straight = conceal.conceal_and_evaluate(config, str(tmp_path / "straight"))
+  # a polish started from the joint run's last checkpoint (as bench-conceal's continued rows are)
+  (tmp_path / "resumed").mkdir()
+  shutil.copytree(tmp_path / "joint" / "checkpoints", tmp_path / "resumed" / "checkpoints")
+  resumed = conceal.conceal_and_evaluate(config, str(tmp_path / "resumed"))
+  assert straight["traces"] == dict(conceal_step=1, polish_step=1) and resumed["traces"] == dict(polish_step=1)
+  assert straight["timed_steps"] == resumed["timed_steps"] == 40 and resumed["decoder_polish_steps"] == 20
+  for name in ("decoder.msgpack", "student.ply"):
+    assert (tmp_path / "straight" / name).read_bytes() == (tmp_path / "resumed" / name).read_bytes(), name
+  # the student is the joint run's, bit for bit; the decoder fits it better
+  assert (tmp_path / "joint" / "student.ply").read_bytes() == (tmp_path / "straight" / "student.ply").read_bytes()
+  assert straight["metrics"]["hidden"]["psnr"] > joint["metrics"]["hidden"]["psnr"] + 0.1
+  plus = [h["plus"] for h in straight["history"] if "plus" in h]
+  assert all(np.isfinite(plus)) and plus[-1] < plus[len(plus) // 2 - 1]
+
+
+def test_bench_row_continues_only_the_run_it_extends(tiny, tmp_path):
+  joint, polish = tiny_config(tiny, iterations=20), tiny_config(tiny, iterations=20, decoder_polish_steps=20)
+  source, row = tmp_path / "source", tmp_path / "row"
+  fileio.write_json(source / "config.json", joint.to_dict())
+  fileio.write_bytes(source / "checkpoints" / "ckpt_00000020.npz", b"step 20")
+  other = tiny_config(tiny, iterations=20, decoder_polish_steps=20, weight_minus=0.5)
+  assert not bench_conceal.continue_from(source, row, other)  # another config: trains from step 0
+  assert bench_conceal.continue_from(source, row, polish)
+  assert (row / "checkpoints" / "ckpt_00000020.npz").read_bytes() == b"step 20"
+  assert not bench_conceal.continue_from(source, row, polish)  # its own checkpoints are kept
+
+
 def test_two_hidden_images_each_at_its_own_key(tiny, tmp_path):
   """Two images, two training-camera keys, one decoder: the steps alternate keys without a retrace,
   key.json lists the second key, metrics.json scores each image at its key and the cross-talk, leakage
@@ -383,6 +417,8 @@ def test_resized_camera_keeps_the_field_of_view():
     (dict(decoy_views=4, decoy_fraction=0.2, variant="released"), "decoy_fraction"),
     (dict(decoy_translation=(0.2, 0.1)), "decoy_translation"), (dict(eval_views=0), "eval_views"),
     (dict(decoder_lr_final_ratio=2.0), "decoder_lr_final_ratio"),
+    (dict(decoder_polish_steps=-1), "decoder_polish_steps must be"),
+    (dict(decoder_polish_steps=5, use_decoder=False), "decoder_polish_steps needs a decoder"),
     (dict(identity_on_student=True, consistency=False), "identity_on_student"),
     (dict(identity_on_teacher_check=True, use_decoder=False), "identity_on_teacher_check"),
     (dict(extra_hidden=("camera", "coffee", "chelsea", "moon")), "extra_hidden holds at most 3"),

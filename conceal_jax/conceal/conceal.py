@@ -67,6 +67,12 @@ renders one check view, so K keys cost no more per step than one); with identity
 sees the teacher's render at that same key, and decoy_views are made around every key. key.json lists the
 extra keys, metrics.json scores each image at its key and the cross-talk (see evaluate_concealment).
 
+Decoder polish, an option beyond the paper: conceal.decoder_polish_steps more steps after the iterations, in
+which only the decoder trains (the same L_d^+ and L_d^- with their distortions, the same guided update, at
+the decoder's final rate), on the finished student, which they leave unchanged. The joint steps end with a
+decoder fitted to a student that kept moving; the polish fits it to the student that is shared, and costs
+the decoder's passes and two forward renders a step.
+
 The number of Gaussians is fixed (no densification): the student is the teacher's set, refined. The
 objective is in objective.py, the guidance in guidance.py; this module builds the step and runs the job
 through the shared loop (core.loop). With conceal.eval_every, the history records the hidden image's
@@ -124,7 +130,11 @@ def settings_from_config(config: ml_collections.ConfigDict) -> ConcealSettings:
 
 
 def loop_settings(config: ml_collections.ConfigDict) -> loop.LoopSettings:
-  return settings_lib.from_section(loop.LoopSettings, config.conceal)
+  """conceal.iterations joint steps, then conceal.decoder_polish_steps that train the decoder alone."""
+  c = config.conceal
+  polish = settings_lib.check_count("conceal.decoder_polish_steps", c.decoder_polish_steps, minimum=0)
+  joint = settings_lib.from_section(loop.LoopSettings, c)
+  return dataclasses.replace(joint, iterations=joint.iterations + polish)
 
 
 def decoder_optimizer(config: ml_collections.ConfigDict) -> optax.GradientTransformation:
@@ -169,17 +179,21 @@ def validate(config: ml_collections.ConfigDict) -> None:
   if len(extra) > MAX_EXTRA_HIDDEN:
     raise ValueError(f"conceal.extra_hidden holds at most {MAX_EXTRA_HIDDEN} images ({MAX_EXTRA_HIDDEN + 1} "
                      f"hidden images in all), got {len(extra)}")
+  if c.decoder_polish_steps and not c.use_decoder:
+    raise ValueError("conceal.decoder_polish_steps needs a decoder (conceal.use_decoder)")
   if extra and not c.use_decoder:
     raise ValueError("conceal.extra_hidden needs a decoder (conceal.use_decoder): one decoder reads every key's "
                      "image")
 
 
 def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student_tx, decoder_tx,
-                      traces: loop.TraceCounter | None = None, mesh=None):
+                      traces: loop.TraceCounter | None = None, mesh=None, train_student: bool = True):
   """Builds step(state, data, view, normal_view, key, distortion) -> (state, stats), jitted with the state
   donated; `key` picks the check view (and its hidden image) of a run with several (objective.key_data;
   unused with one); `distortion` (augment.draw) is applied to the check render when settings.augmentation draws.
   `options` carry a pair capacity; a step whose renders overflowed it returns the state unchanged (gs.capacity).
+  Without `train_student` (conceal.decoder_polish_steps, see the module doc) the student and its Adam state stay as they
+  are: the student's gradient is never used, so XLA drops the renders' backward pass from the compiled step.
 
   The gradients come from lanes_objective.gradients: the student's of `student_objective`, and the
   decoder's of lambda+ L_d^+ and of lambda- L_d^- apart, two lanes (one per render) that run side by side on
@@ -192,10 +206,11 @@ def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student
     data = key_data(data, key)
     t = lanes_objective.gradients(state.student, state.decoder, data, view, normal_view, s, options, distortion,
                                   mesh)
-    student_grad, total = t["student_grad"], t["normal"] + t["check"]
-    updates, student_opt = student_tx.update(student_grad, state.student_opt, state.student)
-    new_state = state.replace(step=state.step + 1, student=optax.apply_updates(state.student, updates),
-                              student_opt=student_opt)
+    total = t["normal"] + t["check"]
+    new_state = state.replace(step=state.step + 1)
+    if train_student:
+      updates, student_opt = student_tx.update(t["student_grad"], state.student_opt, state.student)
+      new_state = new_state.replace(student=optax.apply_updates(state.student, updates), student_opt=student_opt)
     stats = dict(loss=total, normal=t["normal"], plus=t["plus"], num_pairs=t["num_pairs"], psnr=t["psnr"])
     if s.use_decoder:
       plus_grad, minus_grad = t["plus_grad"], t["minus_grad"]
@@ -211,7 +226,7 @@ def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student
     return capacity.keep_unless_overflowed(t["overflowed"], new_state, state), stats
 
   if traces is not None:
-    step = traces.wrap("conceal_step", step)
+    step = traces.wrap("conceal_step" if train_student else "polish_step", step)
   return jax.jit(step, donate_argnums=0)
 
 
@@ -311,8 +326,9 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   student_tx = optimizer.gaussian_optimizer(c.lr, scene.scene_extent(), c.iterations)
   decoder_tx = decoder_optimizer(config)
   traces = loop.TraceCounter()
-  steps = capacity.GrowingSteps(lambda _, opts: make_conceal_step(settings, opts, student_tx, decoder_tx, traces, mesh),
-                                options)
+  # GrowingSteps' key is the phase: the joint steps, then the decoder polish's (train_student False)
+  steps = capacity.GrowingSteps(lambda joint, opts: make_conceal_step(settings, opts, student_tx, decoder_tx, traces,
+                                                                      mesh, train_student=joint), options)
   steps.grow(render_lib.initial_capacity(teacher.num, options))
   num_views, num_keys = len(scene.train_cameras), len(keys)
 
@@ -324,7 +340,8 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
     rng = np.random.default_rng([config.seed, iteration])
     views = [normal_view(rng, num_views, len(decoys), settings.decoy_fraction) for _ in range(2)]
     distortion = augment.draw(rng, settings.augmentation) if settings.augmentation.draws else None
-    return steps(None, lanes.replicate(state, mesh), data, *views, (iteration - 1) % num_keys, distortion)
+    return steps(iteration <= c.iterations, lanes.replicate(state, mesh), data, *views, (iteration - 1) % num_keys,
+                 distortion)
 
   eval_cameras, eval_targets, _ = evaluate.held_out_views(scene, c.eval_views)
 
@@ -363,10 +380,10 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   fileio.write_image(os.path.join(workdir, "hidden.png"), hiddens[0])
   for k, image in enumerate(hiddens[1:], 1):
     fileio.write_image(os.path.join(workdir, f"hidden_key{k}.png"), image)
-  summary = dict(iterations=c.iterations, resumed_from=result.start, settings=dataclasses.asdict(settings),
-                 num_gaussians=int(teacher.num), num_keys=num_keys, num_decoys=len(decoys), **result.timing(),
-                 traces=dict(traces.counts), pair_capacity=steps.capacity, capacity_reruns=steps.reruns,
-                 capacity_shrinks=steps.shrinks, history=result.history)
+  summary = dict(iterations=c.iterations, decoder_polish_steps=c.decoder_polish_steps, resumed_from=result.start,
+                 settings=dataclasses.asdict(settings), num_gaussians=int(teacher.num), num_keys=num_keys,
+                 num_decoys=len(decoys), **result.timing(), traces=dict(traces.counts), pair_capacity=steps.capacity,
+                 capacity_reruns=steps.reruns, capacity_shrinks=steps.shrinks, history=result.history)
   fileio.write_json(os.path.join(workdir, SUMMARY_FILE), summary)
   reveal_fn = reveal.decoder_reveal(decoder, settings.decoder_width, settings.hidden_size,
                                     settings.reading)
