@@ -59,7 +59,8 @@ ROWS = {
   # ours_robust_clip_dec03 again with another seed (decoder init, view order, distortions): the spread of a row
   "ours_robust_clip_dec03_seed1": lambda config: _seeded(_robust_clip(config, decoder_lr_final_ratio=0.3), 1),
   # ... then 2000 steps that train the decoder alone on the finished student (conceal.decoder_polish_steps),
-  # continued from ours_robust_clip_dec03_seed1's run (CONTINUES)
+  # continued from ours_robust_clip_dec03_seed1's run (CONTINUES). Measured: hidden 39.37 -> 39.57 dB, SSIM
+  # 0.9958 -> 0.9962, leakage unchanged; the hidden PSNR is not held back by a student that kept moving
   "ours_robust_clip_dec03_seed1_polish": lambda config: _seeded(
       _robust_clip(config, decoder_lr_final_ratio=0.3, decoder_polish_steps=2000), 1),
 }

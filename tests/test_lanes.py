@@ -121,10 +121,17 @@ def test_lane_gradients_are_the_objectives(row):
     np.testing.assert_allclose(got["normal"] + got["check"] + got["minus"], expected["loss"], rtol=1e-5)
     np.testing.assert_allclose(got["plus"], expected["plus"], rtol=1e-5)
     np.testing.assert_allclose(got["minus"], expected["minus"], rtol=1e-5)
+    # the decoder polish's lanes (no render backward) give the same decoder gradients and values
+    polish = jax.jit(lambda *a: lanes_objective.gradients(*a, s, OPTIONS, distortion, mesh, student_grad=False))
+    decoder_only = polish(*lanes.replicate((student, decoder, data), mesh), 1, 2)
+    assert decoder_only["student_grad"] is None
+    np.testing.assert_allclose(decoder_only["minus"], got["minus"], rtol=1e-6)
     for name in ("student_grad", "plus_grad", "minus_grad"):
       for a, b in zip(jax.tree.leaves(got[name]), jax.tree.leaves(expected[name])):
         assert np.all(np.isfinite(a))
         np.testing.assert_allclose(a, b, rtol=2e-4, atol=1e-6 * float(np.max(np.abs(b)) + 1e-12), err_msg=name)
+    for name in ("plus_grad", "minus_grad"):
+      jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-9), decoder_only[name], got[name])
 
 
 @needs_two

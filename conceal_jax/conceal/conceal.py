@@ -71,7 +71,9 @@ Decoder polish, an option beyond the paper: conceal.decoder_polish_steps more st
 which only the decoder trains (the same L_d^+ and L_d^- with their distortions, the same guided update, at
 the decoder's final rate), on the finished student, which they leave unchanged. The joint steps end with a
 decoder fitted to a student that kept moving; the polish fits it to the student that is shared, and costs
-the decoder's passes and two forward renders a step.
+the decoder's passes and two forward renders a step (on lego, 0.63x a joint step). Lego, width 16, 2000
+steps after ours_robust_clip_dec03's 10k (seed 1): hidden 39.37 -> 39.57 dB, SSIM 0.9958 -> 0.9962, leakage
+unchanged: a small gain, so the joint steps' hidden PSNR is not held back by the student's last moves.
 
 The number of Gaussians is fixed (no densification): the student is the teacher's set, refined. The
 objective is in objective.py, the guidance in guidance.py; this module builds the step and runs the job
@@ -192,8 +194,8 @@ def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student
   donated; `key` picks the check view (and its hidden image) of a run with several (objective.key_data;
   unused with one); `distortion` (augment.draw) is applied to the check render when settings.augmentation draws.
   `options` carry a pair capacity; a step whose renders overflowed it returns the state unchanged (gs.capacity).
-  Without `train_student` (conceal.decoder_polish_steps, see the module doc) the student and its Adam state stay as they
-  are: the student's gradient is never used, so XLA drops the renders' backward pass from the compiled step.
+  Without `train_student` (conceal.decoder_polish_steps, see the module doc) the student and its Adam state
+  stay as they are, and the renders' backward pass is not taken (lanes_objective.gradients' student_grad).
 
   The gradients come from lanes_objective.gradients: the student's of `student_objective`, and the
   decoder's of lambda+ L_d^+ and of lambda- L_d^- apart, two lanes (one per render) that run side by side on
@@ -205,7 +207,7 @@ def make_conceal_step(settings: ConcealSettings, options: RenderOptions, student
   def step(state: ConcealState, data, view, normal_view, key=0, distortion=None):
     data = key_data(data, key)
     t = lanes_objective.gradients(state.student, state.decoder, data, view, normal_view, s, options, distortion,
-                                  mesh)
+                                  mesh, student_grad=train_student)
     total = t["normal"] + t["check"]
     new_state = state.replace(step=state.step + 1)
     if train_student:

@@ -75,8 +75,11 @@ def lane_inputs(data: dict, view, normal_view, settings: ConcealSettings, distor
   return [normal, check]
 
 
-def lane_gradients(shared, lane: dict, settings: ConcealSettings, options: RenderOptions) -> dict:
-  """One lane: values and gradients of its terms. shared = (student, decoder); see the module doc."""
+def lane_gradients(shared, lane: dict, settings: ConcealSettings, options: RenderOptions,
+                   student_grad: bool = True) -> dict:
+  """One lane: values and gradients of its terms. shared = (student, decoder); see the module doc. Without
+  `student_grad` (static: the decoder polish) the render's backward pass is not taken and the result has no
+  student_grad."""
   s = settings
   student, decoder = shared
 
@@ -123,25 +126,30 @@ def lane_gradients(shared, lane: dict, settings: ConcealSettings, options: Rende
   minus_w = jnp.stack([lane["own_minus"], lane["teacher_minus"]])
   weigh = lambda w: jax.tree.map(lambda g: jnp.tensordot(w, g, axes=1), params_grads)
   # only L_d^+ reaches the render: L_d^- trains the decoder alone (its own-render input is a constant)
-  (small_ct,) = prepared_vjp(lane["own_plus"] * image_grads[0])
-  (student_grad,) = render_vjp(pixel_ct + small_ct)
-  return dict(pixel=pixel, plus=jnp.sum(plus_w * values), plus_raw=(lane["own_plus"] > 0) * values[0],
-              minus=jnp.sum(minus_w * values), psnr=metrics.psnr(jnp.clip(rgb, 0, 1), lane["pixel_target"]),
-              num_pairs=num_pairs, overflowed=overflowed.astype(jnp.int32), student_grad=student_grad,
-              plus_grad=weigh(plus_w), minus_grad=weigh(minus_w))
+  out = dict(pixel=pixel, plus=jnp.sum(plus_w * values), plus_raw=(lane["own_plus"] > 0) * values[0],
+             minus=jnp.sum(minus_w * values), psnr=metrics.psnr(jnp.clip(rgb, 0, 1), lane["pixel_target"]),
+             num_pairs=num_pairs, overflowed=overflowed.astype(jnp.int32), plus_grad=weigh(plus_w),
+             minus_grad=weigh(minus_w))
+  if student_grad:
+    (small_ct,) = prepared_vjp(lane["own_plus"] * image_grads[0])
+    (out["student_grad"],) = render_vjp(pixel_ct + small_ct)
+  return out
 
 
 def gradients(student, decoder, data: dict, view, normal_view, settings: ConcealSettings, options: RenderOptions,
-              distortion=None, mesh=None) -> dict:
+              distortion=None, mesh=None, student_grad: bool = True) -> dict:
   """The step's values and gradients from both lanes (side by side on `mesh`, in turn without):
-  student_grad (of L_kd + lambda+ L_d^+ [+ the released check L1]), plus_grad (lambda+ grad L_d^+) and
+  student_grad (of L_kd + lambda+ L_d^+ [+ the released check L1]; None without `student_grad`, whose lanes
+  skip the renders' backward: the lanes' outputs travel as one vector, so an unused gradient would still be
+  computed and gathered), plus_grad (lambda+ grad L_d^+) and
   minus_grad (lambda- grad L_d^-) for the decoder; normal (the pixel term of the normal view), check (the
   check view's terms), plus (L_d^+ unweighted), minus (lambda- L_d^-), psnr of the normal render,
   num_pairs (the larger of the two renders) and overflowed."""
-  normal, check = lanes.map_lanes(lambda shared, lane: lane_gradients(shared, lane, settings, options),
+  normal, check = lanes.map_lanes(lambda shared, lane: lane_gradients(shared, lane, settings, options, student_grad),
                                   (student, decoder), lane_inputs(data, view, normal_view, settings, distortion), mesh)
   both = lambda name: jax.tree.map(jnp.add, normal[name], check[name])
-  return dict(student_grad=both("student_grad"), plus_grad=both("plus_grad"), minus_grad=both("minus_grad"),
+  return dict(student_grad=both("student_grad") if student_grad else None, plus_grad=both("plus_grad"),
+              minus_grad=both("minus_grad"),
               normal=normal["pixel"], check=check["pixel"] + both("plus"), plus=both("plus_raw"), minus=both("minus"),
               psnr=normal["psnr"], num_pairs=jnp.maximum(normal["num_pairs"], check["num_pairs"]),
               overflowed=(normal["overflowed"] + check["overflowed"]) > 0)
