@@ -141,8 +141,8 @@ def gradients(student, decoder, data: dict, view, normal_view, settings: Conceal
   """The step's values and gradients from both lanes (side by side on `mesh`, in turn without):
   student_grad (of L_kd + lambda+ L_d^+ [+ the released check L1]; None without `student_grad`, whose lanes
   skip the renders' backward: the lanes' outputs travel as one vector, so an unused gradient would still be
-  computed and gathered), plus_grad (lambda+ grad L_d^+) and
-  minus_grad (lambda- grad L_d^-) for the decoder; normal (the pixel term of the normal view), check (the
+  computed and gathered), plus_grad (lambda+ grad L_d^+) and minus_grad (lambda- grad L_d^-) for the
+  decoder; normal (the pixel term of the normal view), check (the
   check view's terms), plus (L_d^+ unweighted), minus (lambda- L_d^-), psnr of the normal render,
   num_pairs (the larger of the two renders) and overflowed."""
   normal, check = lanes.map_lanes(lambda shared, lane: lane_gradients(shared, lane, settings, options, student_grad),
