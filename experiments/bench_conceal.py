@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import json
 import pathlib
+import shutil
 
 from conceal_jax.conceal import conceal
 from conceal_jax.configs import conceal_ours
@@ -110,7 +111,8 @@ def continue_from(source_dir: pathlib.Path, run_dir: pathlib.Path, config) -> bo
   if source_config != expected:
     print(f"not continuing {source_dir}: its config.json is not this row's without the polish")
     return False
-  fileio.write_bytes(str(ckpt_dir / source.name), source.read_bytes())
+  with fileio.atomic_path(ckpt_dir / source.name) as tmp:
+    shutil.copyfile(source, tmp)
   return True
 
 
@@ -195,8 +197,7 @@ def table(rows) -> str:
            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
   for r in rows:
     s, t, v, h = r["student_vs_ground_truth"], r["teacher_vs_ground_truth"], r["student_vs_teacher"], r["hidden"]
-    polish = f" + {r['decoder_polish_steps']} polish" if r.get("decoder_polish_steps") else ""
-    lines.append(f"| {r['scene']} | {r['row']} | {r['decoder_width']} | {r['iterations']}{polish} | "
+    lines.append(f"| {r['scene']} | {r['row']} | {r['decoder_width']} | {results_io.conceal_steps(r)} | "
                  f"{r['wall_time_s'] / 60:.1f} | {1e3 * r['median_step_s']:.0f} | "
                  f"{s['psnr']:.2f} / {s['ssim']:.4f} / {s['lpips']:.4f} | {t['psnr']:.2f} | "
                  f"{r['student_psnr_loss']:.2f} | {v['psnr']:.2f} | {h['psnr']:.2f} / {h['ssim']:.4f} | "

@@ -77,12 +77,6 @@ def conceal_values(row: dict):
   return s["psnr"], s["ssim"], s["lpips"], h["psnr"], h["ssim"]
 
 
-def steps(row: dict) -> str:
-  """A bench-conceal row's length in words: its joint steps, and its decoder polish's where it has one."""
-  polish = row.get("decoder_polish_steps", 0)
-  return f"{row['iterations']} steps" + (f" + {polish} polish" if polish else "")
-
-
 def conceal_rows(conceal_bench: dict, scene: str) -> list[dict]:
   return [r for r in conceal_bench.get("rows", []) if r.get("scene", "lego") == scene]
 
@@ -95,7 +89,8 @@ def method_table(title: str, paper: dict, scene: str, train_bench: dict, conceal
            "ours: hidden PSNR / SSIM | ours: run |", "|---|---|---|---|---|---|"]
   teacher = teacher_values(train_bench, scene)
   ours = {"3D-GS": [(teacher, "teacher (bench-train)")] if teacher else []}
-  ours["ConcealGS"] = [(conceal_values(r), f"{r['row']}, width {r['decoder_width']}, {steps(r)}")
+  ours["ConcealGS"] = [(conceal_values(r), f"{r['row']}, width {r['decoder_width']}, "
+                       f"{results_io.conceal_steps(r)} steps")
                        for r in conceal_rows(conceal_bench, scene) if r["row"] in TABLE_CONCEALGS_ROWS]
   for b in BASELINES:
     ours[b] = [(conceal_values(r), r.get("protocol", "")) for r in baseline_bench.get("rows", [])
@@ -117,12 +112,13 @@ def ablation_table(conceal_bench: dict) -> list[str]:
     mine = [r for r in rows if r["row"] == name] or [None]
     for i, r in enumerate(mine):
       paper_cells = cells(values) if i == 0 else "| "
-      mine_cells = (cells(conceal_values(r)) + f" | {r['decoder_width']}, {steps(r)}") if r else \
+      mine_cells = (cells(conceal_values(r)) + f" | {r['decoder_width']}, {results_io.conceal_steps(r)}") if r else \
           f"- | - | {NOT_RUN}"
       lines.append(f"| {name} | {paper_cells} | {mine_cells} |")
   extra = [r for r in rows if r["row"] not in PAPER_TABLE3]
   for r in extra:  # beyond the paper: the released code's choices, tensor granularity, leakage control
-    lines.append(f"| {r['row']} | - | - | {cells(conceal_values(r))} | {r['decoder_width']}, {steps(r)} |")
+    lines.append(f"| {r['row']} | - | - | {cells(conceal_values(r))} | {r['decoder_width']}, "
+                 f"{results_io.conceal_steps(r)} |")
   return lines + [""]
 
 

@@ -38,6 +38,12 @@ def write_results(out: pathlib.Path, name: str, rows: list[dict], key: Callable[
 LEAKAGE_KEYS = ("max_ssim_student_test_views", "ssim_teacher_check_view", "max_ssim_near_check")
 
 
+def conceal_steps(row: dict) -> str:
+  """A bench-conceal row's length: its joint steps, and its decoder polish's where it has one."""
+  polish = row.get("decoder_polish_steps", 0)
+  return f"{row['iterations']}" + (f" + {polish} polish" if polish else "")
+
+
 def leakage_cells(leakage: dict, sep: str = " / ") -> str:
   """A metrics.json `leakage` dict as 'test views / clean teacher / near key' (nan where a figure is missing)."""
   return sep.join(f"{leakage.get(key, float('nan')):.3f}" for key in LEAKAGE_KEYS)
