@@ -21,7 +21,7 @@ import pathlib
 import shutil
 
 from conceal_jax.conceal import conceal
-from conceal_jax.configs import conceal_ours
+from conceal_jax.configs import conceal_ours, lego_conceal
 from conceal_jax.core import checkpoint, fileio, loop
 from conceal_jax.gs import evaluate
 from experiments import results_io
@@ -51,32 +51,32 @@ ROWS = {
     # ... with the decoder rate decaying to 0.3x rather than 0.1x: ours_robust_clip's hidden PSNR still rises
     # at 10k, and `full` at a constant rate reaches 43 dB. Measured: hidden 40.74 dB / 0.9969 (38.48 / 0.9947),
     # student 32.97 dB (32.99), leakage <= 0.187
-    "ours_robust_clip_dec03": lambda config: _robust_clip(config, decoder_lr_final_ratio=0.3),
+    "ours_robust_clip_dec03": lambda config: conceal_ours.best(config, decoy_views=64),  # configs/lego_conceal.py
     # ... and AMSGrad on the decoder: both decaying rates still saw bursts (ours_robust_clip at step 5390,
     # ours_robust_clip_dec03 at 2500), the step of a weight whose gradient returns after Adam forgot its scale.
     # Measured: the decoder learns slower (hidden 37.10 dB / 0.9926) and the dips remain (step 3000, 5500)
-    "ours_robust_clip_dec03_amsgrad": lambda config: _robust_clip(config, decoder_lr_final_ratio=0.3,
-                                                                  decoder_amsgrad=True),
+    "ours_robust_clip_dec03_amsgrad": lambda config: _overridden(conceal_ours.best(config, decoy_views=64),
+                                                                 decoder_amsgrad=True),
     # ours_robust_clip_dec03 again with another seed (decoder init, view order, distortions): the spread of a
     # row. Measured: hidden 39.37 dB / 0.9958 (seed 0: 40.74 / 0.9969), student 32.95 dB (32.97)
-    "ours_robust_clip_dec03_seed1": lambda config: _seeded(_robust_clip(config, decoder_lr_final_ratio=0.3), 1),
+    "ours_robust_clip_dec03_seed1": lambda config: _seeded(conceal_ours.best(config, decoy_views=64), 1),
     # ... then 2000 steps that train the decoder alone on the finished student (conceal.decoder_polish_steps),
     # continued from ours_robust_clip_dec03_seed1's run (CONTINUES). Measured: hidden 39.37 -> 39.57 dB, SSIM
     # 0.9958 -> 0.9962, leakage unchanged; the hidden PSNR is not held back by a student that kept moving
     "ours_robust_clip_dec03_seed1_polish": lambda config: _seeded(
-        _robust_clip(config, decoder_lr_final_ratio=0.3, decoder_polish_steps=2000), 1),
+        _overridden(conceal_ours.best(config, decoy_views=64), decoder_polish_steps=2000), 1),
 }
 # A row that continues another's run starts from that run's checkpoint at the end of its joint steps, where its
 # config is the other's up to the continuation (conceal.decoder_polish_steps), so it costs only its extra steps.
 CONTINUES = dict(ours_robust_clip_dec03_seed1_polish="ours_robust_clip_dec03_seed1")
 # The released decoder (width 64) starts from VGG16 with lr 1e-4; a narrow one starts from scratch and
-# learns at 5e-4 (the demo's rate).
-DECODER_LR = {64: 1e-4, 16: 5e-4}
+# learns at configs/conceal_ours.NARROW_DECODER_LR (the demo's rate).
+DECODER_LR = {64: 1e-4, conceal_ours.NARROW_DECODER_WIDTH: conceal_ours.NARROW_DECODER_LR}
 WIDTH_FREE_ROWS = ("no_decoder",)  # without a decoder the width does not matter: run once
 # The concealment issue's targets (lego: widths 16 and 64; the time for width 16).
 TARGETS = dict(lego=dict(hidden_psnr=34.0, hidden_ssim=0.99, student_psnr_loss=0.3, leakage=0.2, minutes_width16=60.0),
                beer=dict(hidden_psnr=37.5, hidden_ssim=0.99, student_psnr_loss=0.2))
-CURVE_EVERY, CURVE_VIEWS = 500, 10
+CURVE_EVERY, CURVE_VIEWS = lego_conceal.EVAL_EVERY, lego_conceal.EVAL_VIEWS
 
 
 def _overridden(config, **overrides):
@@ -91,7 +91,7 @@ def _seeded(config, seed: int):
 
 
 def _robust_clip(config, **overrides):
-  """ours_robust_clip's settings, then conceal.* `overrides` (the decoder-schedule rows)."""
+  """ours_robust_clip's settings, then conceal.* `overrides` (its decoder-rate rows)."""
   return _overridden(conceal_ours.robust(config, decoy_views=64, clip_input=True), **overrides)
 
 

@@ -17,7 +17,7 @@ from conceal_jax import main as main_lib
 from conceal_jax import RenderOptions, render
 from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat.camera import Camera, camera_centers, look_at
-from conceal_jax.configs import demo
+from conceal_jax.configs import demo, lego_conceal
 from conceal_jax.core import fileio
 from experiments import bench_conceal
 
@@ -306,6 +306,17 @@ def test_bench_row_continues_only_the_run_it_extends(tiny, tmp_path):
   assert bench_conceal.continue_from(source, row, polish)
   assert (row / "checkpoints" / "ckpt_00000020.npz").read_bytes() == b"step 20"
   assert not bench_conceal.continue_from(source, row, polish)  # its own checkpoints are kept
+
+
+def test_lego_conceal_config_is_the_bench_row_it_cites(tmp_path):
+  """configs/lego_conceal.py is bench-conceal's ours_robust_clip_dec03 at width 16, whose figures it quotes."""
+  teacher = tmp_path / "point_cloud.ply"
+  row = bench_conceal.run_config("lego", teacher, "ours_robust_clip_dec03", 16, 0, 0)
+  config = lego_conceal.get_config()
+  config.conceal.teacher = str(teacher)
+  assert config.mode == row.mode == "conceal" and config.seed == row.seed
+  assert config.conceal.to_dict() == row.conceal.to_dict()
+  assert config.conceal.decoder_lr_final_ratio == 0.3 and config.conceal.decoder_clip_input
 
 
 def test_two_hidden_images_each_at_its_own_key(tiny, tmp_path):

@@ -27,9 +27,7 @@ def get_config():
   config.train.densify.opacity_reset_every = 600
   config.train.checkpoint_every = 500
   config.conceal.iterations = 1300
-  config.conceal.decoder_width = 16      # the paper width (64) costs ~10x more per step on a CPU
-  config.conceal.decoder_vgg_init = False  # VGG16 weights exist for width 64 only
-  config.conceal.decoder_lr = 5e-4       # 1e-3 stalled the first 200 steps
+  config = conceal_ours.narrow_decoder(config)
   config.conceal.checkpoint_every = 200
   config.conceal.eval_every = 100
   config = conceal_ours.apply(config, decoy_views=32)
