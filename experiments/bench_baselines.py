@@ -10,9 +10,10 @@ Each run goes to <workdir>/<scene>/baseline_<row> (resumable: the DeepStega netw
 training both restart from their checkpoints). Writes baseline_bench.json (per row: the run's metrics.json,
 i.e. render PSNR / SSIM / LPIPS of the trained scene and the teacher against ground truth and of the scene
 against the teacher, hidden PSNR / SSIM at the check view and leakage; plus method, scene, protocol,
-training wall time, the revealed image, the hidden image's PSNR / SSIM over the test views (each
-baseline's own protocol hides it in every view), what LSB and DeepStega reveal from the check view's
-container before 3D-GS training, the DeepStega networks' own held-out quality and StegaNeRF's settings),
+training wall time, the revealed image (a copy under <out>/revealed/), the hidden image's PSNR / SSIM over
+the test views (each baseline's own protocol hides it in every view), what LSB and DeepStega reveal from the
+check view's container before 3D-GS training, the DeepStega networks' own held-out quality and StegaNeRF's
+settings),
 baseline_bench.md and baseline_bench.png to --out. Rows of earlier invocations and of other rows stay in the
 JSON. StegaNeRF runs once per protocol: all_views (its own: I from every view) and check_view (only the
 check view carries I, as in ConcealGS); both are scored at the check view.
@@ -102,12 +103,12 @@ def label(result: dict) -> str:
   return result["method"]
 
 
-def summary_row(scene: str, row: str, result: dict, run_dir: pathlib.Path) -> dict:
+def summary_row(scene: str, row: str, result: dict) -> dict:
   m = result["metrics"]
   extra = {k: result[k] for k in ("lsb_bits", "deepstega", "steganerf") if k in result}
   return dict(m, method=result["method"], scene=scene, row=row, label=label(result), protocol=protocol(result),
               iterations=result["iterations"], wall_time_s=result["wall_time_s"],
-              median_step_s=result["median_step_s"], revealed=str(run_dir / "revealed.png"),
+              median_step_s=result["median_step_s"],
               containers=result.get("containers"), test_views_hidden=result.get("test_views_hidden"),
               targets=TARGETS.get(scene, {}),
               student_psnr_loss=m["teacher_vs_ground_truth"]["psnr"] - m["student_vs_ground_truth"]["psnr"],
@@ -137,7 +138,8 @@ def run(scene, rows, iterations, eval_views, workdir: pathlib.Path, out: pathlib
       run_dir.mkdir(parents=True, exist_ok=True)
       fileio.write_json(run_dir / "config.json", config.to_dict())  # as the command line would
       result = baseline.baseline_and_evaluate(config, str(run_dir))
-    results.append(summary_row(scene, row, result, run_dir))
+    results.append(dict(summary_row(scene, row, result),
+                        images=results_io.keep_images(out, run_dir, results_io.BASELINE_IMAGES)))
     print(json.dumps({k: v for k, v in results[-1].items() if k not in ("near_check", "deepstega", "steganerf")}))
     results_io.write_results(out, "baseline_bench", results, row_key, table, plot, targets=TARGETS)
   return results

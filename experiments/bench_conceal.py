@@ -11,14 +11,14 @@ Each run goes to <workdir>/<scene>/conceal_<row>_w<width> (resumable; a killed b
 stopped). Writes conceal_bench.json (per row: render PSNR / SSIM / LPIPS of student and teacher against
 ground truth and of the student against the teacher, hidden PSNR / SSIM at the check view, leakage, wall
 time, median step time, and the curves of hidden PSNR / SSIM and student test PSNR against minutes),
-conceal_bench.md and conceal_bench.png to --out. Rows of earlier invocations stay in the JSON.
+conceal_bench.md and conceal_bench.png to --out, and a copy of each run's revealed images under
+<out>/revealed/ (make reproduce's figure). Rows of earlier invocations stay in the JSON.
 """
 from __future__ import annotations
 
 import argparse
 import json
 import pathlib
-import shutil
 
 from conceal_jax.conceal import conceal
 from conceal_jax.configs import conceal_ours, lego_conceal
@@ -111,8 +111,7 @@ def continue_from(source_dir: pathlib.Path, run_dir: pathlib.Path, config) -> bo
   if source_config != expected:
     print(f"not continuing {source_dir}: its config.json is not this row's without the polish")
     return False
-  with fileio.atomic_path(ckpt_dir / source.name) as tmp:
-    shutil.copyfile(source, tmp)
+  fileio.copy_file(source, ckpt_dir / source.name)
   return True
 
 
@@ -180,7 +179,8 @@ def run(scene, rows, widths, iterations, eval_views, workdir: pathlib.Path, out:
         if row in CONTINUES and continue_from(workdir / scene / f"conceal_{CONTINUES[row]}_w{width}", run_dir, config):
           print(f"{row}: continuing {CONTINUES[row]}'s run from step {config.conceal.iterations}")
         result = conceal.conceal_and_evaluate(config, str(run_dir))
-      results.append(summary_row(scene, row, width, result))
+      results.append(dict(summary_row(scene, row, width, result),
+                          images=results_io.keep_images(out, run_dir, results_io.CONCEAL_IMAGES)))
       print(json.dumps({k: v for k, v in results[-1].items() if k not in ("curve", "near_check")}))
       results_io.write_results(out, "conceal_bench", results, row_key, table, plot, targets=TARGETS)
   return results

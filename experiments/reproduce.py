@@ -144,26 +144,28 @@ def robustness_table(robust_bench: dict) -> list[str]:
   return lines + [""]
 
 
-def figure_grid(scene: str, conceal_bench: dict, baseline_bench: dict, workdir: pathlib.Path,
-                path: pathlib.Path) -> bool:
+def figure_grid(scene: str, conceal_bench: dict, baseline_bench: dict, results: pathlib.Path,
+                workdir: pathlib.Path) -> str | None:
   """hidden | revealed: student at the key | clean teacher at the key | student's most revealing test view
-  | each baseline's revealed image; one row per ConcealGS run of `scene`. False if there is nothing to show."""
+  | each baseline's revealed image; one row per ConcealGS run of `scene`, from the images the benches kept under
+  `results` (or, for older rows, their runs under `workdir`). Writes reproduction_<scene>.png to `results`; its
+  name, or None if there is nothing to show."""
   import imageio.v3 as iio
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
+  baselines = [(b.get("label", b["method"]), path) for b in baseline_bench.get("rows", [])
+               if b.get("scene", "lego") == scene
+               for _, path in results_io.row_images(results, b, workdir / scene / f"baseline_{b.get('row', '')}",
+                                                    results_io.BASELINE_IMAGES)]
   panels = []
   for r in conceal_rows(conceal_bench, scene):
     run = workdir / scene / f"conceal_{r['row']}_w{r['decoder_width']}"
-    files = [("hidden", run / "hidden.png"), ("student, key", run / "revealed.png"),
-             ("clean teacher, key", run / "teacher_revealed.png"), ("student, test view", run / "normal_revealed.png")]
-    files += [(b.get("label", b["method"]), pathlib.Path(b["revealed"])) for b in baseline_bench.get("rows", [])
-              if b.get("scene", "lego") == scene and b.get("revealed")]
-    files = [(name, f) for name, f in files if f.is_file()]
+    files = results_io.row_images(results, r, run, results_io.CONCEAL_IMAGES) + baselines
     if files:
       panels.append((f"{r['row']} w{r['decoder_width']}", files))
   if not panels:
-    return False
+    return None
   columns = max(len(files) for _, files in panels)
   fig, axes = plt.subplots(len(panels), columns, figsize=(2.2 * columns, 2.4 * len(panels)), squeeze=False)
   for i, (label, files) in enumerate(panels):
@@ -173,8 +175,9 @@ def figure_grid(scene: str, conceal_bench: dict, baseline_bench: dict, workdir: 
       if j < len(files):
         ax.imshow(iio.imread(files[j][1]))
         ax.set_title(files[j][0] if j else f"{label}\n{files[j][0]}", fontsize=8)
-  fileio.save_figure(fig, path)
-  return True
+  name = f"reproduction_{scene}.png"
+  fileio.save_figure(fig, results / name)
+  return name
 
 
 def report(results: pathlib.Path, workdir: pathlib.Path) -> str:
@@ -193,8 +196,8 @@ def report(results: pathlib.Path, workdir: pathlib.Path) -> str:
   lines += ablation_table(conceal_bench) + leakage_table(conceal_bench) + robustness_table(robust_bench)
   lines += ["### Figures", ""]
   for scene in ("lego", "beer"):
-    name = f"reproduction_{scene}.png"
-    if figure_grid(scene, conceal_bench, baseline_bench, workdir, results / name):
+    name = figure_grid(scene, conceal_bench, baseline_bench, results, workdir)
+    if name:
       lines.append(f"![{scene}]({name})")
     else:
       lines.append(f"{scene}: {NOT_RUN}")

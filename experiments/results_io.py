@@ -35,6 +35,35 @@ def write_results(out: pathlib.Path, name: str, rows: list[dict], key: Callable[
   return merged
 
 
+# A run's images that REPRODUCTION.md's figure shows (label -> file in the run's folder). The benches keep a copy
+# under <out>/IMAGES_DIR, beside the JSON, since a workdir does not outlive the machine it ran on.
+IMAGES_DIR = "revealed"
+CONCEAL_IMAGES = {"hidden": "hidden.png", "student, key": "revealed.png", "clean teacher, key": "teacher_revealed.png",
+                  "student, test view": "normal_revealed.png"}
+BASELINE_IMAGES = {"revealed": "revealed.png"}
+
+
+def keep_images(out: pathlib.Path, run_dir: pathlib.Path, names: dict[str, str]) -> dict[str, str]:
+  """Copies the images `names` of `run_dir` (<workdir>/<scene>/<run>) that exist to <out>/IMAGES_DIR/<scene>/<run>/;
+  {label: its path relative to `out`} (a bench row's `images`)."""
+  kept = {}
+  for label, name in names.items():
+    if (run_dir / name).is_file():
+      relative = pathlib.Path(IMAGES_DIR) / run_dir.parent.name / run_dir.name / name
+      fileio.copy_file(run_dir / name, out / relative)
+      kept[label] = str(relative)
+  return kept
+
+
+def row_images(results: pathlib.Path, row: dict, run_dir: pathlib.Path, names: dict[str, str]) -> list[tuple]:
+  """[(label, path)] of a bench row's images that exist: the copies kept under `results` (its `images`), or for a
+  row written before the benches kept them, the files in its run's folder."""
+  kept = row.get("images")
+  files = [(label, results / relative) for label, relative in kept.items()] if kept is not None else \
+      [(label, run_dir / name) for label, name in names.items()]
+  return [(label, path) for label, path in files if path.is_file()]
+
+
 LEAKAGE_KEYS = ("max_ssim_student_test_views", "ssim_teacher_check_view", "max_ssim_near_check")
 
 

@@ -225,7 +225,9 @@ def test_bench_rows_feed_the_reproduction(lsb_run, deepstega_run, tiny, tmp_path
   for key in ("student_vs_ground_truth", "teacher_vs_ground_truth", "student_vs_teacher", "hidden", "leakage"):
     assert row[key] == metrics[key], key
   assert row["scene"] == "lego" and row["label"] == "LSB 4 bits" and row["protocol"].startswith("4 low bit")
-  assert row["wall_time_s"] > 0 and pathlib.Path(row["revealed"]).is_file()
+  # the revealed image is kept beside the JSON: the figure outlives the workdir
+  assert row["wall_time_s"] > 0 and row["images"] == dict(revealed="revealed/lego/baseline_lsb4/revealed.png")
+  assert (out / row["images"]["revealed"]).read_bytes() == (workdir / "revealed.png").read_bytes()
   assert (out / "baseline_bench.md").is_file() and (out / "baseline_bench.png").is_file()
 
   table1 = reproduce.report(out, bench)

@@ -19,7 +19,7 @@ from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat.camera import Camera, camera_centers, look_at
 from conceal_jax.configs import demo, lego_conceal
 from conceal_jax.core import fileio
-from experiments import bench_conceal
+from experiments import bench_conceal, results_io
 
 
 @pytest.fixture(scope="module")
@@ -277,20 +277,27 @@ def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
   assert (tmp_path / "reveal" / "revealed.png").read_bytes() == (a / "revealed.png").read_bytes()
 
 
-def test_decoder_polish_trains_the_decoder_alone_and_resumes_across_phases(tiny, tmp_path):
-  joint = conceal.conceal_and_evaluate(tiny_config(tiny, iterations=20), str(tmp_path / "joint"))
+@pytest.fixture(scope="module")
+def joint_run(tiny, tmp_path_factory):
+  """(result, folder) of a finished 20-step run of the paper's method."""
+  folder = tmp_path_factory.mktemp("joint") / "run"
+  return conceal.conceal_and_evaluate(tiny_config(tiny, iterations=20), str(folder)), folder
+
+
+def test_decoder_polish_trains_the_decoder_alone_and_resumes_across_phases(tiny, joint_run, tmp_path):
+  joint, joint_dir = joint_run
   config = tiny_config(tiny, iterations=20, decoder_polish_steps=20)
   straight = conceal.conceal_and_evaluate(config, str(tmp_path / "straight"))
   # a polish started from the joint run's last checkpoint (as bench-conceal's continued rows are)
   (tmp_path / "resumed").mkdir()
-  shutil.copytree(tmp_path / "joint" / "checkpoints", tmp_path / "resumed" / "checkpoints")
+  shutil.copytree(joint_dir / "checkpoints", tmp_path / "resumed" / "checkpoints")
   resumed = conceal.conceal_and_evaluate(config, str(tmp_path / "resumed"))
   assert straight["traces"] == dict(conceal_step=1, polish_step=1) and resumed["traces"] == dict(polish_step=1)
   assert straight["timed_steps"] == resumed["timed_steps"] == 40 and resumed["decoder_polish_steps"] == 20
   for name in ("decoder.msgpack", "student.ply"):
     assert (tmp_path / "straight" / name).read_bytes() == (tmp_path / "resumed" / name).read_bytes(), name
   # the student is the joint run's, bit for bit; the decoder fits it better
-  assert (tmp_path / "joint" / "student.ply").read_bytes() == (tmp_path / "straight" / "student.ply").read_bytes()
+  assert (joint_dir / "student.ply").read_bytes() == (tmp_path / "straight" / "student.ply").read_bytes()
   assert straight["metrics"]["hidden"]["psnr"] > joint["metrics"]["hidden"]["psnr"] + 0.1
   plus = [h["plus"] for h in straight["history"] if "plus" in h]
   assert all(np.isfinite(plus)) and plus[-1] < plus[len(plus) // 2 - 1]
@@ -306,6 +313,20 @@ def test_bench_row_continues_only_the_run_it_extends(tiny, tmp_path):
   assert bench_conceal.continue_from(source, row, polish)
   assert (row / "checkpoints" / "ckpt_00000020.npz").read_bytes() == b"step 20"
   assert not bench_conceal.continue_from(source, row, polish)  # its own checkpoints are kept
+
+
+def test_bench_reads_a_finished_run_and_keeps_its_images_beside_the_json(tiny, joint_run, tmp_path):
+  bench, out = tmp_path / "bench", tmp_path / "results"
+  run = bench / "lego" / "conceal_full_w16"
+  shutil.copytree(joint_run[1], run)
+  (bench / "lego" / "teacher").mkdir()
+  shutil.copy(tiny[1], bench / "lego" / "teacher" / "point_cloud.ply")
+  [row] = bench_conceal.run("lego", ["full", "ours"], [16], 0, 0, bench, out, reuse=True)
+  assert row["row"] == "full" and set(row["images"]) == set(results_io.CONCEAL_IMAGES)
+  for label, name in results_io.CONCEAL_IMAGES.items():
+    assert (out / row["images"][label]).read_bytes() == (run / name).read_bytes(), label
+  saved = json.loads((out / "conceal_bench.json").read_text())["rows"]
+  assert saved == [json.loads(json.dumps(row))] and (out / "conceal_bench.png").is_file()
 
 
 def test_lego_conceal_config_is_the_bench_row_it_cites(tmp_path):

@@ -1,10 +1,11 @@
 """REPRODUCTION.md: the paper's numbers beside ours, read from the benchmarks' JSON; missing rows say so."""
 import json
+import shutil
 
 import numpy as np
 
 from conceal_jax.core import fileio
-from experiments import reproduce
+from experiments import reproduce, results_io
 
 
 def _conceal_row(row, width, psnr, hidden_psnr):
@@ -36,6 +37,25 @@ def test_report_puts_ours_beside_the_paper_and_names_missing_rows(tmp_path):
   assert "| lego | full | 16 | 0.110 | 0.120 | 0.130 |" in text
   assert "![lego](reproduction_lego.png)" in text and "beer: not run yet" in text
   assert (results / "reproduction_lego.png").is_file()
+
+
+def test_figure_reads_the_images_kept_beside_the_json_when_the_workdir_is_gone(tmp_path):
+  results, workdir = tmp_path / "results", tmp_path / "bench"
+  run = workdir / "lego" / "conceal_full_w16"
+  for i, name in enumerate(results_io.CONCEAL_IMAGES.values()):
+    fileio.write_image(str(run / name), np.full((8, 8, 3), 0.1 * i, np.float32))
+  images = results_io.keep_images(results, run, results_io.CONCEAL_IMAGES)
+  assert list(images) == list(results_io.CONCEAL_IMAGES)
+  assert images["student, key"] == "revealed/lego/conceal_full_w16/revealed.png"
+  shutil.rmtree(workdir)
+  row = dict(_conceal_row("full", 16, 32.95, 35.25), images=images)
+  kept = results_io.row_images(results, row, run, results_io.CONCEAL_IMAGES)
+  assert [label for label, _ in kept] == list(results_io.CONCEAL_IMAGES)
+  assert results_io.row_images(results, _conceal_row("full", 16, 32.95, 35.25), run, results_io.CONCEAL_IMAGES) == []
+  fileio.write_json(results / "conceal_bench.json", dict(rows=[row]))
+  assert "![lego](reproduction_lego.png)" in reproduce.report(results, workdir)
+  # a run without images keeps none, and its row shows no panel
+  assert results_io.keep_images(results, workdir / "lego" / "conceal_ours_w16", results_io.CONCEAL_IMAGES) == {}
 
 
 def test_report_without_any_benchmark_says_not_run(tmp_path):

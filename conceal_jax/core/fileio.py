@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import shutil
 import tempfile
 from typing import Any, Iterator
 
@@ -42,6 +43,12 @@ def _umask() -> int:
 def write_bytes(path: str | os.PathLike, data: bytes) -> None:
   with atomic_path(path) as tmp, open(tmp, "wb") as f:
     f.write(data)
+
+
+def copy_file(source: str | os.PathLike, path: str | os.PathLike) -> None:
+  """Copies `source` to `path` without reading it into memory; `path` is never left half-written."""
+  with atomic_path(path) as tmp:
+    shutil.copyfile(source, tmp)
 
 
 def write_text(path: str | os.PathLike, text: str) -> None:

@@ -1,0 +1,26 @@
+"""Atomic writes: a failed write leaves the old file as it was and no temporary file behind."""
+import pytest
+
+from conceal_jax.core import fileio
+
+
+def test_copy_file_replaces_the_target_whole(tmp_path):
+  source, target = tmp_path / "source.bin", tmp_path / "out" / "target.bin"
+  source.write_bytes(b"new contents")
+  fileio.write_bytes(target, b"old")
+  fileio.copy_file(source, target)
+  assert target.read_bytes() == b"new contents"
+  assert sorted(p.name for p in target.parent.iterdir()) == ["target.bin"]
+
+
+def test_a_failed_copy_or_write_keeps_the_old_file(tmp_path):
+  target = tmp_path / "target.json"
+  fileio.write_json(target, dict(step=1))
+  with pytest.raises(FileNotFoundError):
+    fileio.copy_file(tmp_path / "missing.bin", target)
+  with pytest.raises(RuntimeError), fileio.atomic_path(target) as tmp:  # a writer that dies half-way
+    with open(tmp, "w") as f:
+      f.write('{"st')
+    raise RuntimeError("killed")
+  assert target.read_text() == '{\n  "step": 1\n}\n'
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["target.json"]
