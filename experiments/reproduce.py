@@ -147,9 +147,9 @@ def robustness_table(robust_bench: dict) -> list[str]:
 def figure_grid(scene: str, conceal_bench: dict, baseline_bench: dict, results: pathlib.Path,
                 workdir: pathlib.Path) -> str | None:
   """hidden | revealed: student at the key | clean teacher at the key | student's most revealing test view
-  | each baseline's revealed image; one row per ConcealGS run of `scene`, from the images the benches kept under
-  `results` (or, for older rows, their runs under `workdir`). Writes reproduction_<scene>.png to `results`; its
-  name, or None if there is nothing to show."""
+  | each baseline's revealed image; one row per ConcealGS run of `scene` (the baselines alone where no run has
+  images), from the images the benches kept under `results` (or, for older rows, their runs under `workdir`).
+  Writes reproduction_<scene>.png to `results`; its name, or None if there is nothing to show."""
   import imageio.v3 as iio
   import matplotlib
   matplotlib.use("Agg")
@@ -161,9 +161,11 @@ def figure_grid(scene: str, conceal_bench: dict, baseline_bench: dict, results: 
   panels = []
   for r in conceal_rows(conceal_bench, scene):
     run = workdir / scene / f"conceal_{r['row']}_w{r['decoder_width']}"
-    files = results_io.row_images(results, r, run, results_io.CONCEAL_IMAGES) + baselines
-    if files:
-      panels.append((f"{r['row']} w{r['decoder_width']}", files))
+    own = results_io.row_images(results, r, run, results_io.CONCEAL_IMAGES)
+    if own:
+      panels.append((f"{r['row']} w{r['decoder_width']}", own + baselines))
+  if not panels and baselines:
+    panels = [("baselines", baselines)]
   if not panels:
     return None
   columns = max(len(files) for _, files in panels)

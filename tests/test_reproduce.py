@@ -54,8 +54,12 @@ def test_figure_reads_the_images_kept_beside_the_json_when_the_workdir_is_gone(t
   assert results_io.row_images(results, _conceal_row("full", 16, 32.95, 35.25), run, results_io.CONCEAL_IMAGES) == []
   fileio.write_json(results / "conceal_bench.json", dict(rows=[row]))
   assert "![lego](reproduction_lego.png)" in reproduce.report(results, workdir)
-  # a run without images keeps none, and its row shows no panel
+  # a run without images keeps none, and without any, the baselines' images make the figure alone
   assert results_io.keep_images(results, workdir / "lego" / "conceal_ours_w16", results_io.CONCEAL_IMAGES) == {}
+  assert reproduce.figure_grid("lego", dict(rows=[]), dict(rows=[]), results, workdir) is None
+  baseline = dict(scene="lego", method="LSB", row="lsb4", label="LSB 4 bits", images=dict(revealed=images["hidden"]))
+  assert reproduce.figure_grid("lego", dict(rows=[_conceal_row("full", 16, 32.95, 35.25)]), dict(rows=[baseline]),
+                               results, workdir) == "reproduction_lego.png"
 
 
 def test_report_without_any_benchmark_says_not_run(tmp_path):
