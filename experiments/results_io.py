@@ -56,10 +56,11 @@ def keep_images(out: pathlib.Path, run_dir: pathlib.Path, names: dict[str, str])
 
 
 def row_images(results: pathlib.Path, row: dict, run_dir: pathlib.Path, names: dict[str, str]) -> list[tuple]:
-  """[(label, path)] of a bench row's images that exist: the copies kept under `results` (its `images`), or for a
-  row written before the benches kept them, the files in its run's folder."""
+  """[(label, path)] of a bench row's images that exist, in the order of `names`: the copies kept under `results`
+  (its `images`, whose keys the JSON file holds sorted), or for a row written before the benches kept them, the
+  files in its run's folder."""
   kept = row.get("images")
-  files = [(label, results / relative) for label, relative in kept.items()] if kept is not None else \
+  files = [(label, results / kept[label]) for label in names if label in kept] if kept is not None else \
       [(label, run_dir / name) for label, name in names.items()]
   return [(label, path) for label, path in files if path.is_file()]
 
