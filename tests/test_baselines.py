@@ -3,6 +3,7 @@ the baseline job end to end on a tiny generated scene (outputs, resume, reuse of
 errors)."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import pathlib
 import shutil
@@ -90,6 +91,21 @@ def test_deepstega_networks_are_fully_convolutional_and_the_loss_is_balujas():
   cover_grads = jax.jit(jax.grad(cover_term))(params)
   assert all(float(jnp.abs(g).max()) == 0 for g in jax.tree.leaves(cover_grads["reveal"]))
   assert any(float(jnp.abs(g).max()) > 0 for g in jax.tree.leaves(cover_grads["hide"]))
+
+
+def test_deepstega_cover_skip_adds_the_hiding_output_to_the_cover_and_round_trips(tmp_path):
+  skip = dataclasses.replace(ARCH, cover_skip=True)
+  params = deepstega.init_networks(jax.random.key(2), skip)  # the same params as without the skip
+  jax.tree.map(lambda a, b: np.testing.assert_array_equal(a.shape, b.shape), params,
+               deepstega.init_networks(jax.random.key(2), ARCH))
+  rng = np.random.default_rng(1)
+  covers, secrets = (jnp.asarray(rng.uniform(0, 1, (2, 10, 14, 3)), jnp.float32) for _ in range(2))
+  np.testing.assert_allclose(deepstega.hide(params, skip, covers, secrets),
+                             covers + deepstega.hide(params, ARCH, covers, secrets), rtol=1e-6, atol=1e-6)
+  deepstega.save_networks(str(tmp_path / "skip.msgpack"), params, skip)
+  assert deepstega.load_networks(str(tmp_path / "skip.msgpack"))[1] == skip
+  with pytest.raises(ValueError, match="baseline.deepstega.cover_skip"):
+    deepstega.Architecture(cover_skip=1)
 
 
 def test_deepstega_views_are_8bit_containers_and_reveal_resizes(tmp_path):
@@ -250,6 +266,13 @@ def test_bench_rows_feed_the_reproduction(lsb_run, deepstega_run, tiny, tmp_path
   assert config.conceal.lr.to_dict() == gentle.to_dict()
   stega = bench_baselines.run_config("lego", tiny[1], "steganerf_all_views", 100, 5)
   assert stega.conceal.lr.sh_dc != gentle.sh_dc and stega.conceal.lr.warmup_steps == 0
+  skip = bench_baselines.run_config("lego", tiny[1], "deepstega_skip", 100, 5)
+  baseline.validate(skip)
+  assert baseline.deepstega_settings(skip)[0].cover_skip and skip.conceal.lr.to_dict() == gentle.to_dict()
+  skip_result = dict(saved[2], deepstega=dict(saved[2]["deepstega"], architecture=dict(
+      saved[2]["deepstega"]["architecture"], cover_skip=True)))
+  assert bench_baselines.label(skip_result) == "DeepStega (cover skip)"
+  assert "layers 1/1/1 with the cover skip, held-out" in bench_baselines.protocol(skip_result)
 
 
 @pytest.fixture(scope="module")

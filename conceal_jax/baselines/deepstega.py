@@ -32,15 +32,23 @@ VIEW_CHUNK = 4
 @dataclasses.dataclass(frozen=True)
 class Architecture:
   """Sizes of the three networks (hashable: static under jit): `width` filters per kernel size in every
-  layer, and the layers of the preparation, hiding and reveal networks (Baluja: 50 filters; 2, 5, 5)."""
+  layer, and the layers of the preparation, hiding and reveal networks (Baluja: 50 filters; 2, 5, 5).
+
+  cover_skip: the hiding network outputs the change to the cover (C' = C + net) rather than C' itself (Baluja).
+  Not Baluja's design: it spares the network learning to copy the cover through its ReLU layers, so that
+  networks trained briefly on this CPU hide well; a stronger baseline only makes its failure after 3D-GS
+  training more telling."""
   width: int = 16
   prep_depth: int = 2
   hide_depth: int = 4
   reveal_depth: int = 4
+  cover_skip: bool = False
 
   def __post_init__(self):
-    for field in dataclasses.fields(self):
-      settings_lib.check_count(f"baseline.deepstega.{field.name}", getattr(self, field.name))
+    for name in ("width", "prep_depth", "hide_depth", "reveal_depth"):
+      settings_lib.check_count(f"baseline.deepstega.{name}", getattr(self, name))
+    if not isinstance(self.cover_skip, bool):
+      raise ValueError(f"baseline.deepstega.cover_skip must be true or false, got {self.cover_skip!r}")
 
 
 class BranchStack(nn.Module):
@@ -77,10 +85,12 @@ def init_networks(rng: jax.Array, arch: Architecture) -> dict:
 
 
 def hide(params: dict, arch: Architecture, covers: jax.Array, secrets: jax.Array) -> jax.Array:
-  """Containers C' [B, H, W, 3] (not clipped) of covers and secrets [B, H, W, 3]."""
+  """Containers C' [B, H, W, 3] (not clipped) of covers and secrets [B, H, W, 3] (arch.cover_skip: the cover
+  plus the hiding network's output)."""
   nets = _networks(arch)
   prepared = nets["prep"].apply({"params": params["prep"]}, secrets)
-  return nets["hide"].apply({"params": params["hide"]}, jnp.concatenate([covers, prepared], axis=-1))
+  hidden = nets["hide"].apply({"params": params["hide"]}, jnp.concatenate([covers, prepared], axis=-1))
+  return covers + hidden if arch.cover_skip else hidden
 
 
 def reveal_secret(params: dict, arch: Architecture, containers: jax.Array) -> jax.Array:

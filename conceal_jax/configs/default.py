@@ -174,6 +174,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.baseline.deepstega.prep_depth = 2
   config.baseline.deepstega.hide_depth = 4
   config.baseline.deepstega.reveal_depth = 4
+  config.baseline.deepstega.cover_skip = False  # hide the change to the cover, C' = C + net (not Baluja's)
   config.baseline.deepstega.beta = 1.0     # weight of the secret term of the loss
   config.baseline.deepstega.noise_std = 0.01  # noise on the container during training
   config.baseline.deepstega.crop_size = 64    # training crops, at the decoder size
