@@ -183,17 +183,22 @@ def test_amsgrad_bounds_the_step_of_a_gradient_that_returns():
   params = dict(w=jnp.zeros(()))
   grads = jnp.concatenate([jnp.ones(100), jnp.zeros(5000), jnp.ones(1)])
 
-  def last_step(amsgrad):
-    tx = optimizer.decaying_adam(1e-3, 1.0, 10, 1e-15, amsgrad=amsgrad)
+  def steps(amsgrad, clip=0.0):
+    tx = optimizer.decaying_adam(1e-3, 1.0, 10, 1e-15, amsgrad=amsgrad, update_rms_clip=clip)
 
     def body(state, g):
       update, state = tx.update(dict(w=g), state, params)
       return state, update["w"]
 
-    return -float(jax.lax.scan(body, tx.init(params), grads)[1][-1])
+    return -np.asarray(jax.lax.scan(body, tx.init(params), grads)[1])
 
-  adam, amsgrad = last_step(False), last_step(True)
-  assert adam > 1.5e-3 and 0 < amsgrad <= 1.0001e-3, (adam, amsgrad)
+  adam, amsgrad, clipped = steps(False), steps(True), steps(False, 1.0)
+  assert adam[-1] > 1.5e-3 and 0 < amsgrad[-1] <= 1.0001e-3, (adam[-1], amsgrad[-1])
+  # Adafactor's update clip (update_rms_clip) bounds the returning step too, and leaves the steady steps alone
+  assert 0 < clipped[-1] <= 1.0001e-3 and clipped[-1] < adam[-1] / 1.5, (clipped[-1], adam[-1])
+  np.testing.assert_allclose(clipped[:100], adam[:100], rtol=1e-5)
+  with pytest.raises(ValueError, match="update clip"):
+    optimizer.decaying_adam(1e-3, 1.0, 10, 1e-15, update_rms_clip=-1.0)
 
 
 def test_learning_rates_per_field():

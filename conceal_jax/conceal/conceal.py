@@ -143,10 +143,12 @@ def decoder_optimizer(config: ml_collections.ConfigDict) -> optax.GradientTransf
   """Adam on the decoder at conceal.decoder_lr, decaying to decoder_lr * conceal.decoder_lr_final_ratio over
   the run (1: constant, as released), with eps conceal.decoder_adam_eps: 1e-15 as the released code, where a
   weight whose gradient has all but vanished still takes steps of the full rate; AMSGrad with
-  conceal.decoder_amsgrad (beyond the paper), against the bursts that follow."""
+  conceal.decoder_amsgrad or each tensor's step clipped with conceal.decoder_update_clip (both beyond the paper),
+  against the bursts that follow."""
   c = config.conceal
   return optimizer.decaying_adam(c.decoder_lr, c.decoder_lr_final_ratio, c.iterations, c.decoder_adam_eps,
-                                 "conceal.decoder_lr_final_ratio", amsgrad=c.decoder_amsgrad)
+                                 "conceal.decoder_lr_final_ratio", amsgrad=c.decoder_amsgrad,
+                                 update_rms_clip=c.decoder_update_clip)
 
 
 def validate(config: ml_collections.ConfigDict) -> None:
@@ -162,6 +164,8 @@ def validate(config: ml_collections.ConfigDict) -> None:
   if not (c.lr.means_init > 0 and c.decoder_lr > 0 and c.decoder_adam_eps > 0):
     raise ValueError("conceal.lr.means_init, conceal.decoder_lr and conceal.decoder_adam_eps must be positive")
   optimizer.check_final_ratio("conceal.decoder_lr_final_ratio", c.decoder_lr_final_ratio)
+  if not c.decoder_update_clip >= 0:
+    raise ValueError(f"conceal.decoder_update_clip must be >= 0 (0: off), got {c.decoder_update_clip!r}")
   if c.decoy_views < 0 or (c.decoy_fraction > 0) != (c.decoy_views > 0):
     raise ValueError("conceal.decoy_views must be positive exactly when conceal.decoy_fraction is, got "
                      f"{c.decoy_views} and {c.decoy_fraction}")

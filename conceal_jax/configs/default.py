@@ -121,6 +121,7 @@ def get_config() -> ml_collections.ConfigDict:
   config.conceal.decoder_adam_eps = 1e-15  # the released code's (the Gaussians' Adam); torch's default is 1e-8
   config.conceal.decoder_lr_final_ratio = 1.0  # log-linear decay of decoder_lr to this fraction (1: constant)
   config.conceal.decoder_amsgrad = False  # beyond the paper: AMSGrad on the decoder (gs/optimizer.decaying_adam)
+  config.conceal.decoder_update_clip = 0.0  # beyond the paper: RMS clip of each decoder tensor's Adam step (0: off)
   config.conceal.decoder_polish_steps = 0  # beyond the paper: decoder-only steps after the iterations (conceal.py)
   config.conceal.use_decoder = True    # ablation switches
   config.conceal.consistency = True

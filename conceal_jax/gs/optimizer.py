@@ -32,16 +32,24 @@ def check_final_ratio(name: str, final_ratio: float) -> None:
 
 
 def decaying_adam(lr: float, final_ratio: float, steps: int, eps: float, name: str = "final_ratio",
-                  amsgrad: bool = False) -> optax.GradientTransformation:
+                  amsgrad: bool = False, update_rms_clip: float = 0.0) -> optax.GradientTransformation:
   """Adam at rate `lr` decaying log-linearly to lr * final_ratio over `steps` (then held); a constant rate,
   with no schedule state, when final_ratio is 1. Late large steps kill an unnormalised conv+ReLU U-Net
   (every unit dead, one constant image out), which a decayed rate avoids. `amsgrad`: AMSGrad (Reddi et al.
   2018), which divides by the largest second moment seen, so a weight whose gradient vanished and returns
   takes no step larger than its history allows (Adam's step is then up to ~3x the rate at a tiny eps).
-  `name`: the config key of final_ratio, for the error message."""
+  `update_rms_clip` > 0: Adafactor's update clipping (Shazeer and Stern 2018, Sec. 6): each tensor's Adam
+  direction is scaled down to this root-mean-square before the rate, so a tensor whose gradients all return
+  at once steps at most the rate's worth on average. `name`: the config key of final_ratio, for the error
+  message."""
   check_final_ratio(name, final_ratio)
+  if not update_rms_clip >= 0:
+    raise ValueError(f"the update clip must be >= 0 (0: off), got {update_rms_clip!r}")
   rate = lr if final_ratio == 1 else log_linear_schedule(lr, lr * final_ratio, steps)
-  return (optax.amsgrad if amsgrad else optax.adam)(rate, eps=eps)
+  if not update_rms_clip:
+    return (optax.amsgrad if amsgrad else optax.adam)(rate, eps=eps)
+  direction = optax.scale_by_amsgrad(eps=eps) if amsgrad else optax.scale_by_adam(eps=eps)
+  return optax.chain(direction, optax.clip_by_block_rms(update_rms_clip), optax.scale_by_learning_rate(rate))
 
 
 def means_decay_steps(lr: ml_collections.ConfigDict, run_steps: int) -> int:
