@@ -288,7 +288,7 @@ def test_deepstega_job_trains_saves_and_reuses_its_networks(deepstega_run):
   saved, _ = _check_outputs(tmp_path, result, "DeepStega")
   report = saved["deepstega"]
   assert report["reused"] is False and report["training"]["timed_steps"] == 4
-  assert report["architecture"] == dict(width=2, prep_depth=1, hide_depth=1, reveal_depth=1)
+  assert report["architecture"] == dict(width=2, prep_depth=1, hide_depth=1, reveal_depth=1, cover_skip=False)
   held_out = report["held_out"]
   assert held_out["pairs"] == 2 and held_out["covers"] == "test views" and "astronaut" not in held_out["secrets"]
   assert all(np.isfinite(held_out[k]) for k in ("cover_psnr", "secret_psnr", "cover_ssim", "secret_ssim"))
