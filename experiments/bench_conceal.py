@@ -55,14 +55,14 @@ ROWS = {
     # ... and AMSGrad on the decoder: both decaying rates still saw bursts (ours_robust_clip at step 5390,
     # ours_robust_clip_dec03 at 2500), the step of a weight whose gradient returns after Adam forgot its scale.
     # Measured: the decoder learns slower (hidden 37.10 dB / 0.9926) and the dips remain (step 3000, 5500)
+    "ours_robust_clip_dec03_amsgrad": lambda config: _overridden(conceal_ours.best(config, decoy_views=64),
+                                                                 decoder_amsgrad=True),
     # ... with the decoder rate decaying to 0.5x: dec03's hidden PSNR still rose at 10k (40.21 dB at 8.5k, 40.74 at
     # 10k) and StegaNeRF's check-view row reaches 41.15; `full` at a constant rate reaches 43 dB. Measured: worse on
     # both; at step 3000 the decoder collapsed (hidden 11.0 dB, student pulled to 28.3 dB on the curve views) and
     # the run never caught up: hidden 39.10 dB / 0.9950, student 32.61 dB (-0.52), leakage <= 0.188
     "ours_robust_clip_dec05": lambda config: _overridden(conceal_ours.best(config, decoy_views=64),
                                                          decoder_lr_final_ratio=0.5),
-    "ours_robust_clip_dec03_amsgrad": lambda config: _overridden(conceal_ours.best(config, decoy_views=64),
-                                                                 decoder_amsgrad=True),
     # ... with each decoder tensor's Adam step clipped to RMS 1 (Adafactor's update clip, conceal.decoder_update_clip):
     # dec05's collapse came in one burst (L_d^+ 0.010 -> 0.42 within 8 steps, at step ~2877), where AMSGrad only
     # slowed the decoder; the clip leaves steady steps alone and bounds a tensor whose gradients all return at once
