@@ -56,11 +56,22 @@ bench-baselines: $(STAMP)
 profile-conceal: $(STAMP)
 	$(PY) -m experiments.profile_conceal --out=experiments/results --workdir=workdirs/bench $(BENCH_ARGS)
 
-# attacks on the check render and on the student, check-pose tolerance (the demo run and bench-conceal's lego run);
-# then 1-4 hidden images at their own keys in one demo student (the demo teacher, trained first if missing)
+# attacks on the check render and on the student, check-pose tolerance (the robust demo run, trained first if
+# missing, and bench-conceal's best lego run), the ownership calibration (a demo teacher of seed 1 among the clean
+# models); then 1-4 hidden images at their own keys in one demo student (the demo teacher, trained first if missing)
+ROBUST_DEMO := workdirs/demo_robust
+ROBUST_MAIN := $(PY) -m conceal_jax.main --config=conceal_jax/configs/demo_robust.py
+CLEAN_DEMO := workdirs/demo_seed1/teacher/point_cloud.ply
 MULTIKEY_ARGS ?=
-bench-robust: $(STAMP)
-	$(PY) -m experiments.bench_robust --out=experiments/results $(BENCH_ARGS)
+$(ROBUST_DEMO)/teacher/point_cloud.ply: | $(STAMP)
+	$(ROBUST_MAIN) --workdir=$(ROBUST_DEMO)/teacher
+$(ROBUST_DEMO)/conceal/student.ply: | $(ROBUST_DEMO)/teacher/point_cloud.ply
+	$(ROBUST_MAIN) --workdir=$(ROBUST_DEMO)/conceal --config.mode=conceal \
+	  --config.conceal.teacher=$(ROBUST_DEMO)/teacher/point_cloud.ply
+$(CLEAN_DEMO): | $(STAMP)
+	$(MAIN) --workdir=$(CLEAN_DEMO:/point_cloud.ply=) --config.seed=1
+bench-robust: $(STAMP) | $(ROBUST_DEMO)/conceal/student.ply $(CLEAN_DEMO)
+	$(PY) -m experiments.bench_robust --out=experiments/results --clean-models=$(CLEAN_DEMO) $(BENCH_ARGS)
 	$(PY) -m experiments.bench_multikey --out=experiments/results --workdir=workdirs/bench \
 	  --teacher=$(WORKDIR)/teacher/point_cloud.ply $(MULTIKEY_ARGS)
 

@@ -1,8 +1,8 @@
 """Robustness of concealment runs: image attacks on the check render, model attacks on the student, and
 the tolerance of the check pose.
 
-  make bench-robust                                     # the demo run and bench-conceal's lego run
-  make bench-robust BENCH_ARGS="--runs=workdirs/demo/conceal --test-views=5"
+  make bench-robust                                     # the robust demo run and bench-conceal's lego run
+  make bench-robust BENCH_ARGS="--runs=workdirs/demo/conceal --test-views=5 --finetune="
 
 Each run is a conceal workdir (student.ply, decoder.msgpack, key.json and the config.json its job wrote).
 Writes robust_bench.json (per run: the unattacked hidden PSNR / SSIM, one row per image-attack level
@@ -37,7 +37,9 @@ from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, train
 from conceal_jax.robust import image_attacks, ownership, robustness
 
-DEFAULT_RUNS = "workdirs/demo/conceal,workdirs/bench/lego/conceal_ours_w16"
+# The demo trained through attacks (configs/demo_robust.py; the Makefile trains it when missing) and bench-conceal's
+# lego run of the best student, which reads clipped renders too
+DEFAULT_RUNS = "workdirs/demo_robust/conceal,workdirs/bench/lego/conceal_ours_robust_clip_dec03_clip_w16"
 # The paper's mild levels (blur sigma <= 1, JPEG quality >= 70) and its finding: mean SSIM drop ~0.02.
 PAPER_MILD = (("blur", lambda s: s <= 1.0), ("jpeg", lambda q: q >= 70))
 

@@ -3,7 +3,8 @@
   make reproduce            # runs bench-train, bench-conceal, bench-baselines, bench-robust, then this
   make reproduce REUSE=1    # only this: reads the JSON those benchmarks wrote
 
-Ours are read from train_bench.json, conceal_bench.json, baseline_bench.json and robust_bench.json in
+Ours are read from train_bench.json, conceal_bench.json, baseline_bench.json, robust_bench.json and
+ownership_calibration.json in
 --results; a row whose benchmark has not produced it yet says so. The paper's numbers are constants below
 (ConcealGS, Yang et al. 2025, arXiv:2501.03605, Tables 1-3; its NeRF-Synthetic rows average lego, drums,
 chair and ship, its T&T/DB rows playroom, drjohnson, truck and train; ours are lego and the real capture
@@ -144,6 +145,21 @@ def robustness_table(robust_bench: dict) -> list[str]:
   return lines + [""]
 
 
+def ownership_table(calibration: dict) -> list[str]:
+  """The verify job's threshold and the false- and true-positive rates measured at it (bench-robust's
+  ownership_calibration.json), with the marked trial closest to failing."""
+  lines = ["### Ownership: the verify threshold and its measured rates (no paper number: the paper has no test)",
+           "", "| threshold | false positives (clean trials) | true positives (mild and medium attacks) | "
+           "lowest marked trial |", "|---|---|---|---|"]
+  if not calibration:
+    return lines + [f"| {NOT_RUN} | | | |", ""]
+  lowest = min(calibration["marked_trials"], key=lambda t: t["score"])
+  lines.append(f"| {calibration['threshold']:.3f} | {100 * calibration['false_positive_rate']:.2f}% of "
+               f"{calibration['num_clean']} | {100 * calibration['true_positive_rate']:.1f}% of "
+               f"{calibration['num_marked']} | {lowest['run']}: {lowest['trial']}, {lowest['score']:.3f} |")
+  return lines + [""]
+
+
 def figure_grid(scene: str, conceal_bench: dict, baseline_bench: dict, results: pathlib.Path,
                 workdir: pathlib.Path) -> str | None:
   """hidden | revealed: student at the key | clean teacher at the key | student's most revealing test view
@@ -196,6 +212,7 @@ def report(results: pathlib.Path, workdir: pathlib.Path) -> str:
   lines += method_table("Table 2: real scenes (paper: T&T/DB; ours: beer)", PAPER_TABLE2, "beer", train_bench,
                         conceal_bench, baseline_bench)
   lines += ablation_table(conceal_bench) + leakage_table(conceal_bench) + robustness_table(robust_bench)
+  lines += ownership_table(load(results, "ownership_calibration.json"))
   lines += ["### Figures", ""]
   for scene in ("lego", "beer"):
     name = figure_grid(scene, conceal_bench, baseline_bench, results, workdir)

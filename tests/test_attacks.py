@@ -92,6 +92,17 @@ def test_parameter_noise_is_relative_to_each_fields_spread():
     np.testing.assert_allclose(ratio, 0.1, rtol=0.08)
 
 
+def test_model_attack_levels_run_mild_to_strong_and_each_attack_has_a_marked_level():
+  """The ownership calibration's marked trials are the mild and medium levels: every attack has one, and along
+  each attack's levels the class never falls back (parameter noise: 0.002 mild, 0.01 medium, 0.05 strong)."""
+  order = {ma.MILD: 0, ma.MEDIUM: 1, ma.STRONG: 2}
+  for name in ma.ATTACKS:
+    classes = [order[severity] for attack, _, severity in ma.LEVELS if attack == name]
+    assert classes == sorted(classes) and classes[0] <= 1, name
+  assert [(level, severity) for attack, level, severity in ma.LEVELS if attack == "noise"] == [
+      (0.002, ma.MILD), (0.01, ma.MEDIUM), (0.05, ma.STRONG), (0.2, ma.STRONG)]
+
+
 def test_pruning_removes_the_lowest_scores():
   g = scene()
   pruned = ma.prune_transparent(g, 0.3)

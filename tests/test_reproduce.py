@@ -37,6 +37,14 @@ def test_report_puts_ours_beside_the_paper_and_names_missing_rows(tmp_path):
   assert "| lego | full | 16 | 0.110 | 0.120 | 0.130 |" in text
   assert "![lego](reproduction_lego.png)" in text and "beer: not run yet" in text
   assert (results / "reproduction_lego.png").is_file()
+  ownership = text[text.index("### Ownership"):text.index("### Figures")]
+  assert reproduce.NOT_RUN in ownership
+  marked = [dict(run="a", trial="blur 0.5", score=0.97), dict(run="b", trial="brightness -0.1", score=0.35)]
+  fileio.write_json(results / "ownership_calibration.json", dict(
+      threshold=0.1818, false_positive_rate=9 / 938, num_clean=938, true_positive_rate=1.0, num_marked=2,
+      marked_trials=marked))
+  text = reproduce.report(results, workdir)
+  assert "| 0.182 | 0.96% of 938 | 100.0% of 2 | b: brightness -0.1, 0.350 |" in text
 
 
 def test_figure_reads_the_images_kept_beside_the_json_when_the_workdir_is_gone(tmp_path):
