@@ -197,7 +197,7 @@ def test_amsgrad_bounds_the_step_of_a_gradient_that_returns():
   # Adafactor's update clip (update_rms_clip) bounds the returning step too, and leaves the steady steps alone
   assert 0 < clipped[-1] <= 1.0001e-3 and clipped[-1] < adam[-1] / 1.5, (clipped[-1], adam[-1])
   np.testing.assert_allclose(clipped[:100], adam[:100], rtol=1e-5)
-  with pytest.raises(ValueError, match="update clip"):
+  with pytest.raises(ValueError, match="update_rms_clip must be >= 0"):
     optimizer.decaying_adam(1e-3, 1.0, 10, 1e-15, update_rms_clip=-1.0)
 
 

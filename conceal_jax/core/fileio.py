@@ -77,4 +77,5 @@ def save_figure(fig: Any, path: str | os.PathLike, dpi: int = 120) -> None:
   """Saves a matplotlib figure atomically (a reader never sees a half-written plot)."""
   fig.tight_layout()
   with atomic_path(path) as tmp:
-    fig.savefig(tmp, dpi=dpi)
+    # tight_layout leaves out the titles of axes turned off (image grids); the tight box takes them in
+    fig.savefig(tmp, dpi=dpi, bbox_inches="tight")

@@ -31,8 +31,15 @@ def check_final_ratio(name: str, final_ratio: float) -> None:
     raise ValueError(f"{name} must be in (0, 1], got {final_ratio!r}")
 
 
+def check_update_clip(name: str, update_rms_clip: float) -> None:
+  """ValueError naming the config key `name` unless the update clip is >= 0 (0: off)."""
+  if not update_rms_clip >= 0:
+    raise ValueError(f"{name} must be >= 0 (0: off), got {update_rms_clip!r}")
+
+
 def decaying_adam(lr: float, final_ratio: float, steps: int, eps: float, name: str = "final_ratio",
-                  amsgrad: bool = False, update_rms_clip: float = 0.0) -> optax.GradientTransformation:
+                  amsgrad: bool = False, update_rms_clip: float = 0.0,
+                  clip_name: str = "update_rms_clip") -> optax.GradientTransformation:
   """Adam at rate `lr` decaying log-linearly to lr * final_ratio over `steps` (then held); a constant rate,
   with no schedule state, when final_ratio is 1. Late large steps kill an unnormalised conv+ReLU U-Net
   (every unit dead, one constant image out), which a decayed rate avoids. `amsgrad`: AMSGrad (Reddi et al.
@@ -40,11 +47,10 @@ def decaying_adam(lr: float, final_ratio: float, steps: int, eps: float, name: s
   takes no step larger than its history allows (Adam's step is then up to ~3x the rate at a tiny eps).
   `update_rms_clip` > 0: Adafactor's update clipping (Shazeer and Stern 2018, Sec. 6): each tensor's Adam
   direction is scaled down to this root-mean-square before the rate, so a tensor whose gradients all return
-  at once steps at most the rate's worth on average. `name`: the config key of final_ratio, for the error
-  message."""
+  at once steps at most the rate's worth on average. `name`, `clip_name`: the config keys of final_ratio and
+  update_rms_clip, for the error messages."""
   check_final_ratio(name, final_ratio)
-  if not update_rms_clip >= 0:
-    raise ValueError(f"the update clip must be >= 0 (0: off), got {update_rms_clip!r}")
+  check_update_clip(clip_name, update_rms_clip)
   rate = lr if final_ratio == 1 else log_linear_schedule(lr, lr * final_ratio, steps)
   if not update_rms_clip:
     return (optax.amsgrad if amsgrad else optax.adam)(rate, eps=eps)
