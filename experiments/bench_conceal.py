@@ -73,6 +73,13 @@ ROWS = {
     # ... and the decoder rate decaying to 0.5x, as dec05, now that the clip holds off its collapse
     "ours_robust_clip_dec05_clip": lambda config: _overridden(conceal_ours.best(config, decoy_views=64),
                                                               decoder_lr_final_ratio=0.5, decoder_update_clip=1.0),
+    # ours_robust_clip_dec03_clip then 2000 decoder-only steps (continued from its run, CONTINUES) ...
+    "ours_robust_clip_dec03_clip_polish": lambda config: _overridden(
+        conceal_ours.best(config, decoy_views=64), decoder_update_clip=1.0, decoder_polish_steps=2000),
+    # ... scoring and saving the decoder's running average (conceal.decoder_average, horizon ~1000 steps) over them
+    "ours_robust_clip_dec03_clip_polish_avg": lambda config: _overridden(
+        conceal_ours.best(config, decoy_views=64), decoder_update_clip=1.0, decoder_polish_steps=2000,
+        decoder_average=0.999),
     # ours_robust_clip_dec03 again with another seed (decoder init, view order, distortions): the spread of a
     # row. Measured: hidden 39.37 dB / 0.9958 (seed 0: 40.74 / 0.9969), student 32.95 dB (32.97)
     "ours_robust_clip_dec03_seed1": lambda config: _seeded(conceal_ours.best(config, decoy_views=64), 1),
@@ -84,7 +91,12 @@ ROWS = {
 }
 # A row that continues another's run starts from that run's checkpoint at the end of its joint steps, where its
 # config is the other's up to the continuation (conceal.decoder_polish_steps), so it costs only its extra steps.
-CONTINUES = dict(ours_robust_clip_dec03_seed1_polish="ours_robust_clip_dec03_seed1")
+CONTINUES = dict(ours_robust_clip_dec03_seed1_polish="ours_robust_clip_dec03_seed1",
+                 ours_robust_clip_dec03_clip_polish="ours_robust_clip_dec03_clip",
+                 ours_robust_clip_dec03_clip_polish_avg="ours_robust_clip_dec03_clip")
+# Settings that leave a run unchanged up to the end of its joint steps, at their values there: a row that sets them
+# may continue a run without them. The decoder's average is never read by training.
+CONTINUATION_DEFAULTS = dict(decoder_polish_steps=0, decoder_average=0.0)
 # The released decoder (width 64) starts from VGG16 with lr 1e-4; a narrow one starts from scratch and
 # learns at configs/conceal_ours.NARROW_DECODER_LR (the demo's rate).
 DECODER_LR = {64: 1e-4, conceal_ours.NARROW_DECODER_WIDTH: conceal_ours.NARROW_DECODER_LR}
@@ -113,19 +125,20 @@ def _robust_clip(config, **overrides):
 
 def continue_from(source_dir: pathlib.Path, run_dir: pathlib.Path, config) -> bool:
   """Copies the checkpoint of `source_dir`'s run at conceal.iterations into `run_dir` (which has none), if that
-  run's config.json is `config` without its polish steps; whether it did (if not, the row trains from step 0)."""
+  run's config.json is `config` with CONTINUATION_DEFAULTS; whether it did (if not, the row trains from step 0)."""
   ckpt_dir = run_dir / loop.CHECKPOINT_DIR
   source = pathlib.Path(checkpoint.checkpoint_path(str(source_dir / loop.CHECKPOINT_DIR), config.conceal.iterations))
   if checkpoint.list_steps(str(ckpt_dir)) or not source.is_file():
     return False
   expected = json.loads(json.dumps(config.to_dict()))
-  expected["conceal"]["decoder_polish_steps"] = 0
+  expected["conceal"].update(CONTINUATION_DEFAULTS)
   try:
     source_config = json.loads((source_dir / "config.json").read_text())
-  except (OSError, ValueError):
+    source_config["conceal"].update(CONTINUATION_DEFAULTS)  # also where the run predates one of these keys
+  except (OSError, ValueError, KeyError, TypeError, AttributeError):
     source_config = None
   if source_config != expected:
-    print(f"not continuing {source_dir}: its config.json is not this row's without the polish")
+    print(f"not continuing {source_dir}: its config.json is not this row's with {CONTINUATION_DEFAULTS}")
     return False
   fileio.copy_file(source, ckpt_dir / source.name)
   return True

@@ -8,16 +8,17 @@ import shutil
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 from conceal_jax.conceal import conceal, key, objective, reveal, unet
 from conceal_jax.data import demo_scene, ply
-from conceal_jax.gs import init, losses
+from conceal_jax.gs import init, losses, optimizer
 from conceal_jax import main as main_lib
 from conceal_jax import RenderOptions, render
 from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat.camera import Camera, camera_centers, look_at
-from conceal_jax.configs import demo, lego_conceal
+from conceal_jax.configs import default, demo, demo_robust, lego_conceal
 from conceal_jax.core import fileio
 from experiments import bench_conceal, results_io
 
@@ -303,6 +304,55 @@ def test_decoder_polish_trains_the_decoder_alone_and_resumes_across_phases(tiny,
   assert all(np.isfinite(plus)) and plus[-1] < plus[len(plus) // 2 - 1]
 
 
+def test_decoder_average_follows_every_decoder_update():
+  """a <- a + (1 - d) (F - a) after each step's update, from a = F at step 0; training never reads it."""
+  student, decoder, data = _objective_inputs()
+  student_tx, decoder_tx = optimizer.gaussian_optimizer(default.get_config().conceal.lr, 1.0, 100), optax.adam(1e-3)
+  options = RenderOptions(tile_size=8, pair_capacity=4096, max_per_tile=None)
+  runs = {}
+  for d in (0.0, 0.9):
+    s = objective.ConcealSettings(decoder_width=4, hidden_size=16, decoder_average=d)
+    step = conceal.make_conceal_step(s, options, student_tx, decoder_tx)
+    state = conceal.create_conceal_state(*jax.tree.map(jnp.array, (student, decoder)), student_tx, decoder_tx,
+                                         average=bool(d))
+    average, decoders = jax.device_get(state.decoder_average), []
+    for view, normal_view in ((0, 1), (1, 2)):
+      state, _ = step(state, data, view, normal_view)
+      decoders.append(jax.device_get(state.decoder))
+    runs[d] = decoders
+    if not d:
+      assert state.decoder_average == {} and state.scored_decoder(s) is state.decoder
+      continue
+    for w in decoders:
+      average = jax.tree.map(lambda a, w: a + 0.1 * (w - a), average, w)
+    for got, want in zip(jax.tree.leaves(state.scored_decoder(s)), jax.tree.leaves(average)):
+      np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-8)
+  for a, b in zip(jax.tree.leaves(runs[0.0]), jax.tree.leaves(runs[0.9])):
+    np.testing.assert_array_equal(a, b)  # the same training with and without the average
+
+
+def test_decoder_average_starts_at_a_restored_decoder_and_resumes_exactly(tiny, joint_run, tmp_path):
+  """A polish with the average continued from a joint run's checkpoint (which has none), as bench-conceal's
+  continued rows are: one trace, the live decoder's hidden PSNR recorded beside the average's, a saved decoder
+  that is not the live one, and the same files when it is stopped and resumed."""
+  _, joint_dir = joint_run
+  runs = {}
+  for name, average, stop in (("live", 0.0, None), ("average", 0.9, None), ("resumed", 0.9, 30)):
+    (tmp_path / name).mkdir()
+    shutil.copytree(joint_dir / "checkpoints", tmp_path / name / "checkpoints")
+    config = tiny_config(tiny, iterations=20, decoder_polish_steps=20, decoder_average=average, eval_every=10)
+    if stop:
+      assert "stopped_at" in conceal.conceal_and_evaluate(config, str(tmp_path / name), max_steps=stop)
+    runs[name] = conceal.conceal_and_evaluate(config, str(tmp_path / name))
+  assert runs["average"]["traces"] == dict(polish_step=1)
+  records = [h for h in runs["average"]["history"] if "hidden_psnr_live" in h]
+  assert len(records) == 2 and all(np.isfinite([r["hidden_psnr"] for r in records]))
+  assert records[-1]["hidden_psnr"] != records[-1]["hidden_psnr_live"]
+  decoder = lambda name: (tmp_path / name / "decoder.msgpack").read_bytes()
+  assert decoder("average") != decoder("live") and decoder("resumed") == decoder("average")
+  assert (tmp_path / "average" / "student.ply").read_bytes() == (tmp_path / "live" / "student.ply").read_bytes()
+
+
 def test_bench_row_continues_only_the_run_it_extends(tiny, tmp_path):
   joint, polish = tiny_config(tiny, iterations=20), tiny_config(tiny, iterations=20, decoder_polish_steps=20)
   source, row = tmp_path / "source", tmp_path / "row"
@@ -313,6 +363,13 @@ def test_bench_row_continues_only_the_run_it_extends(tiny, tmp_path):
   assert bench_conceal.continue_from(source, row, polish)
   assert (row / "checkpoints" / "ckpt_00000020.npz").read_bytes() == b"step 20"
   assert not bench_conceal.continue_from(source, row, polish)  # its own checkpoints are kept
+  # the decoder's average never changes the training: a row with it continues a run from before that key existed
+  older = joint.to_dict()
+  del older["conceal"]["decoder_average"]
+  fileio.write_json(tmp_path / "older" / "config.json", older)
+  fileio.write_bytes(tmp_path / "older" / "checkpoints" / "ckpt_00000020.npz", b"step 20")
+  averaged = tiny_config(tiny, iterations=20, decoder_polish_steps=20, decoder_average=0.99)
+  assert bench_conceal.continue_from(tmp_path / "older", tmp_path / "averaged", averaged)
 
 
 def test_bench_reads_a_finished_run_and_keeps_its_images_beside_the_json(tiny, joint_run, tmp_path):
@@ -338,6 +395,16 @@ def test_lego_conceal_config_is_the_bench_row_it_cites(tmp_path):
   assert config.mode == row.mode == "conceal" and config.seed == row.seed
   assert config.conceal.to_dict() == row.conceal.to_dict()
   assert config.conceal.decoder_lr_final_ratio == 0.3 and config.conceal.decoder_clip_input
+
+
+def test_demo_robust_config_is_the_demo_trained_through_attacks():
+  """configs/demo_robust.py changes only the conceal settings that train through attacks and clip the reading,
+  so its teacher is the demo's."""
+  base, robust = demo.get_config().to_dict(), demo_robust.get_config().to_dict()
+  assert {k: v for k, v in base.items() if k != "conceal"} == {k: v for k, v in robust.items() if k != "conceal"}
+  changed = {k for k in robust["conceal"] if robust["conceal"][k] != base["conceal"][k]}
+  assert changed == {"check_blur_max", "check_noise_max", "identity_distorted", "decoder_clip_input"}
+  assert robust["conceal"]["decoder_clip_input"] and robust["conceal"]["decoder_lr_final_ratio"] == 1.0
 
 
 def test_two_hidden_images_each_at_its_own_key(tiny, tmp_path):
@@ -452,6 +519,8 @@ def test_resized_camera_keeps_the_field_of_view():
     (dict(decoder_lr_final_ratio=2.0), "decoder_lr_final_ratio"),
     (dict(decoder_polish_steps=-1), "decoder_polish_steps must be"),
     (dict(decoder_polish_steps=5, use_decoder=False), "decoder_polish_steps needs a decoder"),
+    (dict(decoder_average=1.0), "decoder_average must be"), (dict(decoder_average=float("nan")), "decoder_average"),
+    (dict(decoder_average=0.9, use_decoder=False), "decoder_average needs a decoder"),
     (dict(identity_on_student=True, consistency=False), "identity_on_student"),
     (dict(identity_on_teacher_check=True, use_decoder=False), "identity_on_teacher_check"),
     (dict(extra_hidden=("camera", "coffee", "chelsea", "moon")), "extra_hidden holds at most 3"),

@@ -78,6 +78,7 @@ def test_bad_input_gives_one_clear_error_and_nonzero_exit(tmp_path, override, me
     ("conceal", "conceal.variant", "mine", "conceal.variant"), ("conceal", "conceal.key_kind", "x", "key_kind"),
     ("conceal", "conceal.decoder_adam_eps", 0.0, "decoder_adam_eps"),
     ("conceal", "conceal.decoder_update_clip", -1.0, "decoder_update_clip"),
+    ("conceal", "conceal.decoder_average", 1.0, "decoder_average"),
     ("render", "scene.num_views", 0, "num_views"), ("reveal", "reveal.key", "", "reveal.ply"),
     ("verify", "reveal.hidden", "", "reveal.ply"), ("verify", "train.iterations", 1, "reveal.ply")])
 def test_each_mode_validates_before_writing_anything(tmp_path, mode, field, value, message):

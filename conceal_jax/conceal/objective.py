@@ -61,6 +61,8 @@ class ConcealSettings:
   # ... and that render made from the step's perturbed student (a second, forward-only render), so that a
   # decoder taught to see through dropped and noised Gaussians at the key still gives the identity near it.
   identity_perturbed: bool = False
+  # The decoder that is scored and saved: an exponential moving average of its weights with this decay (conceal.py)
+  decoder_average: float = 0.0
 
   def __post_init__(self):
     if self.variant not in VARIANTS:
@@ -85,6 +87,10 @@ class ConcealSettings:
     if self.identity_perturbed and not (self.identity_on_student and self.augmentation.perturbs_model):
       raise ValueError("conceal.identity_perturbed needs identity_on_student and a model perturbation "
                        "(check_dropout_max or check_param_noise_max > 0)")
+    if not 0.0 <= self.decoder_average < 1.0:
+      raise ValueError(f"conceal.decoder_average must be in [0, 1) (0: off), got {self.decoder_average!r}")
+    if self.decoder_average and not self.use_decoder:
+      raise ValueError("conceal.decoder_average needs a decoder")
     if (self.identity_on_student or self.identity_on_teacher_check) and not self.identity_loss:
       raise ValueError("conceal.identity_on_student and identity_on_teacher_check need L_d^- (a decoder and "
                        "consistency)")

@@ -123,6 +123,8 @@ def get_config() -> ml_collections.ConfigDict:
   config.conceal.decoder_amsgrad = False  # beyond the paper: AMSGrad on the decoder (gs/optimizer.decaying_adam)
   config.conceal.decoder_update_clip = 0.0  # beyond the paper: RMS clip of each decoder tensor's Adam step (0: off)
   config.conceal.decoder_polish_steps = 0  # beyond the paper: decoder-only steps after the iterations (conceal.py)
+  # beyond the paper: decay of a running average of the decoder's weights, which the run scores and saves (0: off)
+  config.conceal.decoder_average = 0.0
   config.conceal.use_decoder = True    # ablation switches
   config.conceal.consistency = True
   config.conceal.guidance = True
