@@ -45,8 +45,10 @@ PAPER_TABLE3 = {  # ablation on T&T
 PAPER_MILD_SSIM_DROP = 0.02  # the robustness figure: blur and JPEG, mean hidden-SSIM drop about 0.02
 BASELINES = ("LSB", "DeepStega", "StegaNeRF")
 # bench-conceal rows shown as ConcealGS in Tables 1-2: the method as written, our leakage control, and our best
-# settings (leakage control, robustness, clipped reading, decoder rate to 0.3x; then the decoder polish)
-TABLE_CONCEALGS_ROWS = ("full", "ours", "ours_robust_clip_dec03", "ours_robust_clip_dec03_seed1_polish")
+# settings (leakage control, robustness, clipped reading, decoder rate to 0.3x; then the decoder polish; then the
+# decoder's steps clipped, with and without the polish)
+TABLE_CONCEALGS_ROWS = ("full", "ours", "ours_robust_clip_dec03", "ours_robust_clip_dec03_seed1_polish",
+                        "ours_robust_clip_dec03_clip", "ours_robust_clip_dec03_clip_polish")
 NOT_RUN = "not run yet"
 
 
