@@ -79,8 +79,8 @@ ours_robust_clip_dec03_clip's 10k (the decoder's steps clipped): 40.43 -> 41.57 
 Decoder average, an option beyond the paper: with conceal.decoder_average = d > 0 the state also holds an
 exponential moving average of the decoder's weights (Polyak averaging), a <- a + (1 - d) (F - a) after every
 decoder update, and that average is the decoder the curve scores and the run saves and evaluates. Training
-never reads it. The live decoder's hidden PSNR swings from step to step (lego: 39.1-40.4 dB over the last 1500
-of 10k steps), as each step draws its own distortion and view; the average smooths those swings. A run
+never reads it. The live decoder's hidden PSNR swings between curve points (lego: 39.1-40.4 dB over the last
+1500 of 10k steps), as each step draws its own distortion and view; the average smooths those swings. A run
 continued from a checkpoint without the average (a bench row extending another run) starts it at the restored
 decoder. Measured on lego (2000 polish steps after ours_robust_clip_dec03_clip, d = 0.999): 41.43 dB against the
 live decoder's 41.57 at the end; the average did not dip where the live one did (41.04 against 40.37 at step
