@@ -51,46 +51,42 @@ ROWS = {
     # ... with the decoder rate decaying to 0.3x rather than 0.1x: ours_robust_clip's hidden PSNR still rises
     # at 10k, and `full` at a constant rate reaches 43 dB. Measured: hidden 40.74 dB / 0.9969 (38.48 / 0.9947),
     # student 32.97 dB (32.99), leakage <= 0.187
-    "ours_robust_clip_dec03": lambda config: conceal_ours.best(config, decoy_views=64),  # configs/lego_conceal.py
+    "ours_robust_clip_dec03": lambda config: _best(config),  # configs/lego_conceal.py
     # ... and AMSGrad on the decoder: both decaying rates still saw bursts (ours_robust_clip at step 5390,
     # ours_robust_clip_dec03 at 2500), the step of a weight whose gradient returns after Adam forgot its scale.
     # Measured: the decoder learns slower (hidden 37.10 dB / 0.9926) and the dips remain (step 3000, 5500)
-    "ours_robust_clip_dec03_amsgrad": lambda config: _overridden(conceal_ours.best(config, decoy_views=64),
-                                                                 decoder_amsgrad=True),
+    "ours_robust_clip_dec03_amsgrad": lambda config: _best(config, decoder_amsgrad=True),
     # ... with the decoder rate decaying to 0.5x: dec03's hidden PSNR still rose at 10k (40.21 dB at 8.5k, 40.74 at
     # 10k) and StegaNeRF's check-view row reaches 41.15; `full` at a constant rate reaches 43 dB. Measured: worse on
     # both; at step 3000 the decoder collapsed (hidden 11.0 dB, student pulled to 28.3 dB on the curve views) and
     # the run never caught up: hidden 39.10 dB / 0.9950, student 32.61 dB (-0.52), leakage <= 0.188
-    "ours_robust_clip_dec05": lambda config: _overridden(conceal_ours.best(config, decoy_views=64),
-                                                         decoder_lr_final_ratio=0.5),
+    "ours_robust_clip_dec05": lambda config: _best(config, decoder_lr_final_ratio=0.5),
     # ... with each decoder tensor's Adam step clipped to RMS 1 (Adafactor's update clip, conceal.decoder_update_clip):
     # dec05's collapse came in one burst (L_d^+ 0.010 -> 0.42 within 8 steps, at step ~2877), where AMSGrad only
     # slowed the decoder; the clip leaves steady steps alone and bounds a tensor whose gradients all return at once.
     # Measured (run across two sessions): no burst (L_d^+ at most 0.057 after step 500); student 33.03 dB (-0.10,
     # dec03: -0.17), hidden 40.43 dB / 0.9966 (dec03 40.74 / 0.9969, its seed 1 39.37), leakage <= 0.189
-    "ours_robust_clip_dec03_clip": lambda config: _overridden(conceal_ours.best(config, decoy_views=64),
-                                                              decoder_update_clip=1.0),
+    "ours_robust_clip_dec03_clip": lambda config: _best(config, decoder_update_clip=1.0),
     # ... and the decoder rate decaying to 0.5x, as dec05, now that the clip holds off its collapse
-    "ours_robust_clip_dec05_clip": lambda config: _overridden(conceal_ours.best(config, decoy_views=64),
-                                                              decoder_lr_final_ratio=0.5, decoder_update_clip=1.0),
+    "ours_robust_clip_dec05_clip": lambda config: _best(config, decoder_lr_final_ratio=0.5, decoder_update_clip=1.0),
     # ours_robust_clip_dec03_clip then 2000 decoder-only steps (continued from its run, CONTINUES). Measured: hidden
     # 40.43 -> 41.57 dB, SSIM 0.9966 -> 0.9970 (StegaNeRF check_view: 41.15 / 0.9948), leakage <= 0.188, +10.4 min
-    "ours_robust_clip_dec03_clip_polish": lambda config: _overridden(
-        conceal_ours.best(config, decoy_views=64), decoder_update_clip=1.0, decoder_polish_steps=2000),
+    "ours_robust_clip_dec03_clip_polish": lambda config: _best(config, decoder_update_clip=1.0,
+                                                               decoder_polish_steps=2000),
     # ... scoring and saving the decoder's running average (conceal.decoder_average, horizon ~1000 steps) over them.
     # Measured: 41.43 dB / 0.9970 against the live decoder's 41.57; smoother (41.04 at step 11000, the live one dipped
     # to 40.37) but behind a decoder still improving
-    "ours_robust_clip_dec03_clip_polish_avg": lambda config: _overridden(
-        conceal_ours.best(config, decoy_views=64), decoder_update_clip=1.0, decoder_polish_steps=2000,
-        decoder_average=0.999),
+    "ours_robust_clip_dec03_clip_polish_avg": lambda config: _best(config, decoder_update_clip=1.0,
+                                                                   decoder_polish_steps=2000,
+                                                                   decoder_average=0.999),
     # ours_robust_clip_dec03 again with another seed (decoder init, view order, distortions): the spread of a
     # row. Measured: hidden 39.37 dB / 0.9958 (seed 0: 40.74 / 0.9969), student 32.95 dB (32.97)
-    "ours_robust_clip_dec03_seed1": lambda config: _seeded(conceal_ours.best(config, decoy_views=64), 1),
+    "ours_robust_clip_dec03_seed1": lambda config: _seeded(_best(config), 1),
     # ... then 2000 steps that train the decoder alone on the finished student (conceal.decoder_polish_steps),
     # continued from ours_robust_clip_dec03_seed1's run (CONTINUES). Measured: hidden 39.37 -> 39.57 dB, SSIM
     # 0.9958 -> 0.9962, leakage unchanged; the hidden PSNR is not held back by a student that kept moving
-    "ours_robust_clip_dec03_seed1_polish": lambda config: _seeded(
-        _overridden(conceal_ours.best(config, decoy_views=64), decoder_polish_steps=2000), 1),
+    "ours_robust_clip_dec03_seed1_polish": lambda config: _seeded(_best(config, decoder_polish_steps=2000),
+                                                                      1),
 }
 # A row that continues another's run starts from that run's checkpoint at the end of its joint steps, where its
 # config is the other's up to the continuation (conceal.decoder_polish_steps), so it costs only its extra steps.
@@ -119,6 +115,11 @@ def _overridden(config, **overrides):
 def _seeded(config, seed: int):
   config.seed = seed
   return config
+
+
+def _best(config, **overrides):
+  """conceal_ours.best (configs/lego_conceal.py), then conceal.* `overrides`."""
+  return _overridden(conceal_ours.best(config, decoy_views=64), **overrides)
 
 
 def _robust_clip(config, **overrides):
