@@ -70,7 +70,7 @@ ROWS = {
     # ... and the decoder rate decaying to 0.5x, as dec05, now that the clip holds off its collapse
     "ours_robust_clip_dec05_clip": lambda config: _best(config, decoder_lr_final_ratio=0.5, decoder_update_clip=1.0),
     # ours_robust_clip_dec03_clip then 2000 decoder-only steps (continued from its run, CONTINUES). Measured: hidden
-    # 40.43 -> 41.57 dB, SSIM 0.9966 -> 0.9970 (StegaNeRF check_view: 41.15 / 0.9948), leakage <= 0.188, +10.4 min
+    # 40.43 -> 41.57 dB, SSIM 0.9966 -> 0.9970 (StegaNeRF check_view: 41.15 / 0.9948), leakage <= 0.188, +10.0 min
     "ours_robust_clip_dec03_clip_polish": lambda config: _best(config, decoder_update_clip=1.0,
                                                                decoder_polish_steps=2000),
     # ... scoring and saving the decoder's running average (conceal.decoder_average, horizon ~1000 steps) over them.

@@ -266,6 +266,10 @@ def test_bench_rows_feed_the_reproduction(lsb_run, deepstega_run, tiny, tmp_path
   assert config.conceal.lr.to_dict() == gentle.to_dict()
   stega = bench_baselines.run_config("lego", tiny[1], "steganerf_all_views", 100, 5)
   assert stega.conceal.lr.sh_dc != gentle.sh_dc and stega.conceal.lr.warmup_steps == 0
+  # a row's own length (StegaNeRF given ConcealGS's polish steps too), which --iterations still shortens
+  long_row = lambda iterations: bench_baselines.run_config("lego", tiny[1], "steganerf_check_view_12k", iterations, 5)
+  assert (long_row(0).baseline.iterations, long_row(100).baseline.iterations) == (12_000, 100)
+  assert long_row(0).baseline.steganerf.protocol == "check_view"
   skip = bench_baselines.run_config("lego", tiny[1], "deepstega_skip", 100, 5)
   baseline.validate(skip)
   assert baseline.deepstega_settings(skip)[0].cover_skip and skip.conceal.lr.to_dict() == gentle.to_dict()
