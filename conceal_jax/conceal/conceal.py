@@ -364,9 +364,13 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
     student = jax.tree.map(lambda x: jnp.array(x, copy=True), teacher)  # the step donates the student's buffers
     return create_conceal_state(student, initial_decoder(config, settings), student_tx, decoder_tx, average)
 
+  def restored(state):
+    """A checkpoint written without the average (a run continued with it) starts it at the restored decoder."""
+    if averaging and not jax.tree.leaves(state.decoder_average):
+      return state.replace(decoder_average=jax.tree.map(jnp.copy, state.decoder))
+    return state
+
   def step(state, iteration):
-    if averaging and not jax.tree.leaves(state.decoder_average):  # restored from a checkpoint without one
-      state = state.replace(decoder_average=jax.tree.map(jnp.copy, state.decoder))
     rng = np.random.default_rng([config.seed, iteration])
     views = [normal_view(rng, num_views, len(decoys), settings.decoy_fraction) for _ in range(2)]
     distortion = augment.draw(rng, settings.augmentation) if settings.augmentation.draws else None
@@ -378,9 +382,9 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   def after_window(state, iteration):
     if not c.eval_every or iteration % c.eval_every:
       return None
-    student, decoder, live = lanes.on_one_device((state.student, state.scored_decoder(settings), state.decoder),
-                                                 mesh)  # not the Adam moments
-    decoder = decoder if settings.use_decoder else None
+    one = lanes.on_one_device(state.replace(student_opt=(), decoder_opt=()), mesh)  # not the Adam moments
+    student, live = one.student, one.decoder
+    decoder = one.scored_decoder(settings) if settings.use_decoder else None
     revealed = [reveal.reveal_image(student, camera, options, decoder, settings.decoder_width,
                                     settings.hidden_size, settings.reading) for camera, _ in keys]
     record = dict(hidden_psnr=float(metrics.psnr(revealed[0], hiddens[0])),
@@ -398,7 +402,7 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   result = loop.run("conceal", loop_settings(config), workdir, init_state=fresh,
                     restore_template=lambda meta: fresh(meta.get("decoder_average", False)), step=step,
                     after_window=after_window, checkpoint_meta=lambda _: dict(decoder_average=averaging),
-                    postfix_keys=("plus",), max_steps=max_steps)
+                    postfix_keys=("plus",), max_steps=max_steps, after_restore=restored)
   if not result.finished:
     return dict(stopped_at=int(result.state.step))
 

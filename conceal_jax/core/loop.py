@@ -76,7 +76,7 @@ def run(name: str, settings: LoopSettings, workdir: str, *, init_state: Callable
         restore_template: Callable[[dict], State], step: Callable[[State, int], tuple[State, dict]],
         after_window: Callable[[State, int], dict | None] | None = None,
         checkpoint_meta: Callable[[State], dict] | None = None, postfix_keys: tuple[str, ...] = (),
-        max_steps: int | None = None) -> LoopResult:
+        max_steps: int | None = None, after_restore: Callable[[State], State] | None = None) -> LoopResult:
   """Runs steps start+1 .. min(iterations, max_steps) (1-based iterations) of `step(state, iteration)`.
 
   init_state: the step-0 state, built only when there is no checkpoint.
@@ -87,6 +87,7 @@ def run(name: str, settings: LoopSettings, workdir: str, *, init_state: Callable
     is added to the history (e.g. a periodic test PSNR).
   checkpoint_meta: extra JSON meta to save with a checkpoint (e.g. the buffer capacity).
   postfix_keys: stats besides loss and psnr to show on the bar.
+  after_restore: applied once to a state restored from a checkpoint (e.g. to start state that checkpoint lacks).
   """
   ckpt_dir = os.path.join(workdir, CHECKPOINT_DIR)
   latest = checkpoint.load_latest(ckpt_dir)
@@ -96,6 +97,7 @@ def run(name: str, settings: LoopSettings, workdir: str, *, init_state: Callable
     path, meta, leaves = latest
     logging.info("%s: resuming from %s", name, path)
     state = jax.tree.map(jax.numpy.asarray, checkpoint.restore(restore_template(meta), leaves, path))
+    state = after_restore(state) if after_restore else state
     history, windows = meta["history"], [tuple(w) for w in meta.get("windows", [])]
   start = int(jax.device_get(state.step))
   end = settings.iterations if max_steps is None else min(settings.iterations, max_steps)
