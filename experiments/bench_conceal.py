@@ -179,7 +179,7 @@ def summary_row(scene: str, row: str, width: int, result: dict) -> dict:
   return dict(scene=scene, row=row, decoder_width=width, overrides=overrides, iterations=result["iterations"],
               decoder_polish_steps=result.get("decoder_polish_steps", 0),
               wall_time_s=result["wall_time_s"], median_step_s=result["median_step_s"],
-              num_decoys=result.get("num_decoys", 0), **m,
+              step_devices=result.get("step_devices", []), num_decoys=result.get("num_decoys", 0), **m,
               student_psnr_loss=m["teacher_vs_ground_truth"]["psnr"] - m["student_vs_ground_truth"]["psnr"],
               max_leakage=max(m["leakage"].values()),
               curve=[(h["step"], h["elapsed_s"], h["hidden_psnr"], h["hidden_ssim"], h["test_psnr"])
@@ -231,7 +231,7 @@ def table(rows) -> str:
   for r in rows:
     s, t, v, h = r["student_vs_ground_truth"], r["teacher_vs_ground_truth"], r["student_vs_teacher"], r["hidden"]
     lines.append(f"| {r['scene']} | {r['row']} | {r['decoder_width']} | {results_io.conceal_steps(r)} | "
-                 f"{r['wall_time_s'] / 60:.1f} | {1e3 * r['median_step_s']:.0f} | "
+                 f"{r['wall_time_s'] / 60:.1f}{results_io.on_device(r)} | {1e3 * r['median_step_s']:.0f} | "
                  f"{s['psnr']:.2f} / {s['ssim']:.4f} / {s['lpips']:.4f} | {t['psnr']:.2f} | "
                  f"{r['student_psnr_loss']:.2f} | {v['psnr']:.2f} | {h['psnr']:.2f} / {h['ssim']:.4f} | "
                  f"{results_io.leakage_cells(r['leakage'])} |")
@@ -245,7 +245,7 @@ def plot(rows, path: pathlib.Path):
   import matplotlib.pyplot as plt
   fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
   for r in rows:
-    label = f"{r['scene']} {r['row']} w{r['decoder_width']}"
+    label = f"{r['scene']} {r['row']} w{r['decoder_width']}{results_io.on_device(r)}"
     minutes = [t / 60 for _, t, *_ in r["curve"]]
     axes[0].plot(minutes, [p for *_, p, _, _ in r["curve"]], marker=".", label=label)
     axes[1].plot(minutes, [p for *_, p in r["curve"]], marker=".", label=label)

@@ -74,7 +74,8 @@ def summary_row(name: str, config, result: dict, eval_views: int) -> dict:
   history = result["history"]
   return dict(scene=name, downscale=config.data.downscale, iterations=result["iterations"],
               resumed_from=result["resumed_from"], wall_time_s=result["wall_time_s"],
-              median_step_s=result["median_step_s"], num_gaussians=result["num_gaussians"],
+              median_step_s=result["median_step_s"], step_devices=result.get("step_devices", []),
+              num_gaussians=result["num_gaussians"],
               max_gaussians=config.train.densify.max_gaussians, tile_size=config.render.tile_size,
               compiled_step_variants=len(result["compiled_step_variants"]),
               capacity_reruns=result["capacity_reruns"], capacity_shrinks=result.get("capacity_shrinks", 0),
@@ -94,7 +95,8 @@ def plot(rows, path: pathlib.Path):
   fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4))
   for row in rows:
     curve = row.get("test_curve") or []
-    line, = left.plot([t / 60 for _, t, _ in curve], [p for _, _, p in curve], marker=".", label=row["scene"])
+    line, = left.plot([t / 60 for _, t, _ in curve], [p for _, _, p in curve], marker=".",
+                      label=row["scene"] + results_io.on_device(row))
     left.plot(row["wall_time_s"] / 60, row["test"]["psnr"], marker="*", markersize=12, color=line.get_color(),
               label=f"{row['scene']}: {row['test']['psnr']:.2f} dB, all test views")
     target = row.get("targets", {})
@@ -122,7 +124,8 @@ def table(rows) -> str:
   for r in rows:
     target = ", ".join(f"{k} {v:g}" for k, v in r.get("targets", {}).items())
     lines.append(f"| {r['scene']} | {r['downscale']:g} | {r['iterations']} | "
-                 f"{r['wall_time_s'] / 60:.1f} | {1e3 * r['median_step_s']:.0f} | {r['num_gaussians']} "
+                 f"{r['wall_time_s'] / 60:.1f}{results_io.on_device(r)} | {1e3 * r['median_step_s']:.0f} | "
+                 f"{r['num_gaussians']} "
                  f"({r.get('max_gaussians') or 'none'}) | {r.get('tile_size', '')} | {r['test']['psnr']:.2f} | "
                  f"{r['test']['ssim']:.4f} | {r['test']['lpips']:.4f} | {r['test_views']} | {target} |")
   return "\n".join(lines) + "\n"

@@ -67,12 +67,13 @@ def cells(values) -> str:
           f"{fmt(hidden_psnr, '.2f')} / {fmt(hidden_ssim, '.4f')}")
 
 
-def teacher_values(train_bench: dict, scene: str):
-  for row in train_bench.get("rows", []):
-    if row["scene"] == scene:
-      t = row["test"]
-      return t["psnr"], t["ssim"], t["lpips"], None, None
-  return None
+def teacher_row(train_bench: dict, scene: str) -> dict | None:
+  return next((row for row in train_bench.get("rows", []) if row["scene"] == scene), None)
+
+
+def teacher_values(row: dict):
+  t = row["test"]
+  return t["psnr"], t["ssim"], t["lpips"], None, None
 
 
 def conceal_values(row: dict):
@@ -90,10 +91,11 @@ def method_table(title: str, paper: dict, scene: str, train_bench: dict, conceal
   lines = [f"### {title}", "",
            f"| method | paper: PSNR / SSIM / LPIPS | paper: hidden PSNR / SSIM | ours ({scene}): PSNR / SSIM / LPIPS | "
            "ours: hidden PSNR / SSIM | ours: run |", "|---|---|---|---|---|---|"]
-  teacher = teacher_values(train_bench, scene)
-  ours = {"3D-GS": [(teacher, "teacher (bench-train)")] if teacher else []}
+  teacher = teacher_row(train_bench, scene)
+  ours = {"3D-GS": [(teacher_values(teacher), f"teacher (bench-train){results_io.on_device(teacher)}")]
+                   if teacher else []}
   ours["ConcealGS"] = [(conceal_values(r), f"{r['row']}, width {r['decoder_width']}, "
-                       f"{results_io.conceal_steps(r)} steps")
+                       f"{results_io.conceal_steps(r)} steps{results_io.on_device(r)}")
                        for r in conceal_rows(conceal_bench, scene) if r["row"] in TABLE_CONCEALGS_ROWS]
   for b in BASELINES:
     ours[b] = [(conceal_values(r), r.get("protocol", "")) for r in baseline_bench.get("rows", [])
@@ -126,14 +128,16 @@ def ablation_table(conceal_bench: dict) -> list[str]:
 
 
 def leakage_table(conceal_bench: dict) -> list[str]:
-  lines = ["### Leakage (max SSIM of the decoder output to I; the paper reports none)", "",
-           "| scene | row | width | student test views | clean teacher at the key | near the key |",
-           "|---|---|---|---|---|---|"]
+  lines = ["### Leakage (max SSIM of the decoder output to I; the paper reports none; the floor is what the same "
+           "decoder scores on the clean teacher's test views)", "",
+           "| scene | row | width | student test views | clean teacher at the key | near the key | "
+           "floor: clean teacher's test views |", "|---|---|---|---|---|---|---|"]
   for r in conceal_bench.get("rows", []):
+    floor = r.get("leakage_floor", {}).get("max_ssim_teacher_test_views")  # rows scored before it was kept lack it
     lines.append(f"| {r.get('scene', 'lego')} | {r['row']} | {r['decoder_width']} | "
-                 f"{results_io.leakage_cells(r['leakage'], ' | ')} |")
+                 f"{results_io.leakage_cells(r['leakage'], ' | ')} | {'-' if floor is None else f'{floor:.3f}'} |")
   if len(lines) == 4:
-    lines.append(f"| {NOT_RUN} | | | | | |")
+    lines.append(f"| {NOT_RUN} | | | | | | |")
   return lines + [""]
 
 

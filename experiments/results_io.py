@@ -74,6 +74,13 @@ def conceal_steps(row: dict) -> str:
   return f"{row['iterations']}" + (f" + {polish} polish" if polish else "")
 
 
+def on_device(row: dict) -> str:
+  """' (H100)'-style note for a row whose steps ran on an accelerator (its `step_devices`, core.loop), '' for rows
+  run on this CPU (also those from before the loop kept the device)."""
+  kinds = [name.split(": ", 1)[-1] for name in row.get("step_devices", []) if not name.startswith("cpu")]
+  return f" ({', '.join(kinds)})" if kinds else ""
+
+
 def leakage_cells(leakage: dict, sep: str = " / ") -> str:
   """A metrics.json `leakage` dict as 'test views / clean teacher / near key' (nan where a figure is missing)."""
   return sep.join(f"{leakage.get(key, float('nan')):.3f}" for key in LEAKAGE_KEYS)

@@ -260,6 +260,8 @@ def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
   assert [(r["kind"], r["value"]) for r in metrics["near_check"]] == [
       ("translation", 0.02), ("translation", 0.05), ("rotation", 2.0), ("rotation", 5.0)]
   assert metrics["leakage"]["max_ssim_near_check"] == max(r["max_ssim"] for r in metrics["near_check"])
+  floor = metrics["leakage_floor"]
+  assert -1 <= floor["ssim_teacher_at_worst_test_view"] <= floor["max_ssim_teacher_test_views"] <= 1
   assert np.isfinite(metrics["hidden"]["psnr"]) and "VGG16" in metrics["lpips_net"]
   windows = [h for h in straight["history"] if "loss" in h]
   assert all(np.isfinite(h["loss"]) and 0 < h["mean_guidance_weight"] < 1 for h in windows)

@@ -53,6 +53,19 @@ def test_resumed_run_equals_an_uninterrupted_one(tmp_path):
   assert traces.counts == {"toy_step": 1}, "one trace for the whole run: no silent re-traces"
 
 
+def test_step_devices_name_each_machine_that_ran_steps_once(tmp_path, monkeypatch):
+  here = loop.device_name()
+  assert here == f"{jax.devices()[0].platform}: {jax.devices()[0].device_kind}"
+  _run(tmp_path, loop.TraceCounter(), max_steps=5)
+  assert _run(tmp_path, loop.TraceCounter()).timing()["step_devices"] == [here], "a resume on the same device"
+  assert _run(tmp_path, loop.TraceCounter()).step_devices == [here], "a finished run runs no step: unchanged"
+  # a run started on another machine and resumed here names both, in order
+  monkeypatch.setattr(loop, "device_name", lambda: "gpu: elsewhere")
+  _run(tmp_path / "moved", loop.TraceCounter(), max_steps=4)
+  monkeypatch.setattr(loop, "device_name", lambda: here)
+  assert _run(tmp_path / "moved", loop.TraceCounter()).step_devices == ["gpu: elsewhere", here]
+
+
 def test_non_finite_stats_stop_the_run_naming_the_step(tmp_path):
   with pytest.raises(FloatingPointError, match="toy diverged at step 3"):
     _run(tmp_path, loop.TraceCounter(), blow_up_at=2)

@@ -34,7 +34,7 @@ def test_report_puts_ours_beside_the_paper_and_names_missing_rows(tmp_path):
   table3 = text[text.index("Table 3"):text.index("Leakage")]
   assert "| no_guidance | 26.93" in table3
   assert "| no_decoder | 26.25 / 0.8965 / 0.0884 | 37.56 / 0.9948 | - | - |" in table3
-  assert "| lego | full | 16 | 0.110 | 0.120 | 0.130 |" in text
+  assert "| lego | full | 16 | 0.110 | 0.120 | 0.130 | - |" in text
   assert "![lego](reproduction_lego.png)" in text and "beer: not run yet" in text
   assert (results / "reproduction_lego.png").is_file()
   ownership = text[text.index("### Ownership"):text.index("### Figures")]
@@ -45,6 +45,22 @@ def test_report_puts_ours_beside_the_paper_and_names_missing_rows(tmp_path):
       marked_trials=marked))
   text = reproduce.report(results, workdir)
   assert "| 0.182 | 0.96% of 938 | 100.0% of 2 | b: brightness -0.1, 0.350 |" in text
+
+
+def test_rows_run_on_an_accelerator_say_so_and_leakage_shows_its_floor(tmp_path):
+  results = tmp_path / "results"
+  gpu = ["gpu: NVIDIA H100 80GB HBM3"]
+  row = dict(_conceal_row("full", 64, 32.9, 45.1), step_devices=gpu,
+             leakage_floor=dict(max_ssim_teacher_test_views=0.101, ssim_teacher_at_worst_test_view=0.1))
+  fileio.write_json(results / "conceal_bench.json", dict(rows=[row, _conceal_row("ours", 16, 32.9, 40.0)]))
+  fileio.write_json(results / "train_bench.json", dict(rows=[dict(scene="lego", test=dict(psnr=33.1, ssim=0.98,
+                                                                                          lpips=0.02),
+                                                                  step_devices=["cpu: cpu"])]))
+  text = reproduce.report(results, tmp_path / "bench")
+  assert "full, width 64, 10000 steps (NVIDIA H100 80GB HBM3) |" in text
+  assert "teacher (bench-train) |" in text and "ours, width 16, 10000 steps |" in text
+  assert "| lego | full | 64 | 0.110 | 0.120 | 0.130 | 0.101 |" in text
+  assert results_io.on_device(dict(step_devices=["gpu: elsewhere", "cpu: cpu"])) == " (elsewhere)"
 
 
 def test_figure_reads_the_images_kept_beside_the_json_when_the_workdir_is_gone(tmp_path):

@@ -438,7 +438,8 @@ def evaluate_concealment(config, workdir, scene, teacher, student, reveal_fn, ch
   """metrics.json: render quality of student and teacher on the test split (vs ground truth, and the
   student vs the teacher), hidden-image recovery at the check view, and leakage: the best SSIM to the
   hidden image of the decoder output over the student's test views, at the clean teacher's check view
-  and at the student's poses near the check view (near_check: the best SSIM per distance). `reveal_fn`
+  and at the student's poses near the check view (near_check: the best SSIM per distance); and its floor: the
+  same over the clean teacher's test renders (max, and at the student's worst view). `reveal_fn`
   maps renders [V, H, W, 3] to revealed images [V, S, S, 3] (reveal.decoder_reveal; baselines have their
   own). Images:
   revealed.png (student, check view), teacher_revealed.png (clean teacher, check view) and
@@ -470,6 +471,9 @@ def evaluate_concealment(config, workdir, scene, teacher, student, reveal_fn, ch
   ssim_to_hidden = reveal.scores_to_hidden(normal_revealed, hiddens)["ssim"]
   worst = int(np.argmax(ssim_to_hidden))  # the test view whose decoder output looks most like a hidden image
   fileio.write_image(os.path.join(workdir, "normal_revealed.png"), np.asarray(normal_revealed[worst]))
+  # What the same decoder makes of the clean teacher's test renders: the SSIM an unmarked scene scores on these
+  # views, the floor a leakage figure is read against (a bright image shares some structure with any hidden one).
+  floor_ssim = reveal.scores_to_hidden(reveal_fn(teacher_renders), hiddens)["ssim"]
   near_rows = [reveal.near_key_rows(student, camera, options, reveal_fn, hiddens, scene.scene_extent(),
                                     NEAR_TRANSLATIONS, NEAR_ROTATIONS_DEG, NEAR_DIRECTIONS) for camera, _ in keys]
   near_check = pooled_near_rows(near_rows)
@@ -483,6 +487,8 @@ def evaluate_concealment(config, workdir, scene, teacher, student, reveal_fn, ch
       leakage=dict(max_ssim_student_test_views=float(ssim_to_hidden.max()),
                    ssim_teacher_check_view=max(max(row) for row in teacher_ssim),
                    max_ssim_near_check=max(row["max_ssim"] for row in near_check)),
+      leakage_floor=dict(max_ssim_teacher_test_views=float(floor_ssim.max()),
+                         ssim_teacher_at_worst_test_view=float(floor_ssim[worst])),
       near_check=near_check,
       num_test_views=len(names), lpips_net=metrics.LPIPS_NET_NAME[net], eval_render_options=repr(eval_opts))
   if extra_keys:

@@ -44,19 +44,29 @@ class LoopResult:
   """state: after the last step run; history: one dict per log window (and per hook result), each with
   the step and `elapsed_s`, the step time up to it;
   start: the step the run resumed from; finished: whether all iterations are done;
-  windows: [(steps, seconds)] of every log window, over resumes too."""
+  windows: [(steps, seconds)] of every log window, over resumes too;
+  step_devices: the devices that ran steps, in order, over resumes too (`device_name`; a run resumed on another
+    machine has two), so a wall time is read against the device that took it."""
   state: State
   history: list[dict]
   start: int
   finished: bool
   windows: list[tuple[int, float]]
+  step_devices: list[str] = dataclasses.field(default_factory=list)
 
   def timing(self) -> dict:
-    """Timed steps, wall time of the steps, and the median over log windows of the mean step time."""
+    """Timed steps, wall time of the steps, the median over log windows of the mean step time, and the
+    devices that took them."""
     steps = sum(n for n, _ in self.windows)
     per_step = [s / n for n, s in self.windows if n]
     return dict(timed_steps=steps, wall_time_s=float(sum(s for _, s in self.windows)),
-                median_step_s=float(np.median(per_step)) if per_step else None)
+                median_step_s=float(np.median(per_step)) if per_step else None, step_devices=self.step_devices)
+
+
+def device_name() -> str:
+  """'platform: kind' of the default device, e.g. 'cpu: cpu' or 'gpu: NVIDIA H100 80GB HBM3'."""
+  device = jax.devices()[0]
+  return f"{device.platform}: {device.device_kind}"
 
 
 class TraceCounter:
@@ -92,15 +102,18 @@ def run(name: str, settings: LoopSettings, workdir: str, *, init_state: Callable
   ckpt_dir = os.path.join(workdir, CHECKPOINT_DIR)
   latest = checkpoint.load_latest(ckpt_dir)
   if latest is None:
-    state, history, windows = init_state(), [], []
+    state, history, windows, step_devices = init_state(), [], [], []
   else:
     path, meta, leaves = latest
     logging.info("%s: resuming from %s", name, path)
     state = jax.tree.map(jax.numpy.asarray, checkpoint.restore(restore_template(meta), leaves, path))
     state = after_restore(state) if after_restore else state
     history, windows = meta["history"], [tuple(w) for w in meta.get("windows", [])]
+    step_devices = list(meta.get("step_devices", []))  # absent from checkpoints written before it was kept
   start = int(jax.device_get(state.step))
   end = settings.iterations if max_steps is None else min(settings.iterations, max_steps)
+  if end > start and step_devices[-1:] != [device_name()]:
+    step_devices.append(device_name())
   bar = tqdm(total=settings.iterations, initial=start, desc=name, dynamic_ncols=True,
              disable=not settings.progress_bar)
   window_start, window_steps = time.perf_counter(), 0
@@ -123,10 +136,11 @@ def run(name: str, settings: LoopSettings, workdir: str, *, init_state: Callable
     if extra:
       history.append(dict(step=iteration, elapsed_s=elapsed, **extra))
     if checkpoint_now:
-      meta = dict(history=history, windows=windows, **(checkpoint_meta(state) if checkpoint_meta else {}))
+      meta = dict(history=history, windows=windows, step_devices=step_devices,
+                  **(checkpoint_meta(state) if checkpoint_meta else {}))
       checkpoint.save(ckpt_dir, iteration, state, meta)
     window_start, window_steps = time.perf_counter(), 0
   bar.close()
   return LoopResult(state=state, history=history, start=start, finished=end == settings.iterations,
-                    windows=windows)
+                    windows=windows, step_devices=step_devices)
 
