@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from conceal_jax.conceal import conceal, guidance, hidden as hidden_lib, key as key_lib, reveal
+from conceal_jax.conceal import augment, conceal, guidance, hidden as hidden_lib, key as key_lib, reveal
 from conceal_jax.conceal.objective import decoder_identity_objective, identity_inputs, student_objective
 from conceal_jax.core import fileio, lanes
 from conceal_jax.data import ply
@@ -62,7 +62,7 @@ def decoder_pass_times(decoder, width: int, data: dict, settings, repeats: int) 
 
 
 def step_ms(settings, variants: dict, student_tx, decoder_tx, gaussians, decoder, data, num_views: int,
-            repeats: int, rounds: int = 3) -> dict:
+            repeats: int, distortion: dict | None = None, rounds: int = 3) -> dict:
   """Median ms of the whole jitted step (state donated) for each variant, name -> (render options, number of
   lanes (core.lanes)), after one warm-up each; the variants take turns, `rounds` times `repeats` steps, so
   that a slower stretch of the machine does not fall on one of them only."""
@@ -73,14 +73,14 @@ def step_ms(settings, variants: dict, student_tx, decoder_tx, gaussians, decoder
     fresh = jax.tree.map(jnp.copy, (gaussians, decoder))
     state = lanes.replicate(conceal.create_conceal_state(*fresh, student_tx, decoder_tx), mesh)
     placed = lanes.replicate(data, mesh)
-    state, _ = step(state, placed, 0, 1)
+    state, _ = step(state, placed, 0, 1, 0, distortion)
     runs[name] = [step, state, placed, []]
   for _ in range(rounds):
     for name, run in runs.items():
       step, state, placed, times = run
       for i in range(repeats):
         start = time.perf_counter()
-        state, stats = step(state, placed, i % num_views, (i + 1) % num_views)
+        state, stats = step(state, placed, i % num_views, (i + 1) % num_views, 0, distortion)
         jax.block_until_ready(stats)
         times.append(time.perf_counter() - start)
       run[1] = state
@@ -110,13 +110,15 @@ def profile(row: str, width: int, teacher: pathlib.Path, repeats: int, key_at_de
   data = conceal.build_data(scene, gaussians, options, check_camera, jnp.asarray(scene.train_images[0]), hidden,
                             settings.hidden_size)
   decoder = conceal.initial_decoder(config, settings)
+  # rows trained through distortions (conceal_ours.robust) take one each step; a fixed draw times the same work
+  distortion = augment.draw(np.random.default_rng(0), settings.augmentation) if settings.augmentation.draws else None
   times = {}
 
   camera = jax.tree.map(lambda x: x[0], data["cameras"])
   kd = lambda g: losses.distillation_loss(render_lib.render(g, camera, options).rgb, data["teacher"][0])
   times["normal_render_kd_fwd_bwd"] = median_ms(jax.jit(jax.grad(kd)), gaussians, repeats=repeats)
   student = jax.jit(jax.value_and_grad(
-      lambda g, d: student_objective(g, d, data, 0, settings, options), argnums=(0, 1), has_aux=True))
+      lambda g, d: student_objective(g, d, data, 0, settings, options, distortion), argnums=(0, 1), has_aux=True))
   times["student_objective_fwd_bwd"] = median_ms(student, gaussians, decoder, repeats=repeats)
 
   apply = lambda d, x: reveal.decode(d, width, x)
@@ -148,7 +150,7 @@ def profile(row: str, width: int, teacher: pathlib.Path, repeats: int, key_at_de
       dataclasses.replace(options, pair_capacity=render_lib.round_capacity(views_need * h)), counts[-1])
       for h in headrooms})
   times.update(step_ms(settings, variants, student_tx, decoder_tx, gaussians, decoder, data, len(scene.train_cameras),
-                       repeats))
+                       repeats, distortion))
   return dict(row=row, key_at_decoder_size=key_at_decoder_size, decoder_width=width, num_gaussians=int(gaussians.num),
               pair_capacity=options.pair_capacity,
               views_pair_need=views_need,
