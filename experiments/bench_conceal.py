@@ -239,34 +239,40 @@ def table(rows) -> str:
 
 
 def plot(rows, path: pathlib.Path):
-  """Hidden PSNR and student test PSNR (quick subset) against minutes, and the final leakage per row."""
+  """Hidden PSNR and student test PSNR (quick subset) against minutes, and the final leakage per row. Minutes are
+  on a log axis, so that a run on an accelerator (dashed) and one on this CPU both show their shape; one legend
+  below the axes names every curve."""
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
-  fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
-  for r in rows:
+  fig, axes = plt.subplots(1, 3, figsize=(16, 4.6))
+  colours = plt.get_cmap("tab20")
+  for i, r in enumerate(rows):
     label = f"{r['scene']} {r['row']} w{r['decoder_width']}{results_io.on_device(r)}"
+    style = dict(marker=".", color=colours(i % 20), linestyle="--" if results_io.on_device(r) else "-", label=label)
     minutes = [t / 60 for _, t, *_ in r["curve"]]
-    axes[0].plot(minutes, [p for *_, p, _, _ in r["curve"]], marker=".", label=label)
-    axes[1].plot(minutes, [p for *_, p in r["curve"]], marker=".", label=label)
+    axes[0].plot(minutes, [p for *_, p, _, _ in r["curve"]], **style)
+    axes[1].plot(minutes, [p for *_, p in r["curve"]], **dict(style, label=None))
   for scene in sorted({r["scene"] for r in rows} & set(TARGETS)):
     axes[0].axhline(TARGETS[scene]["hidden_psnr"], color="k", linestyle=":", alpha=0.6)
   axes[0].set_ylabel("hidden PSNR at the check view (dB)")
   axes[1].set_ylabel(f"student test PSNR, {CURVE_VIEWS} views (dB)")
   for ax in axes[:2]:
-    ax.set_xlabel("training wall time (min)")
-  labels = [f"{r['scene']}\n{r['row']}\nw{r['decoder_width']}" for r in rows]
+    ax.set_xscale("log")
+    ax.set_xlabel("training wall time (min, log scale)")
+  labels = [f"{r['scene']} {r['row']} w{r['decoder_width']}" for r in rows]
   kinds = (("max_ssim_student_test_views", "student test views"), ("ssim_teacher_check_view", "clean teacher"),
            ("max_ssim_near_check", "near the key"))
   for j, (key, name) in enumerate(kinds):
     axes[2].bar([i + 0.27 * (j - 1) for i in range(len(rows))], [r["leakage"].get(key, 0.0) for r in rows],
                 width=0.27, label=name)
   axes[2].axhline(TARGETS["lego"]["leakage"], color="k", linestyle=":", alpha=0.6)
-  axes[2].set_xticks(range(len(rows)), labels, fontsize=7)
+  axes[2].set_xticks(range(len(rows)), labels, fontsize=6, rotation=90)
   axes[2].set_ylabel("leakage: max SSIM of F(view) to I")
+  axes[2].legend(fontsize=7)
   for ax in axes:
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7)
+  fig.legend(*axes[0].get_legend_handles_labels(), loc="upper center", bbox_to_anchor=(0.5, 0.0), ncol=3, fontsize=7)
   fileio.save_figure(fig, path)
 
 
