@@ -164,7 +164,8 @@ def plot(results, path: pathlib.Path):
       rows = [r for r in result["image_attacks"] if r["attack"] == attack]
       left.plot(range(1, len(rows) + 1), [r["hidden_ssim"] for r in rows], marker="o", label=attack)
     left.axhline(result["hidden_ssim"], color="k", linestyle=":", label="no attack")
-    left.set_xlabel("attack level (mild to strong)")
+    # the order of image_attacks.LEVELS: brightness and contrast run by signed value, not by strength
+    left.set_xlabel("attack level (mild to strong; brightness, contrast: lowest to highest value)")
     left.set_ylabel("hidden SSIM")
     left.set_title(f"{name}: check render attacked", fontsize=9)
     rows = result["model_attacks"]
