@@ -257,9 +257,10 @@ def plot(rows, path: pathlib.Path):
     axes[0].axhline(TARGETS[scene]["hidden_psnr"], color="k", linestyle=":", alpha=0.6)
   axes[0].set_ylabel("hidden PSNR at the check view (dB)")
   axes[1].set_ylabel(f"student test PSNR, {CURVE_VIEWS} views (dB)")
+  timed = any(t > 0 for r in rows for _, t, *_ in r["curve"])  # a log axis needs a positive minute
   for ax in axes[:2]:
-    ax.set_xscale("log")
-    ax.set_xlabel("training wall time (min, log scale)")
+    ax.set_xscale("log" if timed else "linear")
+    ax.set_xlabel("training wall time (min, log scale)" if timed else "training wall time (min)")
   labels = [f"{r['scene']} {r['row']} w{r['decoder_width']}" for r in rows]
   kinds = (("max_ssim_student_test_views", "student test views"), ("ssim_teacher_check_view", "clean teacher"),
            ("max_ssim_near_check", "near the key"))

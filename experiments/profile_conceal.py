@@ -35,14 +35,14 @@ from experiments.bench_conceal import ROWS, run_config
 from experiments.profile_step import median_ms
 
 
-def decoder_pass_times(decoder, width: int, data: dict, settings, repeats: int) -> dict:
+def decoder_pass_times(decoder, width: int, data: dict, settings, repeats: int, distortion: dict | None = None) -> dict:
   """The decoder's share of a step, two ways, each giving the two gradient pytrees the guidance compares:
   `separate`: L_d^+ on the check render (gradients for the decoder and the render) and L_d^- on B identity
   inputs (decoder gradient), two forward+backward passes as the step runs them; `fused`: one forward of
   the batch of 1 + B images and the two gradients as the Jacobian rows of (L_d^+, L_d^-) (jax.jacrev, a
   backward pass batched over the two losses)."""
   check = data["teacher_small"][0]
-  minus_inputs = identity_inputs(data, 1, settings, data["teacher"][0])
+  minus_inputs = identity_inputs(data, 1, settings, data["teacher"][0], distortion)
   hidden = data["hidden"]
   plus_loss = lambda d, x: losses.hidden_image_loss(reveal.decode(d, width, x), hidden)
   minus_loss = lambda d: losses.decoder_identity_loss(reveal.decode(d, width, minus_inputs), minus_inputs)
@@ -127,11 +127,11 @@ def profile(row: str, width: int, teacher: pathlib.Path, repeats: int, key_at_de
     times[f"decoder_fwd_batch{batch}"] = median_ms(jax.jit(apply), decoder, images, repeats=repeats)
     times[f"decoder_fwd_bwd_batch{batch}"] = median_ms(
         jax.jit(jax.grad(lambda d, x: jnp.sum(apply(d, x)))), decoder, images, repeats=repeats)
-  inputs = identity_inputs(data, 1, settings, data["teacher"][0])  # a teacher render in the student's place
+  inputs = identity_inputs(data, 1, settings, data["teacher"][0], distortion)  # a teacher render as the student's
   identity = jax.jit(jax.value_and_grad(lambda d: decoder_identity_objective(d, inputs, settings)))
   times["decoder_identity_fwd_bwd"] = median_ms(identity, decoder, repeats=repeats)
 
-  times.update(decoder_pass_times(decoder, width, data, settings, repeats))
+  times.update(decoder_pass_times(decoder, width, data, settings, repeats, distortion))
 
   (_, _), (_, plus_grad) = student(gaussians, decoder)
   _, minus_grad = identity(decoder)
