@@ -385,15 +385,15 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
     one = lanes.on_one_device(state.replace(student_opt=(), decoder_opt=()), mesh)  # not the Adam moments
     student, live = one.student, one.decoder
     decoder = one.scored_decoder(settings) if settings.use_decoder else None
-    revealed = [reveal.reveal_image(student, camera, options, decoder, settings.decoder_width,
-                                    settings.hidden_size, settings.reading) for camera, _ in keys]
+    key_renders = [render(student, camera, options).rgb for camera, _ in keys]
+    reveal_with = lambda params, rgb: reveal.reveal_renders(params, rgb, settings.decoder_width, settings.hidden_size,
+                                                            settings.reading)
+    revealed = [reveal_with(decoder, rgb) for rgb in key_renders]
     record = dict(hidden_psnr=float(metrics.psnr(revealed[0], hiddens[0])),
                   hidden_ssim=float(metrics.ssim(revealed[0], hiddens[0])),
                   test_psnr=evaluate.views_psnr(student, eval_cameras, eval_targets, options))
-    if averaging:  # the live decoder beside its average
-      record["hidden_psnr_live"] = float(metrics.psnr(reveal.reveal_image(
-          student, keys[0][0], options, live, settings.decoder_width, settings.hidden_size, settings.reading),
-          hiddens[0]))
+    if averaging:  # the live decoder beside its average, on the same key render
+      record["hidden_psnr_live"] = float(metrics.psnr(reveal_with(live, key_renders[0]), hiddens[0]))
     if num_keys > 1:
       record.update(hidden_psnr_keys=[float(metrics.psnr(r, h)) for r, h in zip(revealed, hiddens)],
                     hidden_ssim_keys=[float(metrics.ssim(r, h)) for r, h in zip(revealed, hiddens)])
