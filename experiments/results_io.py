@@ -13,13 +13,15 @@ from conceal_jax.core import fileio
 
 
 def merged_rows(path: pathlib.Path, rows: list[dict], key: Callable[[dict], tuple]) -> list[dict]:
-  """`rows` plus the rows already in `path` whose key(row) none of `rows` has."""
+  """The rows already in `path`, each replaced in place by the row of `rows` with its key(row) (so a rebuilt
+  row keeps its place in the table and plot), then the rows of `rows` that are new, in their order."""
   try:
     old = json.loads(path.read_text())["rows"]
   except (OSError, ValueError, KeyError):
     old = []
-  keys = {key(r) for r in rows}
-  return [r for r in old if key(r) not in keys] + rows
+  fresh = {key(r): r for r in rows}
+  kept = [fresh.pop(key(r), r) for r in old]
+  return kept + list(fresh.values())
 
 
 def write_results(out: pathlib.Path, name: str, rows: list[dict], key: Callable[[dict], tuple],

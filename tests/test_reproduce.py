@@ -91,3 +91,11 @@ def test_report_without_any_benchmark_says_not_run(tmp_path):
   text = reproduce.report(tmp_path, tmp_path)
   assert "ConcealGS" in text and text.count(reproduce.NOT_RUN) >= 10
   assert json.dumps(reproduce.PAPER_TABLE1["ConcealGS"]) == "[33.14, 0.9717, 0.024, 33.98, 0.9942]"
+
+
+def test_a_rebuilt_row_keeps_its_place_and_new_rows_follow(tmp_path):
+  path, key = tmp_path / "bench.json", lambda r: (r["row"],)
+  fileio.write_json(path, dict(rows=[dict(row="a", v=1), dict(row="b", v=1), dict(row="c", v=1)]))
+  merged = results_io.merged_rows(path, [dict(row="d", v=2), dict(row="b", v=2)], key)
+  assert [(r["row"], r["v"]) for r in merged] == [("a", 1), ("b", 2), ("c", 1), ("d", 2)]
+  assert results_io.merged_rows(tmp_path / "missing.json", [dict(row="x")], key) == [dict(row="x")]
