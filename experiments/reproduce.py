@@ -166,28 +166,34 @@ def ownership_table(calibration: dict) -> list[str]:
   return lines + [""]
 
 
-def figure_grid(scene: str, conceal_bench: dict, baseline_bench: dict, results: pathlib.Path,
-                workdir: pathlib.Path) -> str | None:
-  """hidden | revealed: student at the key | clean teacher at the key | student's most revealing test view
-  | each baseline's revealed image; one row per ConcealGS run of `scene` (the baselines alone where no run has
-  images), from the images the benches kept under `results` (or, for older rows, their runs under `workdir`).
-  Writes reproduction_<scene>.png to `results`; its name, or None if there is nothing to show."""
-  import imageio.v3 as iio
-  import matplotlib
-  matplotlib.use("Agg")
-  import matplotlib.pyplot as plt
-  baselines = [(b.get("label", b["method"]), path) for b in baseline_bench.get("rows", [])
-               if b.get("scene", "lego") == scene
-               for _, path in results_io.row_images(results, b, workdir / scene / f"baseline_{b.get('row', '')}",
-                                                    results_io.BASELINE_IMAGES)]
+def figure_panels(scene: str, conceal_bench: dict, baseline_bench: dict, results: pathlib.Path,
+                  workdir: pathlib.Path) -> list[tuple[str, list[tuple[str, str]]]]:
+  """The figure's rows as (label, [(title, image file)]): per ConcealGS run of `scene` with images, hidden |
+  revealed: student at the key | clean teacher at the key | student's most revealing test view; then one row
+  'baselines' with each baseline's revealed image, once. The images are those the benches kept under `results`
+  (or, for older rows, their runs under `workdir`)."""
   panels = []
   for r in conceal_rows(conceal_bench, scene):
     run = workdir / scene / f"conceal_{r['row']}_w{r['decoder_width']}"
     own = results_io.row_images(results, r, run, results_io.CONCEAL_IMAGES)
     if own:
-      panels.append((f"{r['row']} w{r['decoder_width']}", own + baselines))
-  if not panels and baselines:
-    panels = [("baselines", baselines)]
+      panels.append((f"{r['row']} w{r['decoder_width']}", own))
+  baselines = [(b.get("label", b["method"]), path) for b in baseline_bench.get("rows", [])
+               if b.get("scene", "lego") == scene
+               for _, path in results_io.row_images(results, b, workdir / scene / f"baseline_{b.get('row', '')}",
+                                                    results_io.BASELINE_IMAGES)]
+  return panels + ([("baselines", baselines)] if baselines else [])
+
+
+def figure_grid(scene: str, conceal_bench: dict, baseline_bench: dict, results: pathlib.Path,
+                workdir: pathlib.Path) -> str | None:
+  """Draws `figure_panels` as a grid, one panel per row, to reproduction_<scene>.png in `results`; its name, or
+  None if there is nothing to show."""
+  import imageio.v3 as iio
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+  panels = figure_panels(scene, conceal_bench, baseline_bench, results, workdir)
   if not panels:
     return None
   columns = max(len(files) for _, files in panels)

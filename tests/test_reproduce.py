@@ -85,6 +85,13 @@ def test_figure_reads_the_images_kept_beside_the_json_when_the_workdir_is_gone(t
   baseline = dict(scene="lego", method="LSB", row="lsb4", label="LSB 4 bits", images=dict(revealed=images["hidden"]))
   assert reproduce.figure_grid("lego", dict(rows=[_conceal_row("full", 16, 32.95, 35.25)]), dict(rows=[baseline]),
                                results, workdir) == "reproduction_lego.png"
+  # each baseline shows once, in a row of its own below the runs
+  bench = dict(rows=[row, dict(row, row="tensor")])
+  panels = reproduce.figure_panels("lego", bench, dict(rows=[baseline, dict(baseline, row="lsb1", label="LSB 1 bit")]),
+                                   results, workdir)
+  assert [label for label, _ in panels] == ["full w16", "tensor w16", "baselines"]
+  assert [len(files) for _, files in panels] == [4, 4, 2]
+  assert [title for title, _ in panels[-1][1]] == ["LSB 4 bits", "LSB 1 bit"]
 
 
 def test_report_without_any_benchmark_says_not_run(tmp_path):
