@@ -10,7 +10,8 @@ ownership_calibration.json in
 chair and ship, its T&T/DB rows playroom, drjohnson, truck and train; ours are lego and the real capture
 beer). Also writes one figure grid per scene (reproduction_<scene>.png): the hidden image and what the
 decoder reveals from the student at the key, from the clean teacher at the key, from the student's most
-revealing test view, and from each baseline's scene.
+revealing test view, one row per run; and below them one row with what each baseline's scene reveals at the
+key.
 """
 from __future__ import annotations
 
