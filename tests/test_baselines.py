@@ -270,6 +270,7 @@ def test_bench_rows_feed_the_reproduction(lsb_run, deepstega_run, tiny, tmp_path
   long_row = lambda iterations: bench_baselines.run_config("lego", tiny[1], "steganerf_check_view_12k", iterations, 5)
   assert (long_row(0).baseline.iterations, long_row(100).baseline.iterations) == (12_000, 100)
   assert long_row(0).baseline.steganerf.protocol == "check_view"
+  assert long_row(0).baseline.steganerf.decoder_lr == long_row(0).baseline.steganerf.classifier_lr == 3e-4
   skip = bench_baselines.run_config("lego", tiny[1], "deepstega_skip", 100, 5)
   baseline.validate(skip)
   assert baseline.deepstega_settings(skip)[0].cover_skip and skip.conceal.lr.to_dict() == gentle.to_dict()
