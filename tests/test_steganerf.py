@@ -228,6 +228,10 @@ def test_bench_rows_of_both_protocols_feed_the_reproduction(all_views_runs, chec
   config = bench_baselines.run_config("lego", tiny[1], "steganerf_check_view", 100, 5)
   baseline.validate(config)
   assert (config.baseline.method, config.baseline.steganerf.protocol) == ("steganerf", "check_view")
+  assert config.baseline.steganerf.decoder_lr == config.baseline.steganerf.classifier_lr == 3e-4
+  st = saved[1]["steganerf"]["settings"]  # the run's own rates, in words
+  assert f"classifier width {st['classifier_width']} at {st['decoder_lr']:g} / {st['classifier_lr']:g}," in saved[1][
+      "protocol"]
 
   table1 = reproduce.report(out, bench)
   table1 = table1[table1.index("Table 1"):table1.index("Table 2")]
