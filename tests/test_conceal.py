@@ -478,6 +478,14 @@ def test_ablations_and_variants_run(tiny, tmp_path, overrides):
   assert (tmp_path / "decoder.msgpack").exists() == overrides.get("use_decoder", True)
 
 
+def test_sh_student_keeps_the_teachers_geometry(tiny, tmp_path):
+  conceal.conceal_and_evaluate(tiny_config(tiny, iterations=3, trained_fields="sh"), str(tmp_path))
+  teacher, student = ply.load_ply(tiny[1]), ply.load_ply(tmp_path / "student.ply")
+  for name in ("means", "log_scales", "quats", "opacity_logits"):
+    np.testing.assert_array_equal(getattr(student, name), getattr(teacher, name), err_msg=name)
+  assert np.abs(np.asarray(student.sh) - np.asarray(teacher.sh)).max() > 0
+
+
 @pytest.mark.parametrize("overrides", [dict(extra_hidden=("camera",)), dict(variant="released")])
 def test_key_at_decoder_size_renders_the_key_at_the_decoder_input(tiny, tmp_path, overrides):
   config = tiny_config(tiny, iterations=3, key_at_decoder_size=True, **overrides)
@@ -519,6 +527,7 @@ def test_resized_camera_keeps_the_field_of_view():
     (dict(decoy_views=4, decoy_fraction=0.2, variant="released"), "decoy_fraction"),
     (dict(decoy_translation=(0.2, 0.1)), "decoy_translation"), (dict(eval_views=0), "eval_views"),
     (dict(decoder_lr_final_ratio=2.0), "decoder_lr_final_ratio"),
+    (dict(trained_fields="geometry"), "conceal.trained_fields"),
     (dict(decoder_polish_steps=-1), "decoder_polish_steps must be"),
     (dict(decoder_polish_steps=5, use_decoder=False), "decoder_polish_steps needs a decoder"),
     (dict(decoder_average=1.0), "decoder_average must be"), (dict(decoder_average=float("nan")), "decoder_average"),

@@ -217,6 +217,23 @@ def test_learning_rates_per_field():
   np.testing.assert_allclose(updates.quats, lr.quats, rtol=1e-5)
 
 
+def test_sh_fields_move_the_colour_alone_as_the_full_optimizer_would():
+  config = demo.get_config()
+  g = random_gaussians(1, 5, degree=1)
+  grads = jax.tree.map(lambda x: jnp.full_like(x, 0.7), g)
+  full = optimizer.trained_fields_optimizer("all", config.train.lr, 2.0)
+  sh_only = optimizer.trained_fields_optimizer("sh", config.train.lr, 2.0)
+  full_state, state = full.init(g), sh_only.init(g)
+  for _ in range(3):  # the frozen fields' moments stay 0, so no later step moves them either
+    full_updates, full_state = full.update(grads, full_state, g)
+    updates, state = sh_only.update(grads, state, g)
+    for name in ("means", "log_scales", "quats", "opacity_logits"):
+      np.testing.assert_array_equal(getattr(updates, name), 0.0)
+    np.testing.assert_allclose(updates.sh, full_updates.sh, rtol=1e-6)
+  with pytest.raises(ValueError, match="trained fields must be one of"):
+    optimizer.trained_fields_optimizer("geometry", config.train.lr, 2.0)
+
+
 def test_means2d_offset_gradient_is_the_screen_space_gradient(x64):
   """The densification statistic differentiates the loss at the projected means: compare with float64
   central differences in the offsets (a smooth loss, so the differences converge)."""

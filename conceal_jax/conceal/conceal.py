@@ -43,6 +43,9 @@ normal render (decoy poses included) through the same distortion for L_d^-, so t
 on distorted views near the key. conceal.check_dropout_max / check_param_noise_max render the check view from a
 perturbed student (Gaussians dropped, parameters noised; augment.perturb_gaussians), against the model attacks.
 
+A colour-only student, an option beyond the paper: conceal.trained_fields 'sh' trains the SH colour alone and
+keeps the teacher's geometry, as StegaNeRF does (gs/optimizer.frozen_geometry; 'all' is the paper's student).
+
 conceal.key_at_decoder_size (off: as the paper) renders the key directly at the decoder's size (hidden_size
 squared) with the check pose's field of view, instead of rendering it at the training resolution and resizing.
 It is a cheaper key (on lego, 200x200 -> 64x64 cuts the check render's fwd+bwd from 191 to 124 ms and the
@@ -181,6 +184,8 @@ def validate(config: ml_collections.ConfigDict) -> None:
   if not (c.lr.means_init > 0 and c.decoder_lr > 0 and c.decoder_adam_eps > 0):
     raise ValueError("conceal.lr.means_init, conceal.decoder_lr and conceal.decoder_adam_eps must be positive")
   decoder_optimizer(config)  # checks the decoder's final ratio and update clip, naming their keys
+  if c.trained_fields not in optimizer.TRAINED_FIELDS:
+    raise ValueError(f"conceal.trained_fields must be one of {optimizer.TRAINED_FIELDS}, got {c.trained_fields!r}")
   if c.decoy_views < 0 or (c.decoy_fraction > 0) != (c.decoy_views > 0):
     raise ValueError("conceal.decoy_views must be positive exactly when conceal.decoy_fraction is, got "
                      f"{c.decoy_views} and {c.decoy_fraction}")
@@ -349,7 +354,7 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   data = lanes.replicate(build_data(scene, teacher, options, check_camera, check_images[0], hiddens[0],
                                     settings.hidden_size, decoys, extra_keys, settings.decoder_clip_input), mesh)
 
-  student_tx = optimizer.gaussian_optimizer(c.lr, scene.scene_extent(), c.iterations)
+  student_tx = optimizer.trained_fields_optimizer(c.trained_fields, c.lr, scene.scene_extent(), c.iterations)
   decoder_tx = decoder_optimizer(config)
   traces = loop.TraceCounter()
   # GrowingSteps' key is the phase: the joint steps, then the decoder polish's (train_student False)

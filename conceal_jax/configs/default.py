@@ -156,6 +156,8 @@ def get_config() -> ml_collections.ConfigDict:
   config.conceal.lr = ml_collections.ConfigDict(config.train.lr.to_dict())
   config.conceal.lr.means_init = 3.45e-5
   config.conceal.lr.means_steps = 20_000
+  # beyond the paper: 'sh' trains the SH colour alone on the teacher's geometry, as StegaNeRF does (gs/optimizer.py)
+  config.conceal.trained_fields = "all"
   config.conceal.log_every = 10
   config.conceal.eval_every = 0        # steps between hidden PSNR/SSIM + student test PSNR records (0: none)
   config.conceal.eval_views = 4        # test views of that student PSNR

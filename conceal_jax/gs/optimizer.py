@@ -13,6 +13,9 @@ import optax
 from conceal_jax.splat.gaussians import Gaussians
 
 ADAM_EPS = 1e-15
+# Which Gaussians fields a run trains: every one (3D-GS), or the SH colour alone on frozen geometry (StegaNeRF's
+# split, Li et al. 2023, ICCV, Sec. 3; `frozen_geometry`).
+TRAINED_FIELDS = ("all", "sh")
 
 
 def log_linear_schedule(init: float, final: float, max_steps: int) -> optax.Schedule:
@@ -130,6 +133,28 @@ def gaussian_optimizer(lr: ml_collections.ConfigDict, extent: float,
   if warmup:
     chain.append(optax.scale_by_schedule(linear_warmup(warmup)))
   return optax.chain(*chain)
+
+
+def frozen_geometry() -> optax.GradientTransformation:
+  """Zeroes the gradient of every field but the SH colour sh [N, K, 3], ahead of `gaussian_optimizer`: Adam
+  then never moves the means, scales, rotations or opacities (its moments of a zero gradient stay 0)."""
+
+  def update(updates: Gaussians, state, params=None):
+    del params
+    zero = lambda x: jnp.zeros_like(x)
+    return Gaussians(means=zero(updates.means), log_scales=zero(updates.log_scales), quats=zero(updates.quats),
+                     opacity_logits=zero(updates.opacity_logits), sh=updates.sh), state
+
+  return optax.GradientTransformation(lambda params: optax.EmptyState(), update)
+
+
+def trained_fields_optimizer(fields: str, lr: ml_collections.ConfigDict, extent: float,
+                             run_steps: int = 0) -> optax.GradientTransformation:
+  """`gaussian_optimizer` on the `fields` of TRAINED_FIELDS ('sh': behind `frozen_geometry`)."""
+  if fields not in TRAINED_FIELDS:
+    raise ValueError(f"trained fields must be one of {TRAINED_FIELDS}, got {fields!r}")
+  tx = gaussian_optimizer(lr, extent, run_steps)
+  return optax.chain(frozen_geometry(), tx) if fields == "sh" else tx
 
 
 def adam_moments(opt_state) -> optax.ScaleByAdamState:
