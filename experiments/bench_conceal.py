@@ -82,11 +82,13 @@ ROWS = {
     # ... with the decoder at 3e-4 rather than NARROW_DECODER_LR (5e-4): StegaNeRF's networks went from 41.15 dB
     # hidden at 1e-3 (10k steps) to 45.27 at 3e-4 (12k; the same decoder width), where ours reaches 41.57. Stopped
     # at 6000 steps: behind at every curve point (hidden 29.83 / 35.50 / 36.38 dB at 2k / 5k / 6k, dec03_clip 32.46
-    # / 37.21 / 38.66), with a dip at 3000 (29.28) all the same; test PSNR alike (33.27 at 6k, 33.37)
+    # / 37.21 / 38.66) and with a dip at 3000 (29.28) that dec03_clip does not have; test PSNR alike (33.27 at 6k,
+    # 33.37)
     "ours_robust_clip_dec03_clip_lr3": lambda config: _best(config, decoder_update_clip=1.0, decoder_lr=3e-4),
-    # ... with StegaNeRF's student: the teacher's geometry frozen, the SH colour trained at the 3D-GS rates
-    # (conceal.trained_fields 'sh'). StegaNeRF's check-view row reveals 45.27 dB with the same decoder width
-    # and never reveals near the key (0.021) untrained for it: a mark in the colour may be the more view-specific
+    # ... with StegaNeRF's student: the teacher's geometry frozen, the SH colour trained at the 3D-GS rates after
+    # the same warmup (conceal.trained_fields 'sh'). StegaNeRF's check-view row reveals 45.27 dB with the same
+    # decoder width and reveals nothing near the key (0.021) untrained for it: a mark in view-dependent colour
+    # may be the more view-specific one
     "ours_robust_clip_dec03_clip_sh": lambda config: _colour_student(_best(config, decoder_update_clip=1.0)),
     # ... then its 2000 decoder-only steps, as ours_robust_clip_dec03_clip_polish (CONTINUES)
     "ours_robust_clip_dec03_clip_sh_polish": lambda config: _colour_student(

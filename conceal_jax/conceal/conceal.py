@@ -184,8 +184,7 @@ def validate(config: ml_collections.ConfigDict) -> None:
   if not (c.lr.means_init > 0 and c.decoder_lr > 0 and c.decoder_adam_eps > 0):
     raise ValueError("conceal.lr.means_init, conceal.decoder_lr and conceal.decoder_adam_eps must be positive")
   decoder_optimizer(config)  # checks the decoder's final ratio and update clip, naming their keys
-  if c.trained_fields not in optimizer.TRAINED_FIELDS:
-    raise ValueError(f"conceal.trained_fields must be one of {optimizer.TRAINED_FIELDS}, got {c.trained_fields!r}")
+  optimizer.trained_fields_optimizer(c.trained_fields, c.lr, 1.0, c.iterations, "conceal.trained_fields")
   if c.decoy_views < 0 or (c.decoy_fraction > 0) != (c.decoy_views > 0):
     raise ValueError("conceal.decoy_views must be positive exactly when conceal.decoy_fraction is, got "
                      f"{c.decoy_views} and {c.decoy_fraction}")
@@ -354,7 +353,8 @@ def conceal_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_st
   data = lanes.replicate(build_data(scene, teacher, options, check_camera, check_images[0], hiddens[0],
                                     settings.hidden_size, decoys, extra_keys, settings.decoder_clip_input), mesh)
 
-  student_tx = optimizer.trained_fields_optimizer(c.trained_fields, c.lr, scene.scene_extent(), c.iterations)
+  student_tx = optimizer.trained_fields_optimizer(c.trained_fields, c.lr, scene.scene_extent(), c.iterations,
+                                                  "conceal.trained_fields")
   decoder_tx = decoder_optimizer(config)
   traces = loop.TraceCounter()
   # GrowingSteps' key is the phase: the joint steps, then the decoder polish's (train_student False)

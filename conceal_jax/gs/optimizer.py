@@ -148,11 +148,12 @@ def frozen_geometry() -> optax.GradientTransformation:
   return optax.GradientTransformation(lambda params: optax.EmptyState(), update)
 
 
-def trained_fields_optimizer(fields: str, lr: ml_collections.ConfigDict, extent: float,
-                             run_steps: int = 0) -> optax.GradientTransformation:
-  """`gaussian_optimizer` on the `fields` of TRAINED_FIELDS ('sh': behind `frozen_geometry`)."""
+def trained_fields_optimizer(fields: str, lr: ml_collections.ConfigDict, extent: float, run_steps: int = 0,
+                             name: str = "trained fields") -> optax.GradientTransformation:
+  """`gaussian_optimizer` on the `fields` of TRAINED_FIELDS ('sh': behind `frozen_geometry`; the geometry's
+  gradients are still computed, the render's backward pass yields them at once); `name` names it in errors."""
   if fields not in TRAINED_FIELDS:
-    raise ValueError(f"trained fields must be one of {TRAINED_FIELDS}, got {fields!r}")
+    raise ValueError(f"{name} must be one of {TRAINED_FIELDS}, got {fields!r}")
   tx = gaussian_optimizer(lr, extent, run_steps)
   return optax.chain(frozen_geometry(), tx) if fields == "sh" else tx
 
