@@ -97,9 +97,9 @@ def protocol(result: dict) -> str:
   if result["method"] == "StegaNeRF":
     st, views = result["steganerf"]["settings"], result["test_views_hidden"]
     return (f"{st['protocol']}: the teacher's SH colour only, decoder width {st['decoder_width']} + classifier width "
-            f"{st['classifier_width']} at {st['decoder_lr']:g} / {st['classifier_lr']:g}, "
-            f"SH mask on the {st['mask_at']}, "
-            f"{result['iterations']} steps; over the test views {views['mean_psnr']:.2f} dB / {views['mean_ssim']:.4f}")
+            f"{st['classifier_width']} at {st['decoder_lr']:g} / {st['classifier_lr']:g}, SH mask on the "
+            f"{st['mask_at']}, {result['iterations']} steps; over the test views {views['mean_psnr']:.2f} dB / "
+            f"{views['mean_ssim']:.4f}")
   if result["method"] == "LSB":
     hiding = f"{result['lsb_bits']} low bit(s) per channel"
   else:

@@ -6,6 +6,7 @@ per-field learning rate equals the per-parameter-group Adam of the reference imp
 """
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import ml_collections
 import optax
@@ -141,9 +142,7 @@ def frozen_geometry() -> optax.GradientTransformation:
 
   def update(updates: Gaussians, state, params=None):
     del params
-    zero = lambda x: jnp.zeros_like(x)
-    return Gaussians(means=zero(updates.means), log_scales=zero(updates.log_scales), quats=zero(updates.quats),
-                     opacity_logits=zero(updates.opacity_logits), sh=updates.sh), state
+    return jax.tree.map(jnp.zeros_like, updates).replace(sh=updates.sh), state
 
   return optax.GradientTransformation(lambda params: optax.EmptyState(), update)
 
