@@ -186,7 +186,8 @@ def _check_outputs(workdir, result, method):
     assert (workdir / name).is_file(), name
   metrics = json.loads((workdir / "metrics.json").read_text())
   saved = json.loads((workdir / "baseline.json").read_text())
-  assert saved["method"] == method and saved["iterations"] == 6 and saved["key"] == dict(kind="train_index", index=4)
+  assert (saved["method"], saved["seed"], saved["iterations"]) == (method, 0, 6)
+  assert saved["key"] == dict(kind="train_index", index=4)
   train_json = json.loads((workdir / "train" / "train.json").read_text())
   assert saved["wall_time_s"] == train_json["wall_time_s"] > 0 and train_json["num_gaussians"] == 1200
   for section in ("student_vs_ground_truth", "teacher_vs_ground_truth", "student_vs_teacher", "hidden", "leakage"):
@@ -228,7 +229,8 @@ def test_bench_rows_feed_the_reproduction(lsb_run, deepstega_run, tiny, tmp_path
   (bench / "lego" / "teacher").mkdir()
   shutil.copy(tiny[1], bench / "lego" / "teacher" / "point_cloud.ply")
   metrics = json.loads((workdir / "metrics.json").read_text())
-  other = dict(metrics, method="StegaNeRF", scene="lego", protocol="theirs", wall_time_s=1.0, revealed="")
+  other = dict(metrics, method="StegaNeRF", scene="lego", row="steganerf_check_view", iterations=6,
+               steganerf=dict(settings=dict(decoder_width=2)), protocol="theirs", wall_time_s=1.0, revealed="")
   fileio.write_json(out / "baseline_bench.json", dict(rows=[other]))
 
   rows = bench_baselines.run("lego", ["lsb1", "lsb4", "deepstega"], 0, 0, bench, out, reuse=True)
@@ -254,6 +256,7 @@ def test_bench_rows_feed_the_reproduction(lsb_run, deepstega_run, tiny, tmp_path
   assert f"| DeepStega | 33.06 / 0.9702 / 0.0253 | 11.13 / 0.2265 | " in table1 and reproduce.NOT_RUN not in \
       table1[table1.index("| DeepStega"):table1.index("| StegaNeRF")]
   assert "| StegaNeRF | 30.33" in table1 and "| theirs |" in table1
+  assert "| StegaNeRF | steganerf_check_view | 2 | 6 |" in reproduce.report(out, bench)  # beside ConcealGS's runs
 
   assert bench_baselines.run("lego", ["lsb1"], 0, 0, tmp_path / "empty", out, reuse=False) == []
   assert "no teacher" in capsys.readouterr().out
@@ -271,6 +274,9 @@ def test_bench_rows_feed_the_reproduction(lsb_run, deepstega_run, tiny, tmp_path
   assert (long_row(0).baseline.iterations, long_row(100).baseline.iterations) == (12_000, 100)
   assert long_row(0).baseline.steganerf.protocol == "check_view"
   assert long_row(0).baseline.steganerf.decoder_lr == long_row(0).baseline.steganerf.classifier_lr == 3e-4
+  seeded = bench_baselines.run_config("lego", tiny[1], "steganerf_check_view_seed1", 100, 5)
+  assert (seeded.seed, stega.seed, seeded.baseline.steganerf.protocol) == (1, 0, "check_view")
+  assert "seed" not in seeded.baseline
   skip = bench_baselines.run_config("lego", tiny[1], "deepstega_skip", 100, 5)
   baseline.validate(skip)
   assert baseline.deepstega_settings(skip)[0].cover_skip and skip.conceal.lr.to_dict() == gentle.to_dict()
@@ -278,6 +284,9 @@ def test_bench_rows_feed_the_reproduction(lsb_run, deepstega_run, tiny, tmp_path
       saved[2]["deepstega"]["architecture"], cover_skip=True)))
   assert bench_baselines.label(skip_result) == "DeepStega (cover skip)"
   assert "layers 1/1/1 with the cover skip, held-out" in bench_baselines.protocol(skip_result)
+  # a seed other than 0 is named; runs written before the seed was recorded read as seed 0
+  assert ", seed 2, no densification" in bench_baselines.protocol(dict(skip_result, seed=2))
+  assert "seed" not in bench_baselines.protocol({k: v for k, v in skip_result.items() if k != "seed"})
 
 
 @pytest.fixture(scope="module")

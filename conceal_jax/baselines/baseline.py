@@ -251,7 +251,8 @@ def baseline_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_s
   fileio.write_image(os.path.join(workdir, "hidden.png"), hidden)
   scored = conceal.evaluate_concealment(config, workdir, scene, teacher, gaussians, reveal_fn, check_camera, options,
                                         hidden)
-  summary = dict(method=METHOD_NAMES[s.method], key=key_info, hidden=c.hidden, hidden_size=c.hidden_size,
+  summary = dict(method=METHOD_NAMES[s.method], seed=config.seed, key=key_info, hidden=c.hidden,
+                 hidden_size=c.hidden_size,
                  test_views_hidden=hidden_over_test_views(config, scene, gaussians, reveal_fn, hidden), **run)
   fileio.write_json(os.path.join(workdir, BASELINE_FILE), summary)
   return dict(summary, metrics=scored)
