@@ -11,7 +11,8 @@ chair and ship, its T&T/DB rows playroom, drjohnson, truck and train; ours are l
 beer). Also writes one figure grid per scene (reproduction_<scene>.png): the hidden image and what the
 decoder reveals from the student at the key, from the clean teacher at the key, from the student's most
 revealing test view, one row per run; and below them one row with what each baseline's scene reveals at the
-key.
+key. And on lego, every ConcealGS run beside every StegaNeRF run, as a table and as tradeoff_lego.png (see
+experiments/tradeoff.py).
 """
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ import json
 import pathlib
 
 from conceal_jax.core import fileio
-from experiments import results_io
+from experiments import results_io, tradeoff
 
 # (render PSNR, SSIM, LPIPS, hidden PSNR, hidden SSIM); None where the paper has no number.
 PAPER_TABLE1 = {  # NeRF-Synthetic
@@ -107,6 +108,14 @@ def method_table(title: str, paper: dict, scene: str, train_bench: dict, conceal
       mine_cells = cells(mine) if mine else "- | -"
       lines.append(f"| {method} | {paper_cells} | {mine_cells} | {note} |")
   return lines + [""]
+
+
+def tradeoff_points(scene: str, conceal_bench: dict, baseline_bench: dict) -> list[dict]:
+  """tradeoff.points of `scene`: every ConcealGS run but the paper's ablations (the full method stays) and every
+  StegaNeRF run."""
+  ablations = set(PAPER_TABLE3) - {"full"}
+  return tradeoff.points([r for r in conceal_rows(conceal_bench, scene) if r["row"] not in ablations],
+                         [r for r in baseline_bench.get("rows", []) if r.get("scene", "lego") == scene])
 
 
 def ablation_table(conceal_bench: dict) -> list[str]:
@@ -224,7 +233,12 @@ def report(results: pathlib.Path, workdir: pathlib.Path) -> str:
                         baseline_bench)
   lines += method_table("Table 2: real scenes (paper: T&T/DB; ours: beer)", PAPER_TABLE2, "beer", train_bench,
                         conceal_bench, baseline_bench)
-  lines += ablation_table(conceal_bench) + leakage_table(conceal_bench) + robustness_table(robust_bench)
+  lines += ablation_table(conceal_bench) + leakage_table(conceal_bench)
+  lego_runs = tradeoff_points("lego", conceal_bench, baseline_bench)
+  lines += tradeoff.table("lego", lego_runs)
+  plot = tradeoff.figure("lego", lego_runs, results)
+  lines += [f"![ConcealGS beside StegaNeRF, lego]({plot})", ""] if plot else []
+  lines += robustness_table(robust_bench)
   lines += ownership_table(load(results, "ownership_calibration.json"))
   lines += ["### Figures", ""]
   for scene in ("lego", "beer"):

@@ -372,6 +372,13 @@ def test_bench_row_continues_only_the_run_it_extends(tiny, tmp_path):
   fileio.write_bytes(tmp_path / "older" / "checkpoints" / "ckpt_00000020.npz", b"step 20")
   averaged = tiny_config(tiny, iterations=20, decoder_polish_steps=20, decoder_average=0.99)
   assert bench_conceal.continue_from(tmp_path / "older", tmp_path / "averaged", averaged)
+  # a run from before trained_fields trained every field: a row that trains them all continues it, a colour-only
+  # row does not
+  del older["conceal"]["trained_fields"]
+  fileio.write_json(tmp_path / "older" / "config.json", older)
+  assert bench_conceal.continue_from(tmp_path / "older", tmp_path / "all_fields", averaged)
+  colour_only = tiny_config(tiny, iterations=20, decoder_polish_steps=20, trained_fields="sh")
+  assert not bench_conceal.continue_from(tmp_path / "older", tmp_path / "colour_only", colour_only)
 
 
 def test_bench_reads_a_finished_run_and_keeps_its_images_beside_the_json(tiny, joint_run, tmp_path):
@@ -397,6 +404,14 @@ def test_lego_conceal_config_is_the_bench_row_it_cites(tmp_path):
   assert config.mode == row.mode == "conceal" and config.seed == row.seed
   assert config.conceal.to_dict() == row.conceal.to_dict()
   assert config.conceal.decoder_lr_final_ratio == 0.3 and config.conceal.decoder_clip_input
+
+
+def test_a_bench_row_may_set_the_seed_beside_its_conceal_overrides(tmp_path):
+  teacher = tmp_path / "point_cloud.ply"
+  released, seeded = (bench_conceal.run_config("lego", teacher, row, 16, 0, 0)
+                      for row in ("released", "released_seed1"))
+  assert (released.seed, seeded.seed, seeded.conceal.variant) == (0, 1, "released")
+  assert seeded.conceal.to_dict() == released.conceal.to_dict()
 
 
 def test_demo_robust_config_is_the_demo_trained_through_attacks():

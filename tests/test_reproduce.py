@@ -5,7 +5,7 @@ import shutil
 import numpy as np
 
 from conceal_jax.core import fileio
-from experiments import reproduce, results_io
+from experiments import reproduce, results_io, tradeoff
 
 
 def _conceal_row(row, width, psnr, hidden_psnr):
@@ -106,3 +106,43 @@ def test_a_rebuilt_row_keeps_its_place_and_new_rows_follow(tmp_path):
   merged = results_io.merged_rows(path, [dict(row="d", v=2), dict(row="b", v=2)], key)
   assert [(r["row"], r["v"]) for r in merged] == [("a", 1), ("b", 2), ("c", 1), ("d", 2)]
   assert results_io.merged_rows(tmp_path / "missing.json", [dict(row="x")], key) == [dict(row="x")]
+
+
+def _steganerf_row(row, iterations, psnr, hidden_psnr, width=16):
+  return dict(_conceal_row(row, width, psnr, hidden_psnr), method="StegaNeRF", iterations=iterations,
+              steganerf=dict(settings=dict(decoder_width=width)))
+
+
+def test_concealgs_is_ahead_of_a_steganerf_run_only_at_its_width_and_length_on_render_and_hidden(tmp_path):
+  polish = dict(_conceal_row("polish", 16, 33.3, 44.0), decoder_polish_steps=2000)
+  conceal_rows = [_conceal_row("joint", 16, 33.2, 42.0), polish, _conceal_row("wide", 64, 33.3, 46.0),
+                  dict(_conceal_row("wide", 64, 33.3, 46.0), scene="beer"),
+                  _conceal_row("no_guidance", 16, 33.5, 47.0)]  # an ablation: left out
+  baseline_rows = [_steganerf_row("stega_10k", 10_000, 32.5, 41.7), _steganerf_row("stega_12k", 12_000, 32.8, 45.3),
+                   _steganerf_row("stega_short", 10_000, 33.0, 42.0),
+                   dict(_conceal_row("lsb1", 16, 33.0, 5.0), method="LSB")]
+  runs = reproduce.tradeoff_points("lego", dict(rows=conceal_rows), dict(rows=baseline_rows))
+  by_run = {p["run"]: p for p in runs}
+  assert sorted(by_run) == ["joint", "polish", "stega_10k", "stega_12k", "stega_short", "wide"]
+  assert (by_run["polish"]["steps"], by_run["polish"]["length"]) == (12_000, "10000 + 2000 polish")
+  assert np.isclose(by_run["stega_10k"]["render_loss"], 0.6) and by_run["stega_10k"]["max_leakage"] == 0.13
+  assert tradeoff.ahead(by_run["joint"], by_run["stega_10k"])
+  assert not tradeoff.ahead(by_run["polish"], by_run["stega_10k"])  # more steps
+  assert not tradeoff.ahead(by_run["wide"], by_run["stega_12k"])  # a wider decoder
+  assert not tradeoff.ahead(by_run["polish"], by_run["stega_12k"])  # less hidden
+  # equal hidden counts, equal render does not
+  assert tradeoff.ahead(by_run["joint"], by_run["stega_short"])
+  assert not tradeoff.ahead(dict(by_run["joint"], render_psnr=33.0), by_run["stega_short"])
+  lines = tradeoff.table("lego", runs)
+  assert "| StegaNeRF | stega_10k | 16 | 10000 | 32.50 (-0.60) | 41.70 | 0.130 | joint |" in lines
+  assert "| StegaNeRF | stega_12k | 16 | 12000 | 32.80 (-0.30) | 45.30 | 0.130 | none |" in lines
+  assert "| ConcealGS | polish | 16 | 10000 + 2000 polish | 33.30 (+0.20) | 44.00 | 0.130 |  |" in lines
+  assert tradeoff.table("lego", [])[-2] == "| not run yet | | | | | | | |"
+  assert tradeoff.figure("lego", [], tmp_path) is None
+
+  results = tmp_path / "results"
+  fileio.write_json(results / "conceal_bench.json", dict(rows=conceal_rows))
+  fileio.write_json(results / "baseline_bench.json", dict(rows=baseline_rows))
+  text = reproduce.report(results, tmp_path / "bench")
+  assert "| StegaNeRF | stega_10k |" in text and "![ConcealGS beside StegaNeRF, lego](tradeoff_lego.png)" in text
+  assert (results / "tradeoff_lego.png").is_file()
