@@ -12,15 +12,14 @@ from experiments import results_io
 
 
 def points(conceal_rows: list[dict], baseline_rows: list[dict]) -> list[dict]:
-  """bench-conceal rows (ConcealGS) and bench-baselines rows of one scene -> one point per ConcealGS or StegaNeRF
-  run: method, run (the row's name and where it ran), width (of the decoder), steps (joint + decoder polish) and
-  length (the same in words), render_psnr, render_loss (teacher minus student, dB), hidden_psnr, max_leakage
-  (SSIM)."""
+  """bench-conceal rows (ConcealGS) and bench-baselines rows of one scene (both benches' summary rows, with their
+  student_psnr_loss and max_leakage) -> one point per ConcealGS or StegaNeRF run: method, run (the row's name and
+  where it ran), width (of the decoder), steps (joint + decoder polish) and length (the same in words), render_psnr,
+  render_loss (teacher minus student, dB), hidden_psnr, max_leakage (SSIM)."""
   def point(method, row, run, width, steps, length):
-    student = row["student_vs_ground_truth"]["psnr"]
-    return dict(method=method, run=run, width=width, steps=steps, length=length, render_psnr=student,
-                render_loss=row["teacher_vs_ground_truth"]["psnr"] - student, hidden_psnr=row["hidden"]["psnr"],
-                max_leakage=max(row["leakage"].values()))
+    return dict(method=method, run=run, width=width, steps=steps, length=length,
+                render_psnr=row["student_vs_ground_truth"]["psnr"], render_loss=row["student_psnr_loss"],
+                hidden_psnr=row["hidden"]["psnr"], max_leakage=row["max_leakage"])
   ours = [point("ConcealGS", r, f"{r['row']}{results_io.on_device(r)}", r["decoder_width"],
                 r["iterations"] + r.get("decoder_polish_steps", 0), results_io.conceal_steps(r)) for r in conceal_rows]
   theirs = [point("StegaNeRF", r, r["row"], r["steganerf"]["settings"]["decoder_width"], r["iterations"],

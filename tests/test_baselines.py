@@ -230,7 +230,8 @@ def test_bench_rows_feed_the_reproduction(lsb_run, deepstega_run, tiny, tmp_path
   shutil.copy(tiny[1], bench / "lego" / "teacher" / "point_cloud.ply")
   metrics = json.loads((workdir / "metrics.json").read_text())
   other = dict(metrics, method="StegaNeRF", scene="lego", row="steganerf_check_view", iterations=6,
-               steganerf=dict(settings=dict(decoder_width=2)), protocol="theirs", wall_time_s=1.0, revealed="")
+               steganerf=dict(settings=dict(decoder_width=2)), protocol="theirs", wall_time_s=1.0, revealed="",
+               student_psnr_loss=0.5, max_leakage=0.1)
   fileio.write_json(out / "baseline_bench.json", dict(rows=[other]))
 
   rows = bench_baselines.run("lego", ["lsb1", "lsb4", "deepstega"], 0, 0, bench, out, reuse=True)
