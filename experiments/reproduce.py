@@ -238,6 +238,7 @@ def report(results: pathlib.Path, workdir: pathlib.Path) -> str:
   lines += tradeoff.table("lego", lego_runs)
   plot = tradeoff.figure("lego", lego_runs, results)
   lines += [f"![ConcealGS beside StegaNeRF, lego]({plot})", ""] if plot else []
+  lines += tradeoff.seed_table("lego", lego_runs)
   lines += robustness_table(robust_bench)
   lines += ownership_table(load(results, "ownership_calibration.json"))
   lines += ["### Figures", ""]

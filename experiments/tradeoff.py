@@ -1,23 +1,38 @@
 """ConcealGS beside StegaNeRF on one scene, the baselines issue's render-at-equal-hidden target as one table and one
 plot for REPRODUCTION.md: every run of either (bench-conceal's ConcealGS rows, the paper's ablations aside, and
 bench-baselines' StegaNeRF rows) at its render PSNR against ground truth, its hidden PSNR at the key and its worst
-leakage, and for each StegaNeRF run the ConcealGS runs ahead of it (`ahead`).
+leakage, and for each StegaNeRF run the ConcealGS runs ahead of it (`ahead`); then the recipes run from several
+seeds, on their means over the seeds (`over_seeds`), since one seed's lead can sit within a recipe's seed spread.
 """
 from __future__ import annotations
 
 import pathlib
+import re
+
+import numpy as np
 
 from conceal_jax.core import fileio
 from experiments import results_io
 
 
+# Both benches name a row that reruns another row's settings from seed N `<that row>_seed<N>` (tested).
+_SEED = re.compile(r"_seed(\d+)")
+
+
+def recipe(row: str) -> tuple[str, int]:
+  """A bench row's name -> the row whose settings it runs and its seed (0 unless the name says another)."""
+  found = _SEED.search(row)
+  return (row, 0) if found is None else (row[:found.start()] + row[found.end():], int(found.group(1)))
+
+
 def points(conceal_rows: list[dict], baseline_rows: list[dict]) -> list[dict]:
   """bench-conceal rows (ConcealGS) and bench-baselines rows of one scene (both benches' summary rows, with their
   student_psnr_loss and max_leakage) -> one point per ConcealGS or StegaNeRF run: method, run (the row's name and
-  where it ran), width (of the decoder), steps (joint + decoder polish) and length (the same in words), render_psnr,
-  render_loss (teacher minus student, dB), hidden_psnr, max_leakage (SSIM)."""
+  where it ran), recipe and seed (`recipe`), width (of the decoder), steps (joint + decoder polish) and length (the
+  same in words), render_psnr, render_loss (teacher minus student, dB), hidden_psnr, max_leakage (SSIM)."""
   def point(method, row, run, width, steps, length):
-    return dict(method=method, run=run, width=width, steps=steps, length=length,
+    name, seed = recipe(row["row"])
+    return dict(method=method, run=run, recipe=name, seed=seed, width=width, steps=steps, length=length,
                 render_psnr=row["student_vs_ground_truth"]["psnr"], render_loss=row["student_psnr_loss"],
                 hidden_psnr=row["hidden"]["psnr"], max_leakage=row["max_leakage"])
   ours = [point("ConcealGS", r, f"{r['row']}{results_io.on_device(r)}", r["decoder_width"],
@@ -34,6 +49,59 @@ def ahead(ours: dict, theirs: dict) -> bool:
           and ours["render_psnr"] > theirs["render_psnr"] and ours["hidden_psnr"] >= theirs["hidden_psnr"])
 
 
+def over_seeds(runs: list[dict]) -> list[dict]:
+  """`points` -> one point per recipe run from two or more seeds (same method, recipe, decoder width and steps):
+  its render_psnr, render_loss and hidden_psnr averaged over the seeds, hidden_range (lowest, highest), its worst
+  max_leakage, and seeds (sorted); its run is the recipe's name."""
+  groups: dict[tuple, list[dict]] = {}
+  for p in runs:
+    groups.setdefault((p["method"], p["recipe"], p["width"], p["steps"]), []).append(p)
+  means = []
+  for (method, name, width, steps), group in groups.items():
+    seeds = sorted(p["seed"] for p in group)
+    if len(set(seeds)) < 2:
+      continue
+    mean = {k: float(np.mean([p[k] for p in group])) for k in ("render_psnr", "render_loss", "hidden_psnr")}
+    hidden = [p["hidden_psnr"] for p in group]
+    means.append(dict(mean, method=method, run=name, recipe=name, width=width, steps=steps,
+                      length=group[0]["length"], seeds=seeds, hidden_range=(min(hidden), max(hidden)),
+                      max_leakage=max(p["max_leakage"] for p in group)))
+  return means
+
+
+def _render(entry: dict) -> str:
+  return f"{entry['render_psnr']:.2f} ({-entry['render_loss']:+.2f})"
+
+
+def _lines(entries: list[dict], middle) -> list[str]:
+  """One table line per point or recipe mean of `entries`, StegaNeRF's first and each by falling hidden PSNR:
+  method, run, width, steps, `middle(entry)`'s cells, max leakage, and for StegaNeRF's the ConcealGS ones `ahead`."""
+  ours = [e for e in entries if e["method"] == "ConcealGS"]
+  lines = []
+  for e in sorted(entries, key=lambda e: (e["method"] != "StegaNeRF", -e["hidden_psnr"])):
+    beaten_by = "; ".join(o["run"] for o in ours if ahead(o, e)) or "none"
+    lines.append(f"| {e['method']} | {e['run']} | {e['width']} | {e['length']} | {middle(e)} | {e['max_leakage']:.3f} "
+                 f"| {beaten_by if e['method'] == 'StegaNeRF' else ''} |")
+  return lines
+
+
+def seed_table(scene: str, runs: list[dict]) -> list[str]:
+  """`over_seeds` of `points` as REPRODUCTION.md lines, each StegaNeRF recipe with the ConcealGS recipes `ahead` of
+  it on the means."""
+  means = over_seeds(runs)
+  lines = [f"#### On the means over seeds ({scene})", "",
+           "Recipes run from two or more seeds, each the mean of its runs above (hidden PSNR: mean, lowest-highest). "
+           "The same rule on the means: a ConcealGS recipe is ahead when its mean render PSNR is higher and its mean "
+           "hidden PSNR at least as high, with a decoder as wide and in no more steps.", "",
+           "| method | recipe | width | steps | seeds | render PSNR (student - teacher) | hidden PSNR | max leakage | "
+           "ConcealGS recipes ahead |", "|---|---|---|---|---|---|---|---|---|"]
+  lines += _lines(means, lambda m: f"{', '.join(map(str, m['seeds']))} | {_render(m)} | {m['hidden_psnr']:.2f} "
+                                   f"({m['hidden_range'][0]:.2f}-{m['hidden_range'][1]:.2f})")
+  if not means:
+    lines.append("| no recipe run from two seeds yet | | | | | | | | |")
+  return lines + [""]
+
+
 def table(scene: str, runs: list[dict]) -> list[str]:
   """`points` as REPRODUCTION.md lines, StegaNeRF's runs first, each with the ConcealGS runs `ahead` of it."""
   lines = [f"### ConcealGS beside StegaNeRF ({scene}): which runs render better at equal or better hidden PSNR", "",
@@ -43,12 +111,7 @@ def table(scene: str, runs: list[dict]) -> list[str]:
            "at the key, near the key).", "",
            "| method | run | width | steps | render PSNR (student - teacher) | hidden PSNR | max leakage | "
            "ConcealGS runs ahead |", "|---|---|---|---|---|---|---|---|"]
-  ours = [p for p in runs if p["method"] == "ConcealGS"]
-  for p in sorted(runs, key=lambda p: (p["method"] != "StegaNeRF", -p["hidden_psnr"])):
-    beaten_by = "; ".join(o["run"] for o in ours if ahead(o, p)) or "none"
-    lines.append(f"| {p['method']} | {p['run']} | {p['width']} | {p['length']} | {p['render_psnr']:.2f} "
-                 f"({-p['render_loss']:+.2f}) | {p['hidden_psnr']:.2f} | {p['max_leakage']:.3f} | "
-                 f"{beaten_by if p['method'] == 'StegaNeRF' else ''} |")
+  lines += _lines(runs, lambda p: f"{_render(p)} | {p['hidden_psnr']:.2f}")
   if not runs:
     lines.append("| not run yet | | | | | | | |")
   return lines + [""]

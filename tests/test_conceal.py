@@ -20,7 +20,7 @@ from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat.camera import Camera, camera_centers, look_at
 from conceal_jax.configs import default, demo, demo_robust, lego_conceal
 from conceal_jax.core import fileio
-from experiments import bench_conceal, results_io
+from experiments import bench_baselines, bench_conceal, results_io, tradeoff
 
 
 @pytest.fixture(scope="module")
@@ -412,6 +412,31 @@ def test_a_bench_row_may_set_the_seed_beside_its_conceal_overrides(tmp_path):
                       for row in ("released", "released_seed1"))
   assert (released.seed, seeded.seed, seeded.conceal.variant) == (0, 1, "released")
   assert seeded.conceal.to_dict() == released.conceal.to_dict()
+
+
+def test_the_12k_released_row_is_released_trained_longer(tmp_path):
+  teacher = tmp_path / "point_cloud.ply"
+  released, longer = (bench_conceal.run_config("lego", teacher, row, 16, 0, 0).conceal.to_dict()
+                      for row in ("released", "released_12k"))
+  assert longer.pop("iterations") == 12_000 and released.pop("iterations") == 10_000
+  assert longer == released
+  assert bench_conceal.run_config("lego", teacher, "released_12k", 16, 100, 0).conceal.iterations == 100
+
+
+def test_a_bench_row_from_another_seed_is_named_for_it(tmp_path):
+  """tradeoff.recipe reads a row's seed from its name in both benches: `<row>_seed<N>` runs <row> from seed N."""
+  teacher = tmp_path / "point_cloud.ply"
+  for row in bench_conceal.ROWS:
+    name, seed = tradeoff.recipe(row)
+    config = bench_conceal.run_config("lego", teacher, row, 16, 0, 0)
+    assert config.seed == seed, row
+    if seed and name in bench_conceal.ROWS:
+      assert config.conceal.to_dict() == bench_conceal.run_config("lego", teacher, name, 16, 0, 0).conceal.to_dict()
+  for row in bench_baselines.ROWS:
+    name, seed = tradeoff.recipe(row)
+    assert bench_baselines.run_config("lego", teacher, row, 0, 0).seed == seed, row
+    if seed:
+      assert dict(bench_baselines.ROWS[row], seed=0) == dict(bench_baselines.ROWS[name], seed=0)
 
 
 def test_demo_robust_config_is_the_demo_trained_through_attacks():

@@ -146,3 +146,25 @@ def test_concealgs_is_ahead_of_a_steganerf_run_only_at_its_width_and_length_on_r
   text = reproduce.report(results, tmp_path / "bench")
   assert "| StegaNeRF | stega_10k |" in text and "![ConcealGS beside StegaNeRF, lego](tradeoff_lego.png)" in text
   assert (results / "tradeoff_lego.png").is_file()
+
+
+def test_recipes_from_several_seeds_are_compared_on_their_means():
+  conceal_rows = [_conceal_row("joint", 16, 33.4, 42.5), _conceal_row("joint_seed1", 16, 33.4, 39.0),
+                  _conceal_row("single", 16, 34.0, 50.0), _conceal_row("joint_seed1", 64, 33.0, 45.0)]
+  baseline_rows = [_steganerf_row("stega", 10_000, 32.5, 41.7), _steganerf_row("stega_seed1", 10_000, 32.8, 41.0),
+                   _steganerf_row("stega_seed1_12k", 12_000, 32.8, 45.3)]
+  runs = reproduce.tradeoff_points("lego", dict(rows=conceal_rows), dict(rows=baseline_rows))
+  assert tradeoff.recipe("stega_seed1_12k") == ("stega_12k", 1) and tradeoff.recipe("joint") == ("joint", 0)
+  # single seeds, another width or length: not a recipe over seeds
+  means = {m["run"]: m for m in tradeoff.over_seeds(runs)}
+  assert sorted(means) == ["joint", "stega"]
+  assert means["joint"]["seeds"] == [0, 1] and np.isclose(means["joint"]["hidden_psnr"], 40.75)
+  assert means["joint"]["hidden_range"] == (39.0, 42.5) and np.isclose(means["stega"]["render_psnr"], 32.65)
+  # run by run `joint` (seed 0) is ahead of both StegaNeRF seeds; on the means it is not
+  by_run = {p["run"]: p for p in runs}
+  assert tradeoff.ahead(by_run["joint"], by_run["stega"]) and tradeoff.ahead(by_run["joint"], by_run["stega_seed1"])
+  assert not tradeoff.ahead(means["joint"], means["stega"])
+  lines = tradeoff.seed_table("lego", runs)
+  assert "| StegaNeRF | stega | 16 | 10000 | 0, 1 | 32.65 (-0.45) | 41.35 (41.00-41.70) | 0.130 | none |" in lines
+  assert "| ConcealGS | joint | 16 | 10000 | 0, 1 | 33.40 (+0.30) | 40.75 (39.00-42.50) | 0.130 |  |" in lines
+  assert tradeoff.seed_table("lego", runs[:1])[-2] == "| no recipe run from two seeds yet | | | | | | | | |"
