@@ -46,9 +46,6 @@ ROWS = {
     # took ours_robust_clip from 38.48 to 40.43-40.74 dB: released's constant rate leaves the late dips of seed 1
     "released_dec03_clip": dict(variant="released", granularity="tensor", decoder_lr_final_ratio=0.3,
                                 decoder_update_clip=1.0),
-    # ... from seed 1: REPRODUCTION compares recipes on their means over seeds (experiments/tradeoff.over_seeds)
-    "released_dec03_clip_seed1": dict(variant="released", granularity="tensor", decoder_lr_final_ratio=0.3,
-                                      decoder_update_clip=1.0, seed=1),
     # ... and `released` trained jointly for 12k steps, StegaNeRF's 12k row's length (its schedules stretched to
     # it): StegaNeRF's 12k lead (45.27 dB against 41.67 and 41.05 at 10k) came in its last joint steps, where
     # released_polish's decoder-only steps added 0.30 dB
@@ -124,6 +121,8 @@ ROWS = {
     "ours_robust_clip_dec03_seed1_polish": lambda config: _seeded(_best(config, decoder_polish_steps=2000),
                                                                       1),
 }
+# released_dec03_clip from seed 1: REPRODUCTION compares recipes on their means over seeds (tradeoff.over_seeds)
+ROWS["released_dec03_clip_seed1"] = dict(ROWS["released_dec03_clip"], seed=1)
 # A row that continues another's run starts from that run's checkpoint at the end of its joint steps, where its
 # config is the other's up to the continuation (conceal.decoder_polish_steps), so it costs only its extra steps.
 CONTINUES = dict(released_polish="released", ours_robust_clip_dec03_seed1_polish="ours_robust_clip_dec03_seed1",
