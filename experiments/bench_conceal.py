@@ -130,7 +130,14 @@ ROWS = {
 # released_dec03_clip and released_plus2 from seed 1: REPRODUCTION compares recipes on their means over seeds
 # (tradeoff.over_seeds)
 ROWS["released_dec03_clip_seed1"] = dict(ROWS["released_dec03_clip"], seed=1)
+# released_plus2_seed1 measured: student 33.28 dB (+0.14), hidden 38.93 dB / 0.9970 (released_seed1 38.98), leakage
+# 0.95, 55.3 min; its curve led released_seed1's by 2-4 dB (39.74 against 35.9 at 5k, 42.63 against 38.5 at 9.5k)
+# but the decoder burst at 5.5k, 6.5k and in the last 500 steps (42.63 -> 38.93), so lambda+ 2 speeds the decoder
+# without steadying it
 ROWS["released_plus2_seed1"] = dict(ROWS["released_plus2"], seed=1)
+# released_plus2 with each decoder tensor's Adam step clipped to RMS 1 at its constant rate: the clip held off
+# ours_robust_clip_dec05's bursts; released_dec03_clip paired it with a decaying rate, which slowed the decoder
+ROWS["released_plus2_clip"] = dict(ROWS["released_plus2"], decoder_update_clip=1.0)
 # A row that continues another's run starts from that run's checkpoint at the end of its joint steps, where its
 # config is the other's up to the continuation (conceal.decoder_polish_steps), so it costs only its extra steps.
 CONTINUES = dict(released_polish="released", ours_robust_clip_dec03_seed1_polish="ours_robust_clip_dec03_seed1",
