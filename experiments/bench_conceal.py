@@ -142,9 +142,9 @@ ROWS["released_plus2_seed1"] = dict(ROWS["released_plus2"], seed=1)
 ROWS["released_plus2_clip"] = dict(ROWS["released_plus2"], decoder_update_clip=1.0)
 # released_plus2_clip_seed1 measured: student 33.24 dB (+0.10), hidden 42.49 dB / 0.9978 (released_plus2_seed1 38.93),
 # leakage 0.89, 56.1 min. Its decoder still dipped with the student (23.55 dB at 1k, 31.69 at 2.5k with the test
-# PSNR at 31.50, 36.43 at 5.5k) but recovered each time and ended near its best (42.29 at 8k). Over the two seeds
-# released_plus2_clip renders 33.28 dB and reveals 42.82 (42.49-43.15), ahead of StegaNeRF's check-view 10k row
-# (32.65 / 41.36) on both, at the same decoder width and length
+# PSNR at 31.50, 36.43 at 5.5k) but recovered each time and ended at its best (42.29 at 8k, 42.49 at 10k). Over
+# the two seeds released_plus2_clip renders 33.28 dB and reveals 42.82 (42.49-43.15), ahead of StegaNeRF's check-view
+# 10k row (32.65 / 41.36) on both, at the same decoder width and length
 ROWS["released_plus2_clip_seed1"] = dict(ROWS["released_plus2_clip"], seed=1)
 # A row that continues another's run starts from that run's checkpoint at the end of its joint steps, where its
 # config is the other's up to the continuation (conceal.decoder_polish_steps), so it costs only its extra steps.
