@@ -114,7 +114,10 @@ ROWS["released_polish"] = dict(ROWS["released"], decoder_polish_steps=2000)
 # seed 0's by 2-3 dB from step 1000 and dips (35.51 at 8500), so released's hidden lead was one seed's
 ROWS["released_seed1"] = dict(ROWS["released"], seed=1)
 # `released` with the decoder's rate decaying to 0.3x and each tensor's step clipped to RMS 1, the two changes that
-# took ours_robust_clip from 38.48 to 40.43-40.74 dB: released's constant rate leaves the late dips of seed 1
+# took ours_robust_clip from 38.48 to 40.43-40.74 dB: released's constant rate leaves the late dips of seed 1.
+# Stopped at 8000 steps (its checkpoints since lost): the lower rate slowed the decoder more than it steadied it,
+# hidden 31.18 / 35.07 / 36.53 dB at 2k / 5k / 8k against released's 33.44 / 38.32 / 41.31 (seed 1: 30.74 / 35.91 /
+# 38.09); its seed-1 twin (below) not run
 ROWS["released_dec03_clip"] = dict(ROWS["released"], decoder_lr_final_ratio=0.3, decoder_update_clip=1.0)
 # `released` trained jointly for 12k steps, StegaNeRF's 12k row's length (its schedules stretched to it):
 # StegaNeRF's 12k lead (45.27 dB against 41.67 and 41.05 at 10k) came in its last joint steps, where
