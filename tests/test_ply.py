@@ -1,5 +1,6 @@
 """Tests of the 3D-GS .ply export and import."""
 import os
+import warnings
 
 import jax
 import numpy as np
@@ -172,14 +173,101 @@ def test_f_rest_numbering_gap(tmp_path):
   expect_ply_error(path, "not numbered")
 
 
-@pytest.mark.parametrize("name, value", [("x", np.nan), ("f_rest_3", np.inf), ("opacity", -np.inf),
-                                         ("scale_1", 1e300)])
+@pytest.mark.parametrize("name, value", [("x", np.nan), ("f_rest_3", np.inf), ("opacity", np.nan),
+                                         ("scale_1", 1e300), ("rot_2", -np.inf)])
 def test_non_finite_value(tmp_path, name, value):
   cols = standard_columns(3, 9)
   cols[name] = np.array([0.0, value, 0.0])
   path = tmp_path / "nonfinite.ply"
   write_raw_ply(path, cols, dtype="<f8")  # 1e300 is finite in float64 but overflows float32
-  expect_ply_error(path, "non-finite values")
+  expect_ply_error(path, f"non-finite values in vertex properties {name}")
+
+
+def test_infinite_opacity_logits_are_clipped_with_a_warning(tmp_path):
+  """Opacities of exactly 0 and 1, as splat-transform writes them after a .compressed.ply."""
+  cols = standard_columns(5, 9)
+  cols["opacity"] = np.array([np.inf, -np.inf, 0.25, np.inf, -3.0])
+  path = tmp_path / "saturated.ply"
+  write_raw_ply(path, cols)
+  with pytest.warns(ply.PlyWarning) as record:
+    g = ply.load_ply(path)
+  assert len(record) == 1
+  message = str(record[0].message)
+  assert str(path) in message and "3 opacity logits were infinite" in message
+  limit = np.float32(ply.OPACITY_LOGIT_LIMIT)
+  np.testing.assert_array_equal(np.asarray(g.opacity_logits), np.float32([limit, -limit, 0.25, limit, -3.0]))
+  # Practically opaque and transparent, with a finite sigmoid and gradient in float32.
+  opacity = np.asarray(jax.nn.sigmoid(g.opacity_logits))
+  assert opacity[0] > 1 - 2e-6 and 0 < opacity[1] < 2e-6
+  assert np.all(np.isfinite(np.asarray(jax.grad(lambda x: jax.nn.sigmoid(x).sum())(g.opacity_logits))))
+
+
+def test_finite_opacity_logits_load_without_warning(tmp_path):
+  path = tmp_path / "plain.ply"
+  write_raw_ply(path, standard_columns(3, 0))
+  with warnings.catch_warnings():
+    warnings.simplefilter("error")
+    ply.load_ply(path)
+
+
+def test_compressed_ply_is_refused_with_a_hint(tmp_path):
+  path = tmp_path / "scene.compressed.ply"
+  write_raw_ply(path, {"packed_position": np.zeros(4), "packed_rotation": np.zeros(4),
+                       "packed_scale": np.zeros(4), "packed_color": np.zeros(4)}, dtype="<u4")
+  expect_ply_error(path, "compressed ply")
+
+
+def exporter_columns(layout: str, g: Gaussians) -> dict:
+  """Columns of `g` in the property order of one exporter, written independently of save_ply.
+
+  inria: x y z nx ny nz f_dc f_rest opacity scale rot; splatfacto: no normals, f_rest before f_dc, extra
+  per-vertex colour bytes; shuffled: every property in a random order, plus unknown extra properties."""
+  n, sh = g.num, np.asarray(g.sh)
+  rest = np.transpose(sh[:, 1:, :], (0, 2, 1)).reshape(n, -1)
+  position = {"x": g.means[:, 0], "y": g.means[:, 1], "z": g.means[:, 2]}
+  normals = {"nx": np.zeros(n), "ny": np.zeros(n), "nz": np.zeros(n)}
+  dc = {f"f_dc_{c}": sh[:, 0, c] for c in range(3)}
+  rests = {f"f_rest_{i}": rest[:, i] for i in range(rest.shape[1])}
+  others = {"opacity": g.opacity_logits, **{f"scale_{i}": g.log_scales[:, i] for i in range(3)},
+            **{f"rot_{i}": g.quats[:, i] for i in range(4)}}
+  if layout == "inria":
+    cols = {**position, **normals, **dc, **rests, **others}
+  elif layout == "splatfacto":
+    cols = {**position, **rests, **dc, **others, "red": np.full(n, 7), "green": np.zeros(n),
+            "blue": np.zeros(n)}
+  elif layout == "shuffled":
+    items = list({**position, **normals, **dc, **rests, **others, "filter_3D": np.ones(n),
+                  "segment_id": np.arange(n)}.items())
+    order = np.random.default_rng(3).permutation(len(items))
+    cols = dict(items[i] for i in order)
+  else:
+    raise ValueError(layout)
+  return {name: np.asarray(value) for name, value in cols.items()}
+
+
+@pytest.mark.parametrize("layout", ["inria", "splatfacto", "shuffled"])
+@pytest.mark.parametrize("sh_degree", [0, 1, 2, 3])
+def test_exporter_layouts_round_trip(tmp_path, layout, sh_degree):
+  g = random_gaussians(6, sh_degree, seed=sh_degree)
+  path = tmp_path / f"{layout}.ply"
+  write_raw_ply(path, exporter_columns(layout, g))
+  loaded = ply.load_ply(path)
+  assert loaded.sh_degree == sh_degree
+  assert_gaussians_equal(g, loaded)
+  ply.save_ply(tmp_path / "again.ply", loaded)
+  assert_gaussians_equal(g, ply.load_ply(tmp_path / "again.ply"))
+
+
+def test_unknown_list_property_is_ignored(tmp_path):
+  g = random_gaussians(3, 1)
+  vertices = ply.gaussians_to_vertices(g)
+  extra = np.empty(3, dtype=vertices.dtype.descr + [("labels", object)])
+  for name in vertices.dtype.names:
+    extra[name] = vertices[name]
+  extra["labels"] = [np.arange(k + 1, dtype=np.int32) for k in range(3)]
+  path = tmp_path / "lists.ply"
+  plyfile.PlyData([plyfile.PlyElement.describe(extra, "vertex")]).write(str(path))
+  assert_gaussians_equal(g, ply.load_ply(path))
 
 
 def test_interrupted_write_keeps_previous_file(tmp_path, monkeypatch):
@@ -197,3 +285,13 @@ def test_interrupted_write_keeps_previous_file(tmp_path, monkeypatch):
   monkeypatch.undo()
   assert_gaussians_equal(old, ply.load_ply(path))
   assert sorted(os.listdir(tmp_path)) == ["point_cloud.ply"]  # the temporary file is gone
+
+
+def test_list_property_where_a_scalar_is_needed(tmp_path):
+  cols = standard_columns(2, 0)
+  vertices = np.empty(2, dtype=[(name, "<f4") for name in cols if name != "opacity"] + [("opacity", object)])
+  for name, value in cols.items():
+    vertices[name] = list(np.float32(value)[:, None]) if name == "opacity" else value
+  path = tmp_path / "list_opacity.ply"
+  plyfile.PlyData([plyfile.PlyElement.describe(vertices, "vertex")]).write(str(path))
+  expect_ply_error(path, "vertex properties opacity are not scalars")

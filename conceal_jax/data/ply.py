@@ -10,8 +10,10 @@ normals are unused by 3D-GS and written as zeros.
 """
 from __future__ import annotations
 
+import math
 import os
 import re
+import warnings
 
 import jax.numpy as jnp
 import numpy as np
@@ -28,10 +30,20 @@ _SCALE = ("scale_0", "scale_1", "scale_2")
 _ROTATION = ("rot_0", "rot_1", "rot_2", "rot_3")
 _REQUIRED = _POSITION + _DC + _OPACITY + _SCALE + _ROTATION
 _REST_PATTERN = re.compile(r"f_rest_(\d+)")
+# Properties of the PlayCanvas/SuperSplat compressed ply, whose quantised chunks need decoding first.
+_COMPRESSED_MARKERS = ("packed_position", "packed_rotation", "packed_scale", "packed_color")
+# Logit of an opacity 1e-6 from 0 or 1: an opacity of exactly 1 (or 0) read from a file becomes this finite
+# logit, practically opaque (transparent: far below the renderer's 1/255 alpha cut), whose sigmoid and its
+# gradient stay finite in float32 so that the scene can still be rendered and trained.
+OPACITY_LOGIT_LIMIT = math.log((1.0 - 1e-6) / 1e-6)
 
 
 class PlyError(ValueError):
   """A file that is not a readable 3D-GS point cloud."""
+
+
+class PlyWarning(UserWarning):
+  """A file that was read with values changed to what the renderer needs (infinite opacity logits)."""
 
 
 def rest_names(sh_degree: int) -> list[str]:
@@ -77,35 +89,44 @@ def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
 def load_ply(path: str | os.PathLike) -> Gaussians:
   """Reads any standard 3D-GS ply (SH degree inferred from the f_rest count) into float32 Gaussians.
 
-  Raises PlyError, naming the file, when it is missing, is not a well-formed ply, lacks a required
-  property, has an f_rest count that is no SH degree, or holds a non-finite value.
+  Infinite opacity logits (opacities of exactly 0 or 1) are clipped to +-OPACITY_LOGIT_LIMIT with a
+  PlyWarning that says how many. Raises PlyError, naming the file, when it is missing, is not a
+  well-formed ply, is a compressed ply, lacks a required property, has an f_rest count that is no SH
+  degree, or holds any other non-finite value (NaN anywhere, an infinity outside the opacities).
   """
   path = os.fspath(path)
   vertices = _read_vertices(path)
   names = vertices.dtype.names or ()
+  if any(name in names for name in _COMPRESSED_MARKERS):
+    raise PlyError(f"{path}: a compressed ply (packed_* properties); decompress it first, e.g. with "
+                   "splat-transform (conceal_jax.robust.converter)")
   missing = [name for name in _REQUIRED if name not in names]
   if missing:
     raise PlyError(f"{path}: missing vertex properties {', '.join(missing)}")
   sh_degree = _sh_degree_from_rest(path, names)
+  used = _REQUIRED + tuple(rest_names(sh_degree))
+  non_numeric = [name for name in used if vertices.dtype[name].kind not in "fiu"]
+  if non_numeric:
+    raise PlyError(f"{path}: vertex properties {', '.join(non_numeric)} are not scalars")
   n = len(vertices)
+  # Doubles beyond the float32 range become inf here on purpose: the finiteness check rejects them (and
+  # an opacity logit that large is an opacity of 0 or 1, clipped as an infinite one).
+  with np.errstate(over="ignore"):
+    values = {name: np.asarray(vertices[name], np.float32) for name in used}
+  values["opacity"] = _clip_infinite_logits(path, values["opacity"])
+  bad = [name for name in used if not np.all(np.isfinite(values[name]))]
+  if bad:
+    raise PlyError(f"{path}: non-finite values in vertex properties {', '.join(bad)}")
 
   def columns(fields) -> np.ndarray:
-    out = np.empty((n, len(fields)), np.float32)
-    # Doubles beyond the float32 range become inf here on purpose: the finiteness check rejects them.
-    with np.errstate(over="ignore"):
-      for i, name in enumerate(fields):
-        out[:, i] = vertices[name]
-    return out
+    """[N, len(fields)] float32."""
+    return np.stack([values[name] for name in fields], axis=1) if fields else np.zeros((n, 0), np.float32)
 
-  dc = columns(_DC)
   rest = columns(rest_names(sh_degree)).reshape(n, 3, (sh_degree + 1)**2 - 1)
-  sh = np.concatenate([dc[:, None, :], np.transpose(rest, (0, 2, 1))], axis=1)
-  arrays = dict(means=columns(_POSITION), log_scales=columns(_SCALE), quats=columns(_ROTATION),
-                opacity_logits=columns(_OPACITY)[:, 0], sh=sh)
-  bad = [name for name, value in arrays.items() if not np.all(np.isfinite(value))]
-  if bad:
-    raise PlyError(f"{path}: non-finite values in {', '.join(bad)}")
-  return Gaussians(**{name: jnp.asarray(value) for name, value in arrays.items()})
+  sh = np.concatenate([columns(_DC)[:, None, :], np.transpose(rest, (0, 2, 1))], axis=1)
+  return Gaussians(means=jnp.asarray(columns(_POSITION)), log_scales=jnp.asarray(columns(_SCALE)),
+                   quats=jnp.asarray(columns(_ROTATION)), opacity_logits=jnp.asarray(values["opacity"]),
+                   sh=jnp.asarray(sh))
 
 
 def _read_vertices(path: str) -> np.ndarray:
@@ -122,12 +143,19 @@ def _read_vertices(path: str) -> np.ndarray:
     raise PlyError(f"{path}: cannot read ({e})") from e
   if "vertex" not in data:
     raise PlyError(f"{path}: no 'vertex' element")
-  vertices = data["vertex"].data
-  names = vertices.dtype.names or ()
-  non_numeric = [name for name in names if vertices.dtype[name].kind not in "fiu"]
-  if non_numeric:
-    raise PlyError(f"{path}: vertex properties {', '.join(non_numeric)} are not scalars")
-  return vertices
+  return data["vertex"].data
+
+
+def _clip_infinite_logits(path: str, logits: np.ndarray) -> np.ndarray:
+  """[N] opacity logits with +-inf clipped to +-OPACITY_LOGIT_LIMIT (NaN kept for the finiteness check);
+  a PlyWarning naming the file says how many were clipped."""
+  infinite = np.isinf(logits)
+  count = int(np.sum(infinite))
+  if not count:
+    return logits
+  warnings.warn(f"{path}: {count} opacity logits were infinite (opacity exactly 0 or 1); clipped to "
+                f"+-{OPACITY_LOGIT_LIMIT:.2f}", PlyWarning, stacklevel=3)
+  return np.where(infinite, np.sign(logits) * np.float32(OPACITY_LOGIT_LIMIT), logits).astype(np.float32)
 
 
 def _sh_degree_from_rest(path: str, names: tuple[str, ...]) -> int:
