@@ -11,6 +11,13 @@ JOBS ?= 2
 
 venv: $(STAMP)
 
+# @playcanvas/splat-transform (the converter behind SuperSplat) in ./node_modules, for the publishing round
+# trips of conceal_jax/robust/converter.py; its tests skip without it. Needs node and npm.
+SPLAT_TRANSFORM_VERSION ?= 3.7.0
+node_modules: node_modules/.bin/splat-transform
+node_modules/.bin/splat-transform:
+	npm install --no-save --no-package-lock --no-audit --no-fund --prefix . @playcanvas/splat-transform@$(SPLAT_TRANSFORM_VERSION)
+
 $(STAMP): setup.cfg pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip

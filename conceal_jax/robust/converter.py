@@ -1,0 +1,101 @@
+"""Publishing round trips through the ecosystem's converter, @playcanvas/splat-transform (the converter
+behind SuperSplat; `make node_modules` installs it into ./node_modules, and it runs offline on the CPU with
+`-g cpu`).
+
+A scene is written as a standard 3D-GS `.ply`, converted by `splat-transform -w -g cpu in.ply [actions]
+out.<format>` and, for the compressed formats, converted back to `.ply`, then read with data.ply (whose
+reader accepts the converter's property order and clips the infinite opacity logits it writes after a
+`.compressed.ply`). Formats: `ply`, `sog` (SuperSplat's web format), `spz` (Niantic's), `compressed.ply`
+(PlayCanvas's quantised chunks). Actions: decimation to a fraction of the Gaussians, SH bands cut.
+"""
+from __future__ import annotations
+
+import os
+import pathlib
+import shutil
+import subprocess
+import tempfile
+from typing import Sequence
+
+from conceal_jax.data import ply
+from conceal_jax.splat.gaussians import Gaussians
+
+FORMATS = ("ply", "sog", "spz", "compressed.ply")
+# The environment variable naming another splat-transform executable.
+ENV_VAR = "CONCEAL_JAX_SPLAT_TRANSFORM"
+_REPO_ROOT = pathlib.Path(__file__).resolve().parents[2]
+_TIMEOUT_S = 600
+
+
+class ConverterError(RuntimeError):
+  """splat-transform is missing or failed."""
+
+
+def executable() -> pathlib.Path | None:
+  """The splat-transform executable: $CONCEAL_JAX_SPLAT_TRANSFORM, else the repository's
+  node_modules/.bin/splat-transform; None when neither exists (tests then skip)."""
+  candidates = [os.environ.get(ENV_VAR), _REPO_ROOT / "node_modules" / ".bin" / "splat-transform"]
+  for candidate in candidates:
+    if candidate and os.path.isfile(candidate) and os.access(candidate, os.X_OK):
+      return pathlib.Path(candidate)
+  return None
+
+
+def available() -> bool:
+  """Whether splat-transform and a `node` to run it are installed."""
+  return executable() is not None and shutil.which("node") is not None
+
+
+def run(arguments: Sequence[str], timeout_s: float = _TIMEOUT_S) -> None:
+  """Runs `splat-transform -w -g cpu <arguments>` (overwrite, CPU only, quiet). ConverterError with its
+  output when it is missing or fails."""
+  path = executable()
+  if path is None:
+    raise ConverterError(f"splat-transform is not installed: run `make node_modules` or set {ENV_VAR}")
+  command = [str(path), "-q", "-w", "-g", "cpu", *map(str, arguments)]
+  try:
+    result = subprocess.run(command, capture_output=True, text=True, timeout=timeout_s, check=False)
+  except (OSError, subprocess.TimeoutExpired) as e:
+    raise ConverterError(f"{' '.join(command)}: {e}") from e
+  if result.returncode != 0:
+    raise ConverterError(f"{' '.join(command)} failed ({result.returncode}): "
+                         f"{(result.stderr or result.stdout).strip()[-2000:]}")
+
+
+def actions(decimate: float | None = None, sh_degree: int | None = None) -> list[str]:
+  """splat-transform actions: decimation to the fraction `decimate` of the Gaussians (in (0, 1]) and
+  SH bands above `sh_degree` removed (0..3)."""
+  out = []
+  if sh_degree is not None:
+    if sh_degree not in (0, 1, 2, 3):
+      raise ValueError(f"sh_degree must be 0, 1, 2 or 3, got {sh_degree}")
+    out += ["-H", str(sh_degree)]
+  if decimate is not None:
+    if not 0 < decimate <= 1:
+      raise ValueError(f"decimate must be a fraction in (0, 1], got {decimate}")
+    out += ["-d", f"{100 * decimate:g}%"]
+  return out
+
+
+def round_trip(gaussians: Gaussians, fmt: str = "ply", *, decimate: float | None = None,
+               sh_degree: int | None = None, workdir: str | os.PathLike | None = None) -> Gaussians:
+  """`gaussians` written as .ply, converted to `fmt` with the actions (see `actions`), read back.
+
+  workdir: where the intermediate files go (kept there); None: a temporary folder, removed after.
+  ValueError for an unknown format or bad action; ConverterError when splat-transform fails."""
+  if fmt not in FORMATS:
+    raise ValueError(f"unknown format {fmt!r}; choose from {', '.join(FORMATS)}")
+  steps = actions(decimate, sh_degree)
+  if workdir is None:
+    with tempfile.TemporaryDirectory(prefix="splat_transform_") as tmp:
+      return round_trip(gaussians, fmt, decimate=decimate, sh_degree=sh_degree, workdir=tmp)
+  folder = pathlib.Path(workdir)
+  folder.mkdir(parents=True, exist_ok=True)
+  source, converted = folder / "in.ply", folder / f"out.{fmt}"
+  ply.save_ply(source, gaussians)
+  run([source, *steps, converted])
+  if fmt == "ply":
+    return ply.load_ply(converted)
+  back = folder / "back.ply"
+  run([converted, back])
+  return ply.load_ply(back)
