@@ -31,7 +31,7 @@ KEYS = --config.reveal.key=$(WORKDIR)/conceal/key.json --config.reveal.decoder=$
 # train the teacher, hide the image, reveal it from the student and (it must fail) from the clean teacher
 demo: $(STAMP)
 	$(MAIN) --workdir=$(WORKDIR)/teacher
-	$(MAIN) --workdir=$(WORKDIR)/conceal --config.mode=conceal --config.conceal.teacher=$(WORKDIR)/teacher/point_cloud.ply
+	$(MAIN) --workdir=$(WORKDIR)/conceal --config.mode=conceal --config.mark.teacher=$(WORKDIR)/teacher/point_cloud.ply
 	$(MAIN) --workdir=$(WORKDIR)/reveal --config.mode=reveal --config.reveal.ply=$(WORKDIR)/conceal/student.ply $(KEYS)
 	$(MAIN) --workdir=$(WORKDIR)/reveal_clean --config.mode=reveal --config.reveal.ply=$(WORKDIR)/teacher/point_cloud.ply $(KEYS)
 	$(PY) -m experiments.demo_summary $(WORKDIR)
@@ -74,7 +74,7 @@ $(ROBUST_DEMO)/teacher/point_cloud.ply: | $(STAMP)
 	$(ROBUST_MAIN) --workdir=$(ROBUST_DEMO)/teacher
 $(ROBUST_DEMO)/conceal/student.ply: | $(ROBUST_DEMO)/teacher/point_cloud.ply
 	$(ROBUST_MAIN) --workdir=$(ROBUST_DEMO)/conceal --config.mode=conceal \
-	  --config.conceal.teacher=$(ROBUST_DEMO)/teacher/point_cloud.ply
+	  --config.mark.teacher=$(ROBUST_DEMO)/teacher/point_cloud.ply
 $(CLEAN_DEMO): | $(STAMP)
 	$(MAIN) --workdir=$(CLEAN_DEMO:/point_cloud.ply=) --config.seed=1
 bench-robust: $(STAMP) | $(ROBUST_DEMO)/conceal/student.ply $(CLEAN_DEMO)

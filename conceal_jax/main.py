@@ -1,7 +1,10 @@
 """Command line entry: `python -m conceal_jax.main --config=conceal_jax/configs/default.py --workdir=DIR`.
 
 Only wires flags; the jobs live in their own modules. Config values are overridden with
-`--config.key=value`; the final config is saved to DIR/config.json.
+`--config.key=value`; the final config is saved to DIR/config.json, and a workdir of a resumable mode run
+again with settings that change its run is refused (core.workdir). `--host_devices=N` splits a CPU host
+into N XLA devices before JAX starts (0, the default: one per core, at most 2), over which a concealment
+step spreads its views.
 """
 from __future__ import annotations
 
@@ -12,8 +15,8 @@ from absl import app, flags
 from ml_collections import config_flags
 
 from conceal_jax.baselines import baseline
-from conceal_jax.conceal import conceal, reveal
-from conceal_jax.core import fileio
+from conceal_jax.conceal import reveal, settings as conceal_settings, train as conceal_train
+from conceal_jax.core import parallel, workdir as workdir_lib
 from conceal_jax.gs import evaluate, render_views, train
 from conceal_jax.robust import ownership
 
@@ -21,13 +24,17 @@ from conceal_jax.robust import ownership
 MODES = {"render": (render_views.validate, render_views.render_and_save),
          "train": (train.validate, train.train_and_evaluate),
          "eval": (evaluate.validate, evaluate.evaluate),
-         "conceal": (conceal.validate, conceal.conceal_and_evaluate),
+         "conceal": (conceal_settings.validate, conceal_train.train_and_evaluate),
          "baseline": (baseline.validate, baseline.baseline_and_evaluate),
          "reveal": (reveal.validate, reveal.reveal),
          "verify": (ownership.validate, ownership.verify)}
 
+# Modes whose workdir holds checkpoints a later run resumes: one run per workdir (core.workdir.claim).
+RESUMABLE = ("train", "conceal", "baseline")
+
 FLAGS = flags.FLAGS
 flags.DEFINE_string("workdir", None, "Directory for outputs, checkpoints and the saved config.")
+flags.DEFINE_integer("host_devices", 0, "XLA devices a CPU host is split into (0: one per core, at most 2).")
 config_flags.DEFINE_config_file("config", None, "Path to a config file (a get_config() module).",
                                 lock_config=True)
 flags.mark_flags_as_required(["config", "workdir"])
@@ -40,13 +47,14 @@ def run(config, workdir: str):
   validate, job = MODES[config.mode]
   validate(config)
   os.makedirs(workdir, exist_ok=True)
-  fileio.write_json(os.path.join(workdir, "config.json"), config.to_dict())
+  workdir_lib.claim(workdir, config.to_dict(), resumable=config.mode in RESUMABLE)
   return job(config, workdir)
 
 
 def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments: {argv[1:]}")
+  parallel.host_devices_flag(FLAGS.host_devices or min(2, os.cpu_count() or 1))
   try:
     run(FLAGS.config, FLAGS.workdir)
   except (ValueError, OSError) as error:  # bad input: one clear line, no traceback

@@ -1,5 +1,5 @@
 """Several hidden images in one student (issue 13, item 5): the demo scene with 1, 2, 3 and 4 hidden images,
-each at its own key (conceal.extra_hidden), one decoder for all.
+each at its own key (mark.extra_hidden), one decoder for all.
 
   make bench-robust                                          # after bench_robust; MULTIKEY_ARGS pass here
   python -m experiments.bench_multikey --counts=1,2 --iterations=600
@@ -7,7 +7,7 @@ each at its own key (conceal.extra_hidden), one decoder for all.
 
 The demo configuration (configs/demo.py: its concealment settings, 1300 steps) on the demo teacher
 (--teacher; trained there with configs/demo.py first if missing, as `make demo` does). Run n hides the
-first n of --images at the training cameras key_index, key_index - 1, ... (see conceal.extra_hidden) with
+first n of --images at the training cameras key_index, key_index - 1, ... (see mark.extra_hidden) with
 the same number of steps: the keys take turns, so each gets 1/n of the L_d^+ steps at the cost per step
 of one key. Each run goes to <workdir>/demo/multikey_<n> (resumable). Writes multikey_bench.json (per n:
 each image's PSNR / SSIM at its own key, the cross-talk matrix and its max, the hidden images' SSIM to
@@ -48,10 +48,10 @@ def ensure_teacher(teacher: pathlib.Path) -> None:
 def run_config(teacher: pathlib.Path, images: list[str], iterations: int):
   config = demo.get_config()
   config.mode = "conceal"
-  c = config.conceal
-  c.teacher, c.hidden, c.extra_hidden = str(teacher), images[0], tuple(images[1:])
+  m = config.mark
+  m.teacher, m.hidden, m.extra_hidden = str(teacher), images[0], tuple(images[1:])
   if iterations:
-    c.iterations = iterations
+    config.conceal.iterations = iterations
   return config
 
 

@@ -52,7 +52,7 @@ def load_run(run: pathlib.Path):
   config = ml_collections.ConfigDict(json.loads((run / "config.json").read_text()))
   camera, info = key_lib.load_key(str(run / "key.json"))
   decoder = reveal.load_decoder(str(run / "decoder.msgpack")) if info.get("uses_decoder", True) else None
-  hidden = hidden_lib.load_hidden_image(config.conceal.hidden, int(info["hidden_size"]))
+  hidden = hidden_lib.load_hidden_image(config.mark.hidden, int(info["hidden_size"]))
   owner = robustness.Owner(decoder=decoder, decoder_width=int(info.get("decoder_width", 0)), hidden=hidden,
                            check_camera=camera, options=reveal.options_from_key(info),
                            reading=reveal.Reading.from_key(info))
@@ -111,8 +111,8 @@ def views_of(run: pathlib.Path, poses: int, test_views: int) -> dict:
   scene = evaluate.load_scene_data(config)
   cameras, _, _ = evaluate.held_out_views(scene, test_views)
   orbit = [key_lib.orbit_camera(scene.train_cameras, 1000 + seed) for seed in range(poses)]
-  return dict(student=student, teacher=ply.load_ply(config.conceal.teacher), owner=owner, test=cameras,
-              orbit=orbit, mark=(config.conceal.teacher, config.conceal.hidden))
+  return dict(student=student, teacher=ply.load_ply(config.mark.teacher), owner=owner, test=cameras,
+              orbit=orbit, mark=(config.mark.teacher, config.mark.hidden))
 
 
 def scores_of(owner: robustness.Owner, gaussians, cameras) -> list[float]:

@@ -4,8 +4,14 @@ from __future__ import annotations
 import os
 import tempfile
 
-import jax
-import pytest
+from conceal_jax.core import parallel
+
+# Before JAX starts: two host devices, as `python -m conceal_jax.main` gives a 2-core machine, so that the tests
+# also run the concealment step with its views split over devices (never set by importing the library).
+parallel.host_devices_flag(2)
+
+import jax  # noqa: E402
+import pytest  # noqa: E402
 
 
 @pytest.fixture

@@ -60,3 +60,26 @@ def set_field(config, field: str, value) -> None:
   for name in sections:
     config = config[name]
   config[key] = value
+
+
+GOLDEN_FILE = pathlib.Path(__file__).parent / "data" / "conceal_step_golden.npz"
+
+
+def sketch(leaf, index: int) -> np.ndarray:
+  """[6] a float64 fingerprint of an array: its L2 norm, its largest magnitude, and its dot products with four
+  fixed random vectors (seeded by the leaf's index and size), so that two arrays can be compared without
+  storing either."""
+  x = np.asarray(leaf, np.float64).ravel()
+  r = np.random.default_rng([7, index, x.size]).standard_normal((4, x.size))
+  return np.concatenate([[np.linalg.norm(x), np.abs(x).max(initial=0.0)], r @ x])
+
+
+def golden_arrays(row: str) -> dict:
+  """The pre-redesign conceal step's values for one row of tests/test_objective.GOLDEN_ROWS: loss, plus, minus;
+  the sketches [leaves, 6] (see `sketch`) of student_grad, plus_grad, minus_grad and of the state after two
+  steps (tree order); stats, a dict."""
+  with np.load(GOLDEN_FILE) as z:
+    flat = {name[len(row) + 1:]: z[name] for name in z.files if name.startswith(row + "/")}
+  loss, plus, minus = flat["values"]
+  return dict(loss=loss, plus=plus, minus=minus, stats={n[6:]: flat[n] for n in flat if n.startswith("stats/")},
+              **{group: flat[group] for group in ("student_grad", "plus_grad", "minus_grad", "state")})

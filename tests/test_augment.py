@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conceal_jax.conceal import augment, conceal
+from conceal_jax.conceal import augment, train as conceal_train
 from conceal_jax.robust import image_attacks
 from conceal_jax.splat.gaussians import Gaussians
 from conceal_jax.conceal.augment import Augmentation
@@ -124,13 +124,13 @@ def test_perturb_gaussians_at_level_zero_is_the_identity_with_finite_gradients()
 
 
 def test_conceal_trains_through_distortions_in_one_trace(tiny, tmp_path):  # noqa: F811
-  config = tiny_config(tiny, iterations=4, check_blur_max=1.0, check_noise_max=0.02, check_dropout_max=0.2,
-                       check_param_noise_max=0.02, check_brightness_max=0.1, check_contrast_max=0.2,
-                       identity_on_student=True, identity_perturbed=True)
-  result = conceal.conceal_and_evaluate(config, str(tmp_path))
+  maxima = dict(blur_max=1.0, noise_max=0.02, dropout_max=0.2, param_noise_max=0.02, brightness_max=0.1,
+                contrast_max=0.2, identity_distorted=True)
+  attacks = {f"attacks.{k}": v for k, v in maxima.items()}
+  config = tiny_config(tiny, iterations=4, identity_on_student=True, **attacks)
+  result = conceal_train.train_and_evaluate(config, str(tmp_path))
   assert result["traces"] == dict(conceal_step=1) and np.isfinite(result["metrics"]["hidden"]["psnr"])
-  for key, bad in (("check_blur_max", -1.0), ("check_dropout_max", 1.0), ("check_param_noise_max", -0.1),
-                   ("check_brightness_max", -0.1), ("check_contrast_max", 1.0), ("check_noise_max", float("nan")),
-                   ("identity_perturbed", True)):  # the last without a model perturbation
-    with pytest.raises(ValueError, match=key):
-      conceal.conceal_and_evaluate(tiny_config(tiny, **{key: bad}), str(tmp_path / "bad"))
+  for key, bad in (("blur_max", -1.0), ("dropout_max", 1.0), ("param_noise_max", -0.1), ("brightness_max", -0.1),
+                   ("contrast_max", 1.0), ("noise_max", float("nan"))):
+    with pytest.raises(ValueError, match=f"conceal.attacks.{key}"):
+      conceal_train.train_and_evaluate(tiny_config(tiny, **{f"attacks.{key}": bad}), str(tmp_path / "bad"))

@@ -20,7 +20,7 @@ from conceal_jax.conceal import hidden as hidden_lib
 from conceal_jax.configs import demo
 from conceal_jax.core import fileio
 from conceal_jax.data import datasets
-from conceal_jax.configs import conceal_ours
+from conceal_jax.configs import recipes
 from experiments import bench_baselines, bench_conceal, reproduce
 from tests.helpers import set_field
 from tests.test_conceal import tiny  # noqa: F401  (the 32x32 demo scene and random teacher)
@@ -165,7 +165,7 @@ def tiny_config(tiny, method, **baseline_overrides):
   config.data.path = str(scene_path)
   config.render.tile_size = 8
   config.eval.max_views = 1
-  config.conceal.teacher, config.conceal.iterations, config.conceal.hidden_size = str(teacher), 6, 16
+  config.mark.teacher, config.conceal.iterations, config.mark.hidden_size = str(teacher), 6, 16
   config.train.log_every, config.train.checkpoint_every, config.train.progress_bar = 2, 3, False
   config.baseline.method = method
   d = config.baseline.deepstega
@@ -264,9 +264,9 @@ def test_bench_rows_feed_the_reproduction(lsb_run, deepstega_run, tiny, tmp_path
   config = bench_baselines.run_config("lego", tiny[1], "lsb3", 100, 5)
   baseline.validate(config)
   assert (config.mode, config.baseline.method, config.baseline.lsb_bits) == ("baseline", "lsb", 3)
-  assert (config.baseline.iterations, config.eval.max_views, config.conceal.hidden) == (100, 5, "astronaut")
+  assert (config.baseline.iterations, config.eval.max_views, config.mark.hidden) == (100, 5, "astronaut")
   # containers train with the rates of the ConcealGS row beside them; StegaNeRF keeps its own
-  gentle = conceal_ours.gentle_student(bench_conceal.run_config("lego", tiny[1], "full", 16, 100, 5)).conceal.lr
+  gentle = recipes.gentle_student(bench_conceal.run_config("lego", tiny[1], "full", 16, 100, 5)).conceal.lr
   assert config.conceal.lr.to_dict() == gentle.to_dict()
   stega = bench_baselines.run_config("lego", tiny[1], "steganerf_all_views", 100, 5)
   assert stega.conceal.lr.sh_dc != gentle.sh_dc and stega.conceal.lr.warmup_steps == 0
@@ -324,9 +324,9 @@ def test_deepstega_job_trains_saves_and_reuses_its_networks(deepstega_run):
     ("baseline.deepstega.crop_size", 0, "baseline.deepstega.crop_size"),
     ("baseline.deepstega.iterations", 0, "iterations"),
     ("baseline.deepstega.networks", "/no/such.msgpack", "baseline.deepstega.networks"),
-    ("conceal.teacher", "", "conceal.teacher"), ("conceal.teacher", "/no/such.ply", "no such file"),
-    ("conceal.key_kind", "random", "conceal.key_kind"), ("conceal.hidden_size", 0, "conceal.hidden_size"),
-    ("conceal.lr.means_steps", -1, "means_steps"), ("conceal.extra_hidden", ("camera",), "conceal.extra_hidden")])
+    ("mark.teacher", "", "mark.teacher"), ("mark.teacher", "/no/such.ply", "no such file"),
+    ("mark.key_kind", "random", "mark.key_kind"), ("mark.hidden_size", 0, "mark.hidden_size"),
+    ("conceal.lr.means_steps", -1, "means_steps"), ("mark.extra_hidden", ("camera",), "mark.extra_hidden")])
 def test_bad_baseline_config_is_named_before_anything_is_written(tiny, tmp_path, field, value, message):
   config = tiny_config(tiny, "deepstega")
   set_field(config, field, value)
@@ -337,6 +337,6 @@ def test_bad_baseline_config_is_named_before_anything_is_written(tiny, tmp_path,
 
 def test_bad_hidden_image_is_named(tiny, tmp_path):
   config = tiny_config(tiny, "lsb")
-  config.conceal.hidden = "no_such_sample"
+  config.mark.hidden = "no_such_sample"
   with pytest.raises(ValueError, match="no_such_sample"):
     baseline.baseline_and_evaluate(config, str(tmp_path))

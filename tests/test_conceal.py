@@ -1,5 +1,5 @@
 """ConcealGS: the losses, the check-view key, and the conceal -> reveal pipeline end to end on a tiny
-generated scene (resume, ablation switches, clear errors)."""
+generated scene (resume, ablation switches, clear errors). The objective and step: tests/test_objective.py."""
 from __future__ import annotations
 
 import json
@@ -8,18 +8,15 @@ import shutil
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 import pytest
 
-from conceal_jax.conceal import conceal, key, objective, reveal, unet
+from conceal_jax.conceal import key, reveal, settings as settings_lib, train as conceal_train, views as views_lib
 from conceal_jax.data import demo_scene, ply
-from conceal_jax.gs import init, losses, optimizer
+from conceal_jax.gs import init, losses
 from conceal_jax import main as main_lib
-from conceal_jax import RenderOptions, render
-from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat.camera import Camera, camera_centers, look_at
-from conceal_jax.configs import default, demo, demo_robust, lego_conceal
-from conceal_jax.core import fileio
+from conceal_jax.configs import demo, demo_robust
+from conceal_jax.core import fileio, workdir as workdir_lib
 from experiments import bench_baselines, bench_conceal, results_io, tradeoff
 
 
@@ -34,21 +31,34 @@ def tiny(tmp_path_factory):
   return scene_path, folder / "teacher.ply"
 
 
-def tiny_config(tiny, iterations=40, **conceal_overrides):
+# tiny_config's short names for settings outside conceal.*'s top level
+PATHS = dict(**{name: f"mark.{name}" for name in ("teacher", "hidden", "hidden_size", "key_kind", "key_index",
+                                                  "key_seed", "extra_hidden")},
+             **{name: f"conceal.leakage.{name}" for name in ("identity_on_student", "identity_on_teacher_check",
+                                                             "decoy_views", "decoy_fraction", "decoy_translation",
+                                                             "decoy_rotation_deg")},
+             **{f"decoder_{name}": f"conceal.decoder.{name}" for name in ("width", "input_norm", "clip_input")},
+             **{f"decoder_{name}": f"conceal.decoder_opt.{name}" for name in ("lr_final_ratio", "update_clip",
+                                                                              "polish_steps", "adam_eps")},
+             decoder_lr="conceal.decoder_opt.lr")
+
+
+def tiny_config(tiny, iterations=40, **overrides):
+  """The demo config on the tiny scene, with the paper's method (the demo's leakage control off), a width-4
+  decoder at 16x16; `overrides` by their conceal.* name or PATHS' short name."""
   scene_path, teacher = tiny
   config = demo.get_config()
   config.mode = "conceal"
   config.data.path = str(scene_path)
   config.render.tile_size = 8
   config.eval.max_views = 1
-  c = config.conceal
-  # The paper's method; the demo's additions (configs/conceal_ours.py) are switched on where a test asks.
-  c.identity_on_student = c.identity_on_teacher_check = False
-  c.decoy_views, c.decoy_fraction = 0, 0.0
-  c.teacher, c.iterations, c.hidden_size, c.decoder_width = str(teacher), iterations, 16, 4
-  c.decoder_vgg_init, c.decoder_lr, c.checkpoint_every, c.log_every, c.progress_bar = False, 1e-3, 20, 5, False
-  for name, value in conceal_overrides.items():
-    c[name] = value
+  settings = dict(teacher=str(teacher), hidden_size=16, decoder_width=4, identity_on_student=False,
+                  identity_on_teacher_check=False, decoy_views=0, decoy_fraction=0.0, decoder_lr=1e-3)
+  config.conceal.decoder.vgg_init = False
+  config.conceal.iterations, config.conceal.checkpoint_every = iterations, 20
+  config.conceal.log_every, config.conceal.progress_bar = 5, False
+  for name, value in dict(settings, **overrides).items():
+    bench_conceal.set_dotted(config, PATHS.get(name, f"conceal.{name}"), value)
   return config
 
 
@@ -57,141 +67,6 @@ def test_losses_are_mean_absolute_errors():
   expected = (0.25 * 47 + 1.25) / 48
   for loss in (losses.distillation_loss, losses.decoder_identity_loss, losses.hidden_image_loss):
     np.testing.assert_allclose(loss(a, b), expected, rtol=1e-6)
-
-
-def _objective_inputs(size=16, width=4, views=3, hw=(20, 24)):
-  """A random student, decoder and `data` dict of the shapes conceal.build_data makes."""
-  rng = np.random.default_rng(0)
-  student = init.gaussians_from_points(rng.uniform(-0.5, 0.5, (60, 3)), rng.uniform(0, 1, (60, 3)), sh_degree=0,
-                                       opacity=0.6)
-  cameras = [Camera.from_fov(look_at([3 * np.cos(a), 3 * np.sin(a), 1.0], [0, 0, 0]), 0.8, hw[1], hw[0])
-             for a in np.linspace(0, 2, views)]
-  images = jnp.asarray(rng.uniform(0, 1, (views,) + hw + (3,)), jnp.float32)
-  teacher = jnp.asarray(rng.uniform(0, 1, (views,) + hw + (3,)), jnp.float32)
-  data = dict(images=images, teacher=teacher, teacher_small=reveal.resize_for_decoder(teacher, size),
-              cameras=camera_lib.stack(cameras), check_camera=cameras[-1], check_image=images[-1],
-              teacher_check_small=reveal.resize_for_decoder(teacher[-1], size),
-              hidden=jnp.asarray(rng.uniform(0, 1, (size, size, 3)), jnp.float32))
-  decoder = unet.init_decoder(jax.random.key(0), width, size)
-  return student, decoder, data
-
-
-@pytest.mark.parametrize("variant", ["paper", "released"])
-def test_student_objective_is_the_sum_of_the_papers_terms(variant):
-  """L_kd (eq. 3) + lambda+ L_d^+ (eq. 5), assembled by hand from renders and the decoder output."""
-  student, decoder, data = _objective_inputs()
-  s = objective.ConcealSettings(variant=variant, decoder_width=4, hidden_size=16, weight_kd=0.7, weight_plus=2.0,
-                                weight_check=0.5)
-  options = RenderOptions(max_per_tile=None)
-  total, aux = objective.student_objective(student, decoder, data, 1, s, options)
-  camera = jax.tree.map(lambda x: x[1], data["cameras"])
-  rgb = render(student, camera, options).rgb
-  check = render(student, data["check_camera"], options).rgb
-  revealed = reveal.decode(decoder, 4, reveal.resize_for_decoder(check, 16))
-  plus = float(jnp.mean(jnp.abs(revealed - data["hidden"])))
-  if variant == "paper":
-    expected = 0.7 * float(jnp.mean(jnp.abs(rgb - data["teacher"][1]))) + 2.0 * plus
-  else:
-    expected = (float(losses.photometric_loss(rgb, data["images"][1])) + 2.0 * plus
-                + 0.5 * float(jnp.mean(jnp.abs(check - data["check_image"]))))
-  np.testing.assert_allclose(float(total), expected, rtol=1e-5)
-  np.testing.assert_allclose(float(aux["plus"]), plus, rtol=1e-5)
-
-
-def test_decoder_identity_objective_reads_only_the_decoder():
-  """lambda- L_d^- (eq. 4) on the teacher's render of the normal view; the paper variant uses that view, the
-  released one the teacher's check render, and the student never enters it."""
-  _, decoder, data = _objective_inputs()
-  for variant, teacher in (("paper", data["teacher_small"][2]), ("released", data["teacher_check_small"])):
-    s = objective.ConcealSettings(variant=variant, decoder_width=4, hidden_size=16, weight_minus=3.0)
-    inputs = objective.identity_inputs(data, 2, s)
-    np.testing.assert_array_equal(inputs, teacher[None])
-    value = objective.decoder_identity_objective(decoder, inputs, s)
-    expected = 3.0 * jnp.mean(jnp.abs(reveal.decode(decoder, 4, teacher) - teacher))
-    np.testing.assert_allclose(float(value), float(expected), rtol=1e-6)
-  grads = jax.grad(objective.decoder_identity_objective)(decoder, inputs, s)
-  assert all(np.all(np.isfinite(g)) for g in jax.tree.leaves(grads))
-  assert any(float(jnp.abs(g).sum()) > 0 for g in jax.tree.leaves(grads))
-
-
-def test_identity_on_student_adds_the_students_render_as_a_constant():
-  """With identity_on_student, L_d^- is the mean of the teacher's and the student's identity errors, and
-  no gradient reaches the student through it."""
-  student, decoder, data = _objective_inputs()
-  s = objective.ConcealSettings(decoder_width=4, hidden_size=16, identity_on_student=True)
-  options = RenderOptions(max_per_tile=None)
-  camera = jax.tree.map(lambda x: x[1], data["cameras"])
-
-  def minus_of_student(g):
-    rgb = render(g, camera, options).rgb
-    return objective.decoder_identity_objective(decoder, objective.identity_inputs(data, 2, s, rgb), s)
-
-  small = reveal.resize_for_decoder(render(student, camera, options).rgb, 16)
-  teacher = data["teacher_small"][2]
-  expected = 0.5 * (jnp.mean(jnp.abs(reveal.decode(decoder, 4, teacher) - teacher))
-                    + jnp.mean(jnp.abs(reveal.decode(decoder, 4, small) - small)))
-  np.testing.assert_allclose(float(minus_of_student(student)), float(expected), rtol=1e-5)
-  grads = jax.grad(minus_of_student)(student)
-  assert all(float(jnp.abs(g).max()) == 0 for g in jax.tree.leaves(grads))
-
-
-def test_identity_distorted_reads_the_students_render_through_the_steps_distortion():
-  """With identity_distorted, L_d^-'s student input is the render blurred and noised as the check render
-  is (augment.distort, then resized); without it, the plain resized render. The setting needs a distortion."""
-  from conceal_jax.conceal import augment
-  _, _, data = _objective_inputs()
-  rgb = jax.random.uniform(jax.random.key(3), (32, 32, 3))
-  distortion = dict(blur=np.float32(1.2), noise=np.float32(0.04), seed=np.uint32(5))
-  augmentation = augment.Augmentation(blur_max=2.0, noise_max=0.05)
-  base = dict(decoder_width=4, hidden_size=16, identity_on_student=True, augmentation=augmentation)
-  s = objective.ConcealSettings(**base, identity_distorted=True)
-  expected = reveal.resize_for_decoder(augment.distort(rgb, distortion, augmentation), 16)
-  np.testing.assert_allclose(objective.identity_inputs(data, 2, s, rgb, distortion)[-1], expected, rtol=1e-6)
-  plain = objective.identity_inputs(data, 2, objective.ConcealSettings(**base), rgb, distortion)[-1]
-  np.testing.assert_allclose(plain, reveal.resize_for_decoder(rgb, 16), rtol=1e-6)
-  assert float(jnp.max(jnp.abs(plain - expected))) > 1e-2
-  with pytest.raises(ValueError, match="identity_distorted"):
-    objective.ConcealSettings(decoder_width=4, hidden_size=16, identity_on_student=True, identity_distorted=True)
-
-
-def test_identity_on_teacher_check_adds_the_teachers_check_render():
-  _, _, data = _objective_inputs()
-  s = objective.ConcealSettings(decoder_width=4, hidden_size=16, identity_on_teacher_check=True)
-  np.testing.assert_array_equal(objective.identity_inputs(data, 2, s),
-                                jnp.stack([data["teacher_small"][2], data["teacher_check_small"]]))
-  released = objective.ConcealSettings(variant="released", decoder_width=4, hidden_size=16,
-                                       identity_on_teacher_check=True)
-  np.testing.assert_array_equal(objective.identity_inputs(data, 2, released), data["teacher_check_small"][None])
-
-
-def test_a_step_trains_the_key_it_is_given():
-  """With several keys, key_data puts key k's check camera, check image, hidden image and teacher check
-  render in the single-key places under jit (one trace for every k), so the objective at key k is the
-  single-key objective of that key; with one key the data is passed through untouched."""
-  student, decoder, data = _objective_inputs()
-  other = dict(check_camera=jax.tree.map(lambda x: x[0], data["cameras"]), check_image=data["images"][0],
-               hidden=1.0 - data["hidden"], teacher_check_small=data["teacher_small"][0])
-  multi = dict(data, keys={name: jax.tree.map(lambda a, b: jnp.stack([a, b]), data[name], other[name])
-                           for name in objective.KEY_FIELDS})
-  options = RenderOptions(max_per_tile=None)
-  traced = []
-  for variant in ("paper", "released"):
-    s = objective.ConcealSettings(variant=variant, decoder_width=4, hidden_size=16, identity_on_teacher_check=True)
-
-    @jax.jit
-    def at_key(k):
-      traced.append(k)
-      keyed = objective.key_data(multi, k)
-      return objective.student_objective(student, decoder, keyed, 1, s, options)[0], objective.identity_inputs(
-          keyed, 2, s)
-
-    for k, single in ((0, data), (1, dict(data, **other))):
-      total, inputs = at_key(k)
-      expected = objective.student_objective(student, decoder, single, 1, s, options)[0]
-      np.testing.assert_allclose(float(total), float(expected), rtol=1e-5)
-      np.testing.assert_array_equal(inputs, objective.identity_inputs(single, 2, s))
-  assert len(traced) == 2  # one trace per variant, none per key
-  assert objective.key_data(data, 0) is data
 
 
 def test_extra_keys_are_further_cameras_of_the_kind():
@@ -236,17 +111,17 @@ def test_decoys_lie_near_the_key_within_their_ranges():
 
 def test_normal_views_draw_decoys_at_their_rate():
   rng = np.random.default_rng(0)
-  views = np.array([conceal.normal_view(rng, 10, 5, 0.3) for _ in range(4000)])
+  views = np.array([views_lib.draw_normal_view(rng, 10, 5, 0.3) for _ in range(4000)])
   assert views.min() == 0 and views.max() == 14
   np.testing.assert_allclose(np.mean(views >= 10), 0.3, atol=0.03)
-  assert all(conceal.normal_view(rng, 10, 0, 0.3) < 10 for _ in range(100))
+  assert all(views_lib.draw_normal_view(rng, 10, 0, 0.3) < 10 for _ in range(100))
 
 
 def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
   config = tiny_config(tiny, eval_every=20)
-  straight = conceal.conceal_and_evaluate(config, str(tmp_path / "a"))
-  assert conceal.conceal_and_evaluate(config, str(tmp_path / "b"), max_steps=20) == dict(stopped_at=20)
-  resumed = conceal.conceal_and_evaluate(config, str(tmp_path / "b"))
+  straight = conceal_train.train_and_evaluate(config, str(tmp_path / "a"))
+  assert conceal_train.train_and_evaluate(config, str(tmp_path / "b"), max_steps=20) == dict(stopped_at=20)
+  resumed = conceal_train.train_and_evaluate(config, str(tmp_path / "b"))
   assert resumed["timed_steps"] == straight["timed_steps"] == 40
   assert straight["traces"] == dict(conceal_step=1) and resumed["traces"] == dict(conceal_step=1)
   for name in ("decoder.msgpack", "student.ply"):
@@ -284,17 +159,17 @@ def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
 def joint_run(tiny, tmp_path_factory):
   """(result, folder) of a finished 20-step run of the paper's method."""
   folder = tmp_path_factory.mktemp("joint") / "run"
-  return conceal.conceal_and_evaluate(tiny_config(tiny, iterations=20), str(folder)), folder
+  return conceal_train.train_and_evaluate(tiny_config(tiny, iterations=20), str(folder)), folder
 
 
 def test_decoder_polish_trains_the_decoder_alone_and_resumes_across_phases(tiny, joint_run, tmp_path):
   joint, joint_dir = joint_run
   config = tiny_config(tiny, iterations=20, decoder_polish_steps=20)
-  straight = conceal.conceal_and_evaluate(config, str(tmp_path / "straight"))
+  straight = conceal_train.train_and_evaluate(config, str(tmp_path / "straight"))
   # a polish started from the joint run's last checkpoint (as bench-conceal's continued rows are)
   (tmp_path / "resumed").mkdir()
   shutil.copytree(joint_dir / "checkpoints", tmp_path / "resumed" / "checkpoints")
-  resumed = conceal.conceal_and_evaluate(config, str(tmp_path / "resumed"))
+  resumed = conceal_train.train_and_evaluate(config, str(tmp_path / "resumed"))
   assert straight["traces"] == dict(conceal_step=1, polish_step=1) and resumed["traces"] == dict(polish_step=1)
   assert straight["timed_steps"] == resumed["timed_steps"] == 40 and resumed["decoder_polish_steps"] == 20
   for name in ("decoder.msgpack", "student.ply"):
@@ -304,55 +179,6 @@ def test_decoder_polish_trains_the_decoder_alone_and_resumes_across_phases(tiny,
   assert straight["metrics"]["hidden"]["psnr"] > joint["metrics"]["hidden"]["psnr"] + 0.1
   plus = [h["plus"] for h in straight["history"] if "plus" in h]
   assert all(np.isfinite(plus)) and plus[-1] < plus[len(plus) // 2 - 1]
-
-
-def test_decoder_average_follows_every_decoder_update():
-  """a <- a + (1 - d) (F - a) after each step's update, from a = F at step 0; training never reads it."""
-  student, decoder, data = _objective_inputs()
-  student_tx, decoder_tx = optimizer.gaussian_optimizer(default.get_config().conceal.lr, 1.0, 100), optax.adam(1e-3)
-  options = RenderOptions(tile_size=8, pair_capacity=4096, max_per_tile=None)
-  runs = {}
-  for d in (0.0, 0.9):
-    s = objective.ConcealSettings(decoder_width=4, hidden_size=16, decoder_average=d)
-    step = conceal.make_conceal_step(s, options, student_tx, decoder_tx)
-    state = conceal.create_conceal_state(*jax.tree.map(jnp.array, (student, decoder)), student_tx, decoder_tx,
-                                         average=bool(d))
-    average, decoders = jax.device_get(state.decoder_average), []
-    for view, normal_view in ((0, 1), (1, 2)):
-      state, _ = step(state, data, view, normal_view)
-      decoders.append(jax.device_get(state.decoder))
-    runs[d] = decoders
-    if not d:
-      assert state.decoder_average == {} and state.scored_decoder(s) is state.decoder
-      continue
-    for w in decoders:
-      average = jax.tree.map(lambda a, w: a + 0.1 * (w - a), average, w)
-    for got, want in zip(jax.tree.leaves(state.scored_decoder(s)), jax.tree.leaves(average)):
-      np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-8)
-  for a, b in zip(jax.tree.leaves(runs[0.0]), jax.tree.leaves(runs[0.9])):
-    np.testing.assert_array_equal(a, b)  # the same training with and without the average
-
-
-def test_decoder_average_starts_at_a_restored_decoder_and_resumes_exactly(tiny, joint_run, tmp_path):
-  """A polish with the average continued from a joint run's checkpoint (which has none), as bench-conceal's
-  continued rows are: one trace, the live decoder's hidden PSNR recorded beside the average's, a saved decoder
-  that is not the live one, and the same files when it is stopped and resumed."""
-  _, joint_dir = joint_run
-  runs = {}
-  for name, average, stop in (("live", 0.0, None), ("average", 0.9, None), ("resumed", 0.9, 30)):
-    (tmp_path / name).mkdir()
-    shutil.copytree(joint_dir / "checkpoints", tmp_path / name / "checkpoints")
-    config = tiny_config(tiny, iterations=20, decoder_polish_steps=20, decoder_average=average, eval_every=10)
-    if stop:
-      assert "stopped_at" in conceal.conceal_and_evaluate(config, str(tmp_path / name), max_steps=stop)
-    runs[name] = conceal.conceal_and_evaluate(config, str(tmp_path / name))
-  assert runs["average"]["traces"] == dict(polish_step=1)
-  records = [h for h in runs["average"]["history"] if "hidden_psnr_live" in h]
-  assert len(records) == 2 and all(np.isfinite([r["hidden_psnr"] for r in records]))
-  assert records[-1]["hidden_psnr"] != records[-1]["hidden_psnr_live"]
-  decoder = lambda name: (tmp_path / name / "decoder.msgpack").read_bytes()
-  assert decoder("average") != decoder("live") and decoder("resumed") == decoder("average")
-  assert (tmp_path / "average" / "student.ply").read_bytes() == (tmp_path / "live" / "student.ply").read_bytes()
 
 
 def test_bench_row_continues_only_the_run_it_extends(tiny, tmp_path):
@@ -365,20 +191,6 @@ def test_bench_row_continues_only_the_run_it_extends(tiny, tmp_path):
   assert bench_conceal.continue_from(source, row, polish)
   assert (row / "checkpoints" / "ckpt_00000020.npz").read_bytes() == b"step 20"
   assert not bench_conceal.continue_from(source, row, polish)  # its own checkpoints are kept
-  # the decoder's average never changes the training: a row with it continues a run from before that key existed
-  older = joint.to_dict()
-  del older["conceal"]["decoder_average"]
-  fileio.write_json(tmp_path / "older" / "config.json", older)
-  fileio.write_bytes(tmp_path / "older" / "checkpoints" / "ckpt_00000020.npz", b"step 20")
-  averaged = tiny_config(tiny, iterations=20, decoder_polish_steps=20, decoder_average=0.99)
-  assert bench_conceal.continue_from(tmp_path / "older", tmp_path / "averaged", averaged)
-  # a run from before trained_fields trained every field: a row that trains them all continues it, a colour-only
-  # row does not
-  del older["conceal"]["trained_fields"]
-  fileio.write_json(tmp_path / "older" / "config.json", older)
-  assert bench_conceal.continue_from(tmp_path / "older", tmp_path / "all_fields", averaged)
-  colour_only = tiny_config(tiny, iterations=20, decoder_polish_steps=20, trained_fields="sh")
-  assert not bench_conceal.continue_from(tmp_path / "older", tmp_path / "colour_only", colour_only)
 
 
 def test_bench_reads_a_finished_run_and_keeps_its_images_beside_the_json(tiny, joint_run, tmp_path):
@@ -393,17 +205,6 @@ def test_bench_reads_a_finished_run_and_keeps_its_images_beside_the_json(tiny, j
     assert (out / row["images"][label]).read_bytes() == (run / name).read_bytes(), label
   saved = json.loads((out / "conceal_bench.json").read_text())["rows"]
   assert saved == [json.loads(json.dumps(row))] and (out / "conceal_bench.png").is_file()
-
-
-def test_lego_conceal_config_is_the_bench_row_it_cites(tmp_path):
-  """configs/lego_conceal.py is bench-conceal's ours_robust_clip_dec03 at width 16, whose figures it quotes."""
-  teacher = tmp_path / "point_cloud.ply"
-  row = bench_conceal.run_config("lego", teacher, "ours_robust_clip_dec03", 16, 0, 0)
-  config = lego_conceal.get_config()
-  config.conceal.teacher = str(teacher)
-  assert config.mode == row.mode == "conceal" and config.seed == row.seed
-  assert config.conceal.to_dict() == row.conceal.to_dict()
-  assert config.conceal.decoder_lr_final_ratio == 0.3 and config.conceal.decoder_clip_input
 
 
 def test_a_bench_row_may_set_the_seed_beside_its_conceal_overrides(tmp_path):
@@ -442,11 +243,11 @@ def test_a_bench_row_from_another_seed_is_named_for_it(tmp_path):
 def test_demo_robust_config_is_the_demo_trained_through_attacks():
   """configs/demo_robust.py changes only the conceal settings that train through attacks and clip the reading,
   so its teacher is the demo's."""
-  base, robust = demo.get_config().to_dict(), demo_robust.get_config().to_dict()
-  assert {k: v for k, v in base.items() if k != "conceal"} == {k: v for k, v in robust.items() if k != "conceal"}
-  changed = {k for k in robust["conceal"] if robust["conceal"][k] != base["conceal"][k]}
-  assert changed == {"check_blur_max", "check_noise_max", "identity_distorted", "decoder_clip_input"}
-  assert robust["conceal"]["decoder_clip_input"] and robust["conceal"]["decoder_lr_final_ratio"] == 1.0
+  changed = workdir_lib.differing_keys(demo.get_config().to_dict(), demo_robust.get_config().to_dict())
+  assert changed == ["conceal.attacks.blur_max", "conceal.attacks.identity_distorted", "conceal.attacks.noise_max",
+                     "conceal.decoder.clip_input"]
+  robust = demo_robust.get_config().conceal
+  assert robust.decoder.clip_input and robust.decoder_opt.lr_final_ratio == 1.0
 
 
 def test_two_hidden_images_each_at_its_own_key(tiny, tmp_path):
@@ -455,7 +256,7 @@ def test_two_hidden_images_each_at_its_own_key(tiny, tmp_path):
   covers both images and keys, and the reveal job reproduces the second image from the shared files."""
   config = tiny_config(tiny, iterations=10, eval_every=10, extra_hidden=("camera",), identity_on_teacher_check=True,
                        decoy_views=2, decoy_fraction=0.5)
-  result = conceal.conceal_and_evaluate(config, str(tmp_path))
+  result = conceal_train.train_and_evaluate(config, str(tmp_path))
   assert result["traces"] == dict(conceal_step=1) and result["num_keys"] == 2 and result["num_decoys"] == 4
   saved = json.loads((tmp_path / "key.json").read_text())
   assert saved["index"] == 4 and len(saved["camera"]["world_to_camera"]) == 4
@@ -502,7 +303,7 @@ def test_two_hidden_images_each_at_its_own_key(tiny, tmp_path):
                                        dict(decoder_input_norm="center", decoder_clip_input=True,
                                             decoder_lr_final_ratio=0.3, decoder_update_clip=1.0)])
 def test_ablations_and_variants_run(tiny, tmp_path, overrides):
-  result = conceal.conceal_and_evaluate(tiny_config(tiny, iterations=3, **overrides), str(tmp_path))
+  result = conceal_train.train_and_evaluate(tiny_config(tiny, iterations=3, **overrides), str(tmp_path))
   assert np.isfinite(result["metrics"]["hidden"]["psnr"])
   saved_key = json.loads((tmp_path / "key.json").read_text())
   assert saved_key["uses_decoder"] == overrides.get("use_decoder", True)
@@ -518,34 +319,6 @@ def test_ablations_and_variants_run(tiny, tmp_path, overrides):
   assert (tmp_path / "decoder.msgpack").exists() == overrides.get("use_decoder", True)
 
 
-def test_sh_student_keeps_the_teachers_geometry(tiny, tmp_path):
-  conceal.conceal_and_evaluate(tiny_config(tiny, iterations=3, trained_fields="sh"), str(tmp_path))
-  teacher, student = ply.load_ply(tiny[1]), ply.load_ply(tmp_path / "student.ply")
-  for name in ("means", "log_scales", "quats", "opacity_logits"):
-    np.testing.assert_array_equal(getattr(student, name), getattr(teacher, name), err_msg=name)
-  assert np.abs(np.asarray(student.sh) - np.asarray(teacher.sh)).max() > 0
-
-
-@pytest.mark.parametrize("overrides", [dict(extra_hidden=("camera",)), dict(variant="released")])
-def test_key_at_decoder_size_renders_the_key_at_the_decoder_input(tiny, tmp_path, overrides):
-  config = tiny_config(tiny, iterations=3, key_at_decoder_size=True, **overrides)
-  metrics = conceal.conceal_and_evaluate(config, str(tmp_path / "conceal"))["metrics"]
-  camera, info = key.load_key(str(tmp_path / "conceal" / "key.json"))
-  assert (camera.width, camera.height) == (16, 16) == (info["hidden_size"],) * 2
-  for number in range(1, 1 + len(overrides.get("extra_hidden", ()))):
-    assert key.load_key(str(tmp_path / "conceal" / "key.json"), number)[0].width == 16
-  scene_camera = conceal.evaluate.load_scene_data(config).train_cameras[-2]
-  np.testing.assert_allclose(camera.fx / 16, scene_camera.fx / scene_camera.width, rtol=1e-6)
-  np.testing.assert_allclose(np.asarray(camera.world_to_camera), np.asarray(scene_camera.world_to_camera))
-  reveal_config = demo.get_config()
-  reveal_config.mode = "reveal"
-  reveal_config.reveal.ply = str(tmp_path / "conceal" / "student.ply")
-  reveal_config.reveal.key = str(tmp_path / "conceal" / "key.json")
-  reveal_config.reveal.decoder, reveal_config.reveal.hidden = str(tmp_path / "conceal" / "decoder.msgpack"), "astronaut"
-  result = main_lib.run(reveal_config, str(tmp_path / "reveal"))
-  np.testing.assert_allclose(result["psnr"], metrics["hidden"]["psnr"], rtol=1e-4)
-
-
 def test_resized_camera_keeps_the_field_of_view():
   camera = Camera.from_intrinsics(look_at([1.0, -3.0, 1.5], [0.0, 0.0, 0.0]), 40.0, 42.0, 15.5, 12.0, 31, 24)
   small = camera.resized(16, 8)
@@ -559,19 +332,18 @@ def test_resized_camera_keeps_the_field_of_view():
 
 
 @pytest.mark.parametrize("overrides,message", [
-    (dict(teacher=""), "conceal.teacher"), (dict(teacher="/no/such.ply"), "no such file"),
+    (dict(teacher=""), "mark.teacher"), (dict(teacher="/no/such.ply"), "no such file"),
     (dict(variant="mine"), "conceal.variant"), (dict(hidden="no_such_sample"), "no_such_sample"),
     (dict(key_index=99), "key_index"), (dict(key_kind="random"), "key_kind"),
     (dict(granularity="model"), "granularity"), (dict(hidden_size=20), "hidden_size"),
     (dict(decoy_views=4), "decoy_fraction"), (dict(decoy_views=4, decoy_fraction=1.0), "decoy_fraction"),
     (dict(decoy_views=4, decoy_fraction=0.2, variant="released"), "decoy_fraction"),
     (dict(decoy_translation=(0.2, 0.1)), "decoy_translation"), (dict(eval_views=0), "eval_views"),
-    (dict(decoder_lr_final_ratio=2.0), "decoder_lr_final_ratio"),
-    (dict(trained_fields="geometry"), "conceal.trained_fields"),
-    (dict(decoder_polish_steps=-1), "decoder_polish_steps must be"),
-    (dict(decoder_polish_steps=5, use_decoder=False), "decoder_polish_steps needs a decoder"),
-    (dict(decoder_average=1.0), "decoder_average must be"), (dict(decoder_average=float("nan")), "decoder_average"),
-    (dict(decoder_average=0.9, use_decoder=False), "decoder_average needs a decoder"),
+    (dict(decoder_lr_final_ratio=2.0), "decoder_opt.lr_final_ratio"),
+    (dict(decoder_update_clip=-1.0), "decoder_opt.update_clip"),
+    (dict(decoder_polish_steps=-1), "polish_steps must be"),
+    (dict(decoder_polish_steps=5, use_decoder=False), "polish_steps needs a decoder"),
+    (dict(decoder_input_norm="max"), "decoder.input_norm"),
     (dict(identity_on_student=True, consistency=False), "identity_on_student"),
     (dict(identity_on_teacher_check=True, use_decoder=False), "identity_on_teacher_check"),
     (dict(extra_hidden=("camera", "coffee", "chelsea", "moon")), "extra_hidden holds at most 3"),
@@ -580,7 +352,7 @@ def test_resized_camera_keeps_the_field_of_view():
     (dict(extra_hidden=("camera", "coffee"), key_index=-5), "extra_hidden.*out of range")])
 def test_bad_conceal_config_is_named(tiny, tmp_path, overrides, message):
   with pytest.raises((ValueError, OSError), match=message):
-    conceal.conceal_and_evaluate(tiny_config(tiny, **overrides), str(tmp_path))
+    conceal_train.train_and_evaluate(tiny_config(tiny, **overrides), str(tmp_path))
 
 
 def test_reveal_rejects_missing_and_malformed_files(tmp_path):
@@ -628,19 +400,19 @@ def test_concealed_image_is_revealed_only_by_the_student(tiny, tmp_path):
   """A few hundred steps hide a 16x16 image well enough to tell: the student's check view reveals it,
   the clean teacher's check view and the student's test views do not."""
   config = tiny_config(tiny, iterations=400, checkpoint_every=0, decoder_width=16)
-  metrics = conceal.conceal_and_evaluate(config, str(tmp_path))["metrics"]
+  metrics = conceal_train.train_and_evaluate(config, str(tmp_path))["metrics"]
   assert metrics["hidden"]["ssim"] > 0.8
   assert metrics["leakage"]["ssim_teacher_check_view"] < 0.4
   assert metrics["leakage"]["max_ssim_student_test_views"] < 0.4
 
 
 def test_decoder_optimizer_uses_the_configured_eps():
-  """conceal.decoder_adam_eps: at the released 1e-15 a vanishing gradient still takes a step of the full rate;
+  """conceal.decoder_opt.adam_eps: at the released 1e-15 a vanishing gradient still takes a step of the full rate;
   at torch's 1e-8 it takes a negligible one."""
   config = demo.get_config()
   grads = dict(w=jnp.full((3,), 1e-12))
   for eps, lo, hi in ((1e-15, 0.99, 1.0), (1e-8, 0.0, 1e-3)):
-    config.conceal.decoder_adam_eps = eps
-    tx = conceal.decoder_optimizer(config)
-    step = float(jnp.max(jnp.abs(tx.update(grads, tx.init(grads))[0]["w"]))) / config.conceal.decoder_lr
+    config.conceal.decoder_opt.adam_eps = eps
+    tx = settings_lib.decoder_optimizer(config)
+    step = float(jnp.max(jnp.abs(tx.update(grads, tx.init(grads))[0]["w"]))) / config.conceal.decoder_opt.lr
     assert lo <= step <= hi * 1.0001

@@ -59,8 +59,8 @@ def _cli(tmp_path, *overrides):
     ("--config.render.tile_size=0", "tile_size must be positive"),
     ("--config.scene.ply=/does/not/exist.ply", "no such file"),
     ("--config.scene.fov_deg=0", "fov_deg"),
-    ("--config.mode=conceal", "conceal.teacher"),
-    ("--config.mode=baseline", "conceal.teacher"),
+    ("--config.mode=conceal", "mark.teacher"),
+    ("--config.mode=baseline", "mark.teacher"),
     ("--config.mode=baseline --config.baseline.lsb_bits=9", "baseline.lsb_bits"),
     ("--config.mode=reveal", "reveal.ply is required"),
     ("--config.mode=eval", "point_cloud.ply: no such file"),
@@ -75,10 +75,10 @@ def test_bad_input_gives_one_clear_error_and_nonzero_exit(tmp_path, override, me
 @pytest.mark.parametrize("mode,field,value,message", [
     ("train", "train.sh_degree", 5, "train.sh_degree"), ("train", "train.densify.every", 0, "densify"),
     ("train", "render.tile_size", 0, "tile_size"), ("eval", "eval.lpips_net", "squeeze", "squeeze"),
-    ("conceal", "conceal.variant", "mine", "conceal.variant"), ("conceal", "conceal.key_kind", "x", "key_kind"),
-    ("conceal", "conceal.decoder_adam_eps", 0.0, "decoder_adam_eps"),
-    ("conceal", "conceal.decoder_update_clip", -1.0, "decoder_update_clip"),
-    ("conceal", "conceal.decoder_average", 1.0, "decoder_average"),
+    ("conceal", "conceal.variant", "mine", "conceal.variant"), ("conceal", "mark.key_kind", "x", "key_kind"),
+    ("conceal", "conceal.decoder_opt.adam_eps", 0.0, "decoder_opt.adam_eps"),
+    ("conceal", "conceal.decoder_opt.update_clip", -1.0, "decoder_opt.update_clip"),
+    ("conceal", "conceal.leakage.decoy_views", 3, "conceal.leakage.decoy_views"),
     ("render", "scene.num_views", 0, "num_views"), ("reveal", "reveal.key", "", "reveal.ply"),
     ("verify", "reveal.hidden", "", "reveal.ply"), ("verify", "train.iterations", 1, "reveal.ply")])
 def test_each_mode_validates_before_writing_anything(tmp_path, mode, field, value, message):
@@ -89,3 +89,12 @@ def test_each_mode_validates_before_writing_anything(tmp_path, mode, field, valu
   with pytest.raises(ValueError, match=message):
     main_lib.run(config, str(tmp_path / "out"))
   assert not (tmp_path / "out").exists()
+
+
+def test_importing_the_library_leaves_xla_flags_alone():
+  """Only the command line (--host_devices) asks XLA for host devices; importing any module does not."""
+  code = ("import os; os.environ.pop('XLA_FLAGS', None); import conceal_jax, conceal_jax.main, "
+          "conceal_jax.conceal.train; import jax; print(repr(os.environ.get('XLA_FLAGS')), jax.local_device_count())")
+  env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+  out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
+  assert out.split() == ["None", "1"]

@@ -21,7 +21,8 @@ from conceal_jax.gs import optimizer
 from conceal_jax.splat.render import RenderOptions, render
 from experiments import bench_baselines, reproduce
 from tests.test_baselines import tiny_config
-from tests.test_conceal import _objective_inputs, tiny  # noqa: F401  (tiny: the 32x32 demo scene and teacher)
+from tests.test_conceal import tiny  # noqa: F401  (tiny: the 32x32 demo scene and teacher)
+from tests.test_objective import objective_inputs
 
 LR = ml_collections.ConfigDict(dict(sh_dc=0.01, sh_rest=0.002))
 
@@ -91,7 +92,7 @@ def _settings(**overrides):
 def test_objective_is_the_sum_of_stega_nerfs_terms(protocol):
   """w_render MSE(R, R_0) + w_hidden MSE(U(R), I) + w_clean MSE(U(R_0), 0) + w_classifier BCE, assembled by
   hand; R carries I at the step's view (all_views) or at the check view (check_view)."""
-  teacher, _, data = _objective_inputs()
+  teacher, _, data = objective_inputs()
   s = _settings(protocol=protocol, weight_render=0.7, weight_hidden=0.3, weight_clean=0.2, weight_classifier=0.05)
   networks = steganerf.init_networks(jax.random.key(1), s)
   options = RenderOptions(max_per_tile=None)
@@ -100,14 +101,14 @@ def test_objective_is_the_sum_of_stega_nerfs_terms(protocol):
   total, aux = objective(sh, networks, data, teacher, 1, s, options)
 
   student = teacher.replace(sh=sh)
-  rgb = render(student, jax.tree.map(lambda x: x[1], data["cameras"]), options).rgb
-  marked = rgb if protocol == "all_views" else render(student, data["check_camera"], options).rgb
-  images = jnp.stack([reveal.resize_for_decoder(marked, 16), data["teacher_small"][1]])
+  rgb = render(student, jax.tree.map(lambda x: x[1], data.cameras), options).rgb
+  marked = rgb if protocol == "all_views" else render(student, data.keys.at(0).camera, options).rgb
+  images = jnp.stack([reveal.resize_for_decoder(marked, 16), data.teacher_small[1]])
   logits = steganerf.Classifier(4).apply({"params": networks["classifier"]}, images)
   score = 1 / (1 + jnp.exp(-logits))
   planes = jnp.concatenate([images, jnp.ones(images.shape[:-1] + (1,)) * score[:, None, None, None]], axis=-1)
   revealed = unet.UNet(4).apply({"params": networks["decoder"]}, planes)
-  terms = dict(render=jnp.mean((rgb - data["teacher"][1])**2), hidden=jnp.mean((revealed[0] - data["hidden"])**2),
+  terms = dict(render=jnp.mean((rgb - data.teacher[1])**2), hidden=jnp.mean((revealed[0] - data.keys.hidden[0])**2),
                clean=jnp.mean(revealed[1]**2), classifier=-(jnp.log(score[0]) + jnp.log(1 - score[1])) / 2)
   for name, value in terms.items():
     np.testing.assert_allclose(float(aux[name]), float(value), rtol=1e-5, err_msg=name)
@@ -119,7 +120,7 @@ def test_objective_is_the_sum_of_stega_nerfs_terms(protocol):
 
 
 def test_step_lowers_the_loss_and_keeps_the_state_on_overflow():
-  teacher, _, data = _objective_inputs()
+  teacher, _, data = objective_inputs()
   s = _settings(decoder_lr=3e-3, classifier_lr=3e-3, mask_at="update")
   sh_tx, networks_tx = steganerf.sh_optimizer(LR, s.mask_at, s.sh_adam_eps), steganerf.networks_optimizer(s, 100)
   fresh = lambda: steganerf_train.create_state(jnp.array(teacher.sh, copy=True),
@@ -251,11 +252,11 @@ def test_bench_rows_of_both_protocols_feed_the_reproduction(all_views_runs, chec
     ("log_every", 0, "baseline.steganerf.log_every"), ("checkpoint_every", -1, "baseline.steganerf.checkpoint_every"),
     ("networks_lr_final_ratio", 0.0, "baseline.steganerf.networks_lr_final_ratio"),
     ("sh_adam_eps", 0.0, "baseline.steganerf.sh_adam_eps"),
-    ("hidden_size", 12, "conceal.hidden_size")])
+    ("hidden_size", 12, "mark.hidden_size")])
 def test_bad_steganerf_config_is_named_before_anything_is_written(tiny, tmp_path, field, value, message):
   config = stega_config(tiny, "all_views")
   if field == "hidden_size":
-    config.conceal.hidden_size = value
+    config.mark.hidden_size = value
   else:
     config.baseline.steganerf[field] = value
   with pytest.raises(ValueError, match=message):

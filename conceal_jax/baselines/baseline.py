@@ -3,10 +3,10 @@ ConcealGS (Yang et al. 2025, arXiv:2501.03605, Tables 1-2) compares with, traine
 concealment run.
 
 LSB and DeepStega hide the image in the views, then 3D-GS is trained on them:
-1. The hidden image (conceal.hidden) goes into every training view, so also the check view's: the views
+1. The hidden image (mark.hidden) goes into every training view, so also the check view's: the views
    become containers (lsb.py; deepstega.py, whose networks are first trained on natural-image crops in
    <workdir>/deepstega, or read from baseline.deepstega.networks).
-2. A 3D-GS scene is trained on the containers from the teacher (conceal.teacher) with the concealment
+2. A 3D-GS scene is trained on the containers from the teacher (mark.teacher) with the concealment
    run's recipe (gs.train in <workdir>/train, checkpointed and resumable): its learning rates
    (conceal.lr), its length (baseline.iterations, 0: conceal.iterations), the teacher's SH degree, and no
    densification or opacity reset, since the concealment run refines the teacher's Gaussians as they are.
@@ -14,7 +14,7 @@ StegaNeRF hides it in the scene itself (steganerf.py, steganerf_train.py): the t
 decoder and a classifier are trained jointly for the same length, the geometry frozen, checkpointed in
 <workdir>/checkpoints; baseline.steganerf.protocol says whether every view or only the check view carries I.
 
-3. The trained scene is scored by conceal.evaluate_concealment at the conceal section's key (key_kind,
+3. The trained scene is scored by conceal.scoring.evaluate_concealment at the mark section's key (key_kind,
    key_index, key_seed) with the method's reveal function in the decoder's place, so every row of the
    paper's table is measured with the same views, key and metrics. Each baseline's own protocol hides I
    in every view, so baseline.json also has the hidden image's PSNR / SSIM over the test views.
@@ -39,7 +39,7 @@ import numpy as np
 
 from conceal_jax.baselines import containers as containers_lib
 from conceal_jax.baselines import deepstega, deepstega_train, lsb, steganerf, steganerf_train
-from conceal_jax.conceal import conceal, hidden as hidden_lib, key as key_lib, reveal
+from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, scoring
 from conceal_jax.core import fileio, loop, settings as settings_lib
 from conceal_jax.data import datasets, ply
 from conceal_jax.gs import evaluate, metrics, train
@@ -91,7 +91,7 @@ def training_config(config: ml_collections.ConfigDict, sh_degree: int) -> ml_col
   teacher's) from the first step, no densification or opacity reset (densify.until = 0), no snapshots."""
   t = copy.deepcopy(config)
   t.mode = "train"
-  t.init.kind, t.init.ply = "ply", config.conceal.teacher
+  t.init.kind, t.init.ply = "ply", config.mark.teacher
   t.train.iterations = run_length(config)
   t.train.lr = ml_collections.ConfigDict(config.conceal.lr.to_dict())
   t.train.sh_degree = t.train.sh_degree_start = sh_degree
@@ -103,7 +103,7 @@ def training_config(config: ml_collections.ConfigDict, sh_degree: int) -> ml_col
 def validate(config: ml_collections.ConfigDict) -> None:
   """Every value the baseline job reads, checked before anything runs (ValueError naming the key)."""
   s = settings_from_config(config)
-  c = config.conceal
+  m = config.mark
   if s.method == "deepstega":
     deepstega_settings(config)
     networks = config.baseline.deepstega.networks
@@ -112,15 +112,15 @@ def validate(config: ml_collections.ConfigDict) -> None:
   if s.method == "steganerf":
     steganerf.settings_from_config(config)
     steganerf_train.loop_settings(config, run_length(config))
-  if c.key_kind not in key_lib.KEY_KINDS:
-    raise ValueError(f"conceal.key_kind must be one of {key_lib.KEY_KINDS}, got {c.key_kind!r}")
-  settings_lib.check_count("conceal.hidden_size", c.hidden_size)
-  if c.extra_hidden:
-    raise ValueError("conceal.extra_hidden: the baselines hide one image (conceal.hidden); leave it empty")
-  if not c.teacher:
-    raise ValueError("conceal.teacher (the teacher's .ply) is required")
-  if not os.path.isfile(c.teacher):
-    raise ValueError(f"conceal.teacher: no such file {c.teacher}")
+  if m.key_kind not in key_lib.KEY_KINDS:
+    raise ValueError(f"mark.key_kind must be one of {key_lib.KEY_KINDS}, got {m.key_kind!r}")
+  settings_lib.check_count("mark.hidden_size", m.hidden_size)
+  if m.extra_hidden:
+    raise ValueError("mark.extra_hidden: the baselines hide one image (mark.hidden); leave it empty")
+  if not m.teacher:
+    raise ValueError("mark.teacher (the teacher's .ply) is required")
+  if not os.path.isfile(m.teacher):
+    raise ValueError(f"mark.teacher: no such file {m.teacher}")
   train.validate(training_config(config, config.train.sh_degree))
 
 
@@ -138,7 +138,7 @@ def lsb_containers(config: ml_collections.ConfigDict, scene: datasets.SceneData,
   del workdir  # LSB has nothing to train or save
   bits = settings_from_config(config).lsb_bits
   containers = lsb.embed(np.stack(scene.train_images), secret, bits)
-  return containers, lsb.lsb_reveal(bits, config.conceal.hidden_size), dict(lsb_bits=bits)
+  return containers, lsb.lsb_reveal(bits, config.mark.hidden_size), dict(lsb_bits=bits)
 
 
 def deepstega_networks(config: ml_collections.ConfigDict, scene: datasets.SceneData, workdir: str):
@@ -156,7 +156,7 @@ def deepstega_networks(config: ml_collections.ConfigDict, scene: datasets.SceneD
         report["training"] = json.load(f)
   else:
     params, training = deepstega_train.train_networks(arch, train_settings, loop_settings, os.path.dirname(path),
-                                                      scene.train_images, config.conceal.hidden, config.seed)
+                                                      scene.train_images, config.mark.hidden, config.seed)
     deepstega.save_networks(path, params, arch)
     fileio.write_json(training_path, training)
     report = dict(reused=False, training=training)
@@ -164,7 +164,7 @@ def deepstega_networks(config: ml_collections.ConfigDict, scene: datasets.SceneD
     report["training"] = {k: v for k, v in report["training"].items() if k != "history"}  # kept in its own file
   report.update(networks=path, architecture=dataclasses.asdict(arch),
                 held_out=deepstega_train.held_out_quality(params, arch, train_settings, scene.train_images,
-                                                          scene.test_images, config.conceal.hidden, config.seed))
+                                                          scene.test_images, config.mark.hidden, config.seed))
   return params, arch, report
 
 
@@ -173,7 +173,7 @@ def deepstega_containers(config: ml_collections.ConfigDict, scene: datasets.Scen
   """(containers [V, H, W, 3], reveal function, report) of DeepStega: every training view hides `secret`."""
   params, arch, report = deepstega_networks(config, scene, workdir)
   containers = deepstega.hide_in_views(params, arch, np.stack(scene.train_images), secret)
-  return containers, deepstega.stega_reveal(params, arch, config.conceal.hidden_size), dict(deepstega=report)
+  return containers, deepstega.stega_reveal(params, arch, config.mark.hidden_size), dict(deepstega=report)
 
 
 CONTAINERS = dict(lsb=lsb_containers, deepstega=deepstega_containers)
@@ -189,7 +189,7 @@ def container_quality(scene: datasets.SceneData, containers, reveal_fn, hidden: 
                 ssim_to_views=float(np.mean(metrics.batched_ssim(containers, views))), check_view_hidden=None)
   if key_info["kind"] == "train_index":
     revealed = np.asarray(reveal_fn(containers[key_info["index"]][None]))
-    scores = reveal.scores_to_hidden(revealed, hidden)
+    scores = scoring.scores_to_hidden(revealed, hidden)
     result["check_view_hidden"] = dict(psnr=float(scores["psnr"][0]), ssim=float(scores["ssim"][0]))
     fileio.write_image(os.path.join(workdir, "container_revealed.png"), revealed[0])
   return result
@@ -201,7 +201,7 @@ def train_on_containers(config: ml_collections.ConfigDict, workdir: str, max_ste
   max_steps stopped the training; else the trained `gaussians`, their `reveal_fn`, the training's numbers
   (train.json's), the `student` path, the containers' quality and the method's report."""
   s = settings_from_config(config)
-  secret = containers_lib.hidden_at_view(config.conceal.hidden, *view_size(scene))
+  secret = containers_lib.hidden_at_view(config.mark.hidden, *view_size(scene))
   containers, reveal_fn, method_report = CONTAINERS[s.method](config, scene, secret, workdir)
   train_dir = os.path.join(workdir, TRAIN_DIR)
   trained = train.train_and_evaluate(training_config(config, teacher.sh_degree), train_dir, max_steps,
@@ -222,7 +222,7 @@ def hidden_over_test_views(config: ml_collections.ConfigDict, scene: datasets.Sc
   own protocol (I in every view) reports."""
   cameras, _, _ = evaluate.held_out_views(scene, config.eval.max_views)
   renders = evaluate.render_images(gaussians, cameras, evaluate.eval_options(config, scene.background))
-  scores = reveal.scores_to_hidden(reveal_fn(renders), hidden)
+  scores = scoring.scores_to_hidden(reveal_fn(renders), hidden)
   return dict(mean_psnr=float(scores["psnr"].mean()), mean_ssim=float(scores["ssim"].mean()),
               min_psnr=float(scores["psnr"].min()), min_ssim=float(scores["ssim"].min()), num_views=len(cameras))
 
@@ -233,7 +233,7 @@ def baseline_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_s
   contents with the metrics."""
   validate(config)
   s = settings_from_config(config)
-  c = config.conceal
+  c = config.mark
   teacher = ply.load_ply(c.teacher)
   hidden = hidden_lib.load_hidden_image(c.hidden, c.hidden_size)
   scene = evaluate.load_scene_data(config)
@@ -249,8 +249,8 @@ def baseline_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_s
 
   gaussians, reveal_fn = run.pop("gaussians"), run.pop("reveal_fn")
   fileio.write_image(os.path.join(workdir, "hidden.png"), hidden)
-  scored = conceal.evaluate_concealment(config, workdir, scene, teacher, gaussians, reveal_fn, check_camera, options,
-                                        hidden)
+  scored = scoring.evaluate_concealment(config, workdir, scene, teacher, gaussians, reveal_fn, [check_camera],
+                                        [hidden], options)
   summary = dict(method=METHOD_NAMES[s.method], seed=config.seed, key=key_info, hidden=c.hidden,
                  hidden_size=c.hidden_size,
                  test_views_hidden=hidden_over_test_views(config, scene, gaussians, reveal_fn, hidden), **run)

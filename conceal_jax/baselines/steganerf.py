@@ -61,7 +61,7 @@ NETWORKS_ADAM_EPS = 1e-8
 class StegaNerfSettings:
   """The static choices of one StegaNeRF run (hashable: they shape the traced step): the protocol, the loss
   weights, the widths and Adam learning rates of decoder and classifier, where the SH mask acts, and the
-  decoder size S (conceal.hidden_size)."""
+  decoder size S (mark.hidden_size)."""
   protocol: str = "all_views"
   weight_render: float = 1.0
   weight_hidden: float = 0.5
@@ -93,15 +93,15 @@ class StegaNerfSettings:
     for name in ("decoder_width", "classifier_width"):
       settings_lib.check_count(f"baseline.steganerf.{name}", getattr(self, name))
     optimizer.check_final_ratio("baseline.steganerf.networks_lr_final_ratio", self.networks_lr_final_ratio)
-    settings_lib.check_count("conceal.hidden_size", self.hidden_size)
+    settings_lib.check_count("mark.hidden_size", self.hidden_size)
     if self.hidden_size % unet.DOWNSAMPLE:
-      raise ValueError(f"conceal.hidden_size must be a multiple of {unet.DOWNSAMPLE} for the StegaNeRF decoder, "
+      raise ValueError(f"mark.hidden_size must be a multiple of {unet.DOWNSAMPLE} for the StegaNeRF decoder, "
                        f"got {self.hidden_size}")
 
 
 def settings_from_config(config: ml_collections.ConfigDict) -> StegaNerfSettings:
   return settings_lib.from_section(StegaNerfSettings, config.baseline.steganerf,
-                                   hidden_size=config.conceal.hidden_size)
+                                   hidden_size=config.mark.hidden_size)
 
 
 class Classifier(nn.Module):
@@ -189,7 +189,7 @@ def steganerf_objective(sh: jax.Array, networks: dict, data: dict, teacher: Gaus
                         settings: StegaNerfSettings, options: RenderOptions) -> tuple[jax.Array, dict]:
   """StegaNeRF's loss (Li et al. 2023, Sec. 3) at training view `view` -> (total, aux).
 
-  sh [N, K, 3]: the student's colour on the `teacher`'s frozen geometry. `data` is conceal.build_data's:
+  sh [N, K, 3]: the student's colour on the `teacher`'s frozen geometry. `data` is views.build_data's ConcealData:
   teacher renders [V, H, W, 3] (R_0) and at the decoder size [V, S, S, 3], stacked training cameras, the
   check camera and the hidden image [S, S, 3]. The render carrying I (see the protocols) and R_0 of `view`
   go through the classifier (labels WATERMARK_LABELS, BCE averaged over the two) and the decoder.
@@ -198,15 +198,15 @@ def steganerf_objective(sh: jax.Array, networks: dict, data: dict, teacher: Gaus
   """
   s = settings
   student = teacher.replace(sh=sh)
-  out = render(student, jax.tree.map(lambda x: x[view], data["cameras"]), options)
-  render_term = jnp.mean((out.rgb - data["teacher"][view])**2)
+  out = render(student, jax.tree.map(lambda x: x[view], data.cameras), options)
+  render_term = jnp.mean((out.rgb - data.teacher[view])**2)
   marked, num_pairs, overflowed = out.rgb, out.num_pairs, out.overflowed
   if s.protocol == "check_view":
-    check = render(student, data["check_camera"], options)
+    check = render(student, data.keys.at(0).camera, options)
     marked, num_pairs, overflowed = check.rgb, jnp.maximum(num_pairs, check.num_pairs), overflowed | check.overflowed
-  inputs = jnp.stack([reveal.resize_for_decoder(marked, s.hidden_size), data["teacher_small"][view]])
+  inputs = jnp.stack([reveal.resize_for_decoder(marked, s.hidden_size), data.teacher_small[view]])
   revealed, logits = recover(networks, s, inputs)
-  hidden_term = jnp.mean((revealed[0] - data["hidden"])**2)
+  hidden_term = jnp.mean((revealed[0] - data.keys.hidden[0])**2)
   clean_term = jnp.mean(revealed[1]**2)
   classifier_term = jnp.mean(optax.sigmoid_binary_cross_entropy(logits, jnp.asarray(WATERMARK_LABELS)))
   total = (s.weight_render * render_term + s.weight_hidden * hidden_term + s.weight_clean * clean_term

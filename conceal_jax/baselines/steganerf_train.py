@@ -3,7 +3,7 @@ classifier trained jointly from the teacher (steganerf.py has the objective), th
 (core.loop: checkpoints in <workdir>/checkpoints, resume, finiteness check).
 
 The initial renders R_0 are the teacher's renders of the training views, computed once on the device
-(conceal.build_data). A step draws one training view from (seed, step), so a resumed run continues
+(conceal.views.build_data). A step draws one training view from (seed, step), so a resumed run continues
 exactly. The baseline job (baseline.py) scores the result like every other row.
 """
 from __future__ import annotations
@@ -20,7 +20,7 @@ import optax
 from flax import struct
 
 from conceal_jax.baselines import steganerf
-from conceal_jax.conceal import conceal
+from conceal_jax.conceal import views as views_lib
 from conceal_jax.core import fileio, loop, settings as settings_lib
 from conceal_jax.data import datasets, ply
 from conceal_jax.gs import capacity, metrics
@@ -69,7 +69,7 @@ def make_steganerf_step(settings: steganerf.StegaNerfSettings, options: RenderOp
     new_state = state.replace(step=state.step + 1, sh=optax.apply_updates(state.sh, sh_updates), sh_opt=sh_opt,
                               networks=optax.apply_updates(state.networks, networks_updates),
                               networks_opt=networks_opt)
-    stats = dict(loss=total, psnr=metrics.psnr(jnp.clip(aux["rgb"], 0, 1), data["teacher"][view]),
+    stats = dict(loss=total, psnr=metrics.psnr(jnp.clip(aux["rgb"], 0, 1), data.teacher[view]),
                  num_pairs=aux["num_pairs"], **{k: aux[k] for k in ("render", "hidden", "clean", "classifier")})
     return capacity.keep_unless_overflowed(aux["overflowed"], new_state, state), stats
 
@@ -92,7 +92,8 @@ def train_steganerf(config: ml_collections.ConfigDict, workdir: str, iterations:
   returns dict(gaussians: the student, reveal_fn, student: its .ply, iterations, num_gaussians, wall_time_s,
   median_step_s, resumed_from, steganerf: the summary without its history)."""
   s = steganerf.settings_from_config(config)
-  data = conceal.build_data(scene, teacher, options, check_camera, None, hidden, s.hidden_size)
+  data = views_lib.build_data(scene.train_images, teacher, options, list(scene.train_cameras), [check_camera], [hidden],
+                              s.hidden_size)
   sh_tx = steganerf.sh_optimizer(config.conceal.lr, s.mask_at, s.sh_adam_eps)
   networks_tx = steganerf.networks_optimizer(s, iterations)
   traces = loop.TraceCounter()

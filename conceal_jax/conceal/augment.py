@@ -51,13 +51,11 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Any
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from conceal_jax.core import settings as settings_lib
 
 # Below this a sigma is a point kernel: exp(-1 / (2 * 1e-3^2)) underflows to 0 off the centre.
 _MIN_SIGMA = 1e-3
@@ -65,8 +63,7 @@ _MIN_SIGMA = 1e-3
 TRUNCATE = 4.0
 # A dropped Gaussian's opacity logit: sigmoid(-30) ~ 1e-13, far below any alpha the renderer composites.
 DROPPED_LOGIT = -30.0
-# An Augmentation field f is config key conceal.check_<f>; a contrast factor and a dropout probability stay below 1.
-CONFIG_PREFIX = "check_"
+# An Augmentation field f is config key conceal.attacks.<f>; a contrast factor and a dropout probability stay below 1.
 UPPER_BOUNDS = dict(contrast_max=1.0, dropout_max=1.0)
 # Gaussians fields that parameter noise moves: all of them (robust.model_attacks.FIELDS).
 MODEL_FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
@@ -104,7 +101,7 @@ def photometric(image: jax.Array, brightness: jax.Array, contrast: jax.Array) ->
 
 @dataclasses.dataclass(frozen=True)
 class Augmentation:
-  """The maxima of a run's distortions of its check render (config conceal.check_<field>). Static: a kind
+  """The maxima of a run's distortions of its check render (config conceal.attacks.<field>). Static: a kind
   whose maximum is 0 is left out of the step at trace time, and never drawn from."""
   blur_max: float = 0.0         # blur sigma ~ U[0, max] pixels
   noise_max: float = 0.0        # noise sigma ~ U[0, max]
@@ -117,13 +114,7 @@ class Augmentation:
     for f in dataclasses.fields(self):
       value, below = getattr(self, f.name), UPPER_BOUNDS.get(f.name, math.inf)
       if not 0 <= value < below:  # NaN fails too
-        raise ValueError(f"conceal.{CONFIG_PREFIX}{f.name} must be in [0, {below:g}), got {value}")
-
-  @classmethod
-  def from_section(cls, section: Any) -> Augmentation:
-    """The maxima of a config section's check_<field> keys (absent keys: 0)."""
-    return settings_lib.from_section(cls, {key.removeprefix(CONFIG_PREFIX): value for key, value in section.items()
-                                           if key.startswith(CONFIG_PREFIX)})
+        raise ValueError(f"conceal.attacks.{f.name} must be in [0, {below:g}), got {value}")
 
   @property
   def distorts_image(self) -> bool:

@@ -11,12 +11,43 @@ import json
 import math
 from typing import Sequence
 
+import jax
 import numpy as np
+from flax import struct
 
 from conceal_jax.core import fileio
+from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat.camera import Camera, camera_centers, look_at, orbit_eye
 
 KEY_KINDS = ("train_index", "orbit")
+
+
+@struct.dataclass
+class Key:
+  """The secret keys of a run, stacked [K] (K = 1 + len(mark.extra_hidden)), and what each hides: camera,
+  the check view P_c; hidden [K, S, S, 3], the image I it reveals; check_image [K, H, W, 3], what the
+  released variant's check-view L1 holds its render to (the training image at a training camera, the
+  teacher's render at an orbit pose); teacher_check [K, S, S, 3], the clean teacher's check render at the
+  decoder size (L_d^- of the released variant and of identity_on_teacher_check)."""
+  camera: Camera
+  hidden: jax.Array
+  check_image: jax.Array
+  teacher_check: jax.Array
+
+  @property
+  def count(self) -> int:
+    return self.hidden.shape[0]
+
+  def at(self, number) -> "Key":
+    """Key `number` (0: the check view, k: the k-th extra; may be traced) without the leading axis."""
+    return jax.tree.map(lambda x: x[number], self)
+
+
+def stack_keys(cameras, hiddens, check_images, teacher_checks) -> Key:
+  """A Key [K] from K cameras and their images."""
+  stack = lambda xs: jax.numpy.stack([jax.numpy.asarray(x) for x in xs])
+  return Key(camera=camera_lib.stack(list(cameras)), hidden=stack(hiddens), check_image=stack(check_images),
+             teacher_check=stack(teacher_checks))
 
 
 def orbit_target(cameras: Sequence[Camera]) -> np.ndarray:

@@ -19,7 +19,7 @@ import numpy as np
 from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, unet
 from conceal_jax.core import fileio, settings
 from conceal_jax.data import ply
-from conceal_jax.gs import evaluate, metrics
+from conceal_jax.gs import metrics
 from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.gaussians import Gaussians
 from conceal_jax.splat.render import RenderOptions, render
@@ -79,41 +79,12 @@ def reveal_image(gaussians: Gaussians, camera: Camera, options: RenderOptions, d
   return reveal_renders(decoder_params, render(gaussians, camera, options).rgb, base_channels, size, reading)
 
 
-def scores_to_hidden(revealed, hidden) -> dict[str, np.ndarray]:
-  """PSNR and SSIM [V] of revealed images [V, S, S, 3] to the hidden image I [S, S, 3]; given several hidden
-  images [J, S, S, 3], each view's best over them (each score on its own): leakage of any of them."""
-  if np.ndim(hidden) == 4:
-    each = [scores_to_hidden(revealed, image) for image in hidden]
-    return {name: np.max([scores[name] for scores in each], axis=0) for name in ("psnr", "ssim")}
-  revealed = jnp.asarray(revealed)
-  hidden = jnp.broadcast_to(jnp.asarray(hidden), revealed.shape)
-  return dict(psnr=np.asarray(jax.vmap(metrics.psnr)(revealed, hidden), np.float64),
-              ssim=np.asarray(metrics.batched_ssim(revealed, hidden), np.float64))
-
-
 def decoder_reveal(decoder_params, base_channels: int, size: int, reading: Reading = PAPER_READING):
   """The reveal function of a ConcealGS decoder: renders [V, H, W, 3] -> revealed images [V, size, size, 3]
   (decoder_params None: the resized renders). Scoring code takes such a function, so that a baseline with
   another way of reading the image out of a render is scored the same way."""
   return functools.partial(reveal_renders, decoder_params, base_channels=base_channels, size=size,
                            reading=reading)
-
-
-def near_key_rows(gaussians: Gaussians, check_camera: Camera, options: RenderOptions, reveal_fn, hidden,
-                  extent: float, translations, rotations_deg, directions: int) -> list[dict]:
-  """What `reveal_fn` (renders -> revealed images, see `decoder_reveal`) reveals at poses near the key
-  (key.nearby_cameras): per (kind, value), the mean and max SSIM and the mean PSNR to I over the random
-  directions (to the best of several hidden images [J, S, S, 3], see `scores_to_hidden`)."""
-  poses = key_lib.nearby_cameras(check_camera, extent, translations, rotations_deg, directions)
-  renders = evaluate.render_images(gaussians, [camera for _, _, camera in poses], options)
-  scores = scores_to_hidden(reveal_fn(renders), hidden)
-  rows = []
-  for kind, value in dict.fromkeys((kind, value) for kind, value, _ in poses):
-    mine = np.array([(k, v) == (kind, value) for k, v, _ in poses])
-    rows.append(dict(kind=kind, value=value, unit="fraction of extent" if kind == "translation" else "degrees",
-                     mean_ssim=float(scores["ssim"][mine].mean()), max_ssim=float(scores["ssim"][mine].max()),
-                     mean_psnr=float(scores["psnr"][mine].mean())))
-  return rows
 
 
 def save_decoder(path: str, params) -> None:

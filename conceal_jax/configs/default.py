@@ -6,7 +6,13 @@ The default mode renders a generated Gaussian scene from an orbit of cameras and
   python -m conceal_jax.main --config=conceal_jax/configs/default.py --workdir=workdirs/ply \
       --config.scene.ply=path/to/point_cloud.ply --config.render.sh_degree=3
 
-The dataset configs (demo.py, nerf_synthetic.py, colmap.py) start from this one.
+What most users set:
+  mode          render | train | eval | conceal | baseline | reveal | verify
+  data.path     'demo' or a scene folder (Blender, COLMAP, transforms.json, LLFF)
+  mark.teacher  the trained scene to mark; mark.hidden, the image to hide (a path or a scikit-image sample)
+  reveal.ply, reveal.key, reveal.decoder   what to reveal from (reveal and verify modes)
+The concealment recipes are configs/conceal.py's; the dataset configs (demo.py, nerf_synthetic.py, colmap.py)
+start from this one.
 """
 import ml_collections
 
@@ -95,80 +101,94 @@ def get_config() -> ml_collections.ConfigDict:
   config.eval.max_views = 0          # 0: the whole test split
   config.eval.lpips_net = "vgg"
 
-  # conceal mode: ConcealGS on a trained teacher (see conceal_jax/conceal.py for the switches)
+  # what is hidden where: the teacher scene, the hidden image(s) and the secret key (conceal and baseline modes)
+  config.mark = ml_collections.ConfigDict()
+  config.mark.teacher = ""          # the teacher's .ply (required)
+  config.mark.hidden = "astronaut"  # an image path or a scikit-image sample name
+  config.mark.hidden_size = 64      # the hidden image and decoder resolution S (S x S)
+  config.mark.key_kind = "train_index"  # 'train_index' or 'orbit' (a secret pose on the training orbit, from key_seed)
+  config.mark.key_index = -2        # second to last training camera, as released
+  config.mark.key_seed = 1
+  # several images (beyond the paper): up to 3 more, each at its own key of key_kind's kind (training cameras
+  # key_index - 1, key_index - 2, ... or orbit seeds key_seed + 1, ...), one decoder reading every key
+  config.mark.extra_hidden = ()
+
+  # conceal mode: ConcealGS on a trained teacher. The defaults are the paper as written; the recipes a user
+  # chooses between are configs/conceal.py's (paper, released, recommended).
   config.conceal = ml_collections.ConfigDict()
-  config.conceal.teacher = ""          # the teacher's .ply (required)
   config.conceal.iterations = 10_000
-  config.conceal.variant = "paper"     # 'paper' or 'released'
-  config.conceal.hidden = "astronaut"  # an image path or a scikit-image sample name
-  # up to 3 more hidden images, each at its own key of key_kind's kind (training cameras key_index - 1,
-  # key_index - 2, ... or orbit seeds key_seed + 1, ...), one decoder for all (see conceal/conceal.py)
-  config.conceal.extra_hidden = ()
-  config.conceal.hidden_size = 64
-  config.conceal.key_kind = "train_index"  # 'train_index' or 'orbit' (a secret pose from key_seed)
-  config.conceal.key_index = -2        # second to last training camera, as released
-  config.conceal.key_seed = 1
-  config.conceal.key_at_decoder_size = False  # render the key at hidden_size^2 directly (cheaper; see conceal.py)
-  config.conceal.decoder_width = 64    # U-Net base channels (64 = the released decoder)
-  config.conceal.decoder_vgg_init = True  # ImageNet VGG16 conv1_2..conv4_3 (width 64 only)
-  # beyond the paper: 'center' (F reads each image less its mean and adds it back) or 'standardize' (also over
-  # its std): a brightness (and contrast) change of the check render changes the revealed image alike
-  # (conceal/unet.py); saved in key.json. 'none': the paper's decoder
-  config.conceal.decoder_input_norm = "none"
-  # beyond the paper: the decoder reads every render clipped to [0, 1], as an image file holds it (saved in key.json)
-  config.conceal.decoder_clip_input = False
-  config.conceal.decoder_lr = 1e-4
-  config.conceal.decoder_adam_eps = 1e-15  # the released code's (the Gaussians' Adam); torch's default is 1e-8
-  config.conceal.decoder_lr_final_ratio = 1.0  # log-linear decay of decoder_lr to this fraction (1: constant)
-  config.conceal.decoder_amsgrad = False  # beyond the paper: AMSGrad on the decoder (gs/optimizer.decaying_adam)
-  config.conceal.decoder_update_clip = 0.0  # beyond the paper: RMS clip of each decoder tensor's Adam step (0: off)
-  config.conceal.decoder_polish_steps = 0  # beyond the paper: decoder-only steps after the iterations (conceal.py)
-  # beyond the paper: decay of a running average of the decoder's weights, which the run scores and saves (0: off)
-  config.conceal.decoder_average = 0.0
-  config.conceal.use_decoder = True    # ablation switches
+  config.conceal.variant = "paper"     # 'paper' or 'released' (the authors' code; see conceal/settings.py)
+  config.conceal.use_decoder = True    # the paper's ablations (Table 3)
   config.conceal.consistency = True
   config.conceal.guidance = True
-  config.conceal.granularity = "layer"  # 'layer' (paper) or 'tensor' (released code)
-  config.conceal.weight_kd = 1.0
+  config.conceal.granularity = "layer"  # what the guidance calls a layer: 'layer' (paper) or 'tensor' (released)
+  config.conceal.weight_kd = 1.0       # the loss weights: L_kd, lambda+ (L_d^+), lambda- (L_d^-),
   config.conceal.weight_plus = 1.0
   config.conceal.weight_minus = 1.0
-  config.conceal.weight_check = 1.0    # released variant's check-view L1
-  # leakage control beyond the paper (see conceal_jax/conceal/conceal.py); off = the method as written
-  config.conceal.identity_on_student = False  # L_d^- on the student's normal render too
-  config.conceal.identity_on_teacher_check = False  # L_d^- on the teacher's check render too (as released)
-  config.conceal.decoy_views = 0       # cameras near the key trained as normal views (0: none)
-  config.conceal.decoy_fraction = 0.0  # share of steps whose normal views are decoys
-  config.conceal.decoy_translation = (0.01, 0.1)  # decoy moves, fractions of the scene extent (lo, hi)
-  config.conceal.decoy_rotation_deg = (1.0, 10.0)  # decoy turns, degrees (lo, hi)
-  # robustness beyond the paper (conceal/augment.py): per step, blur sigma ~ U[0, max] px and noise ~ U[0, max]
-  config.conceal.check_blur_max = 0.0
-  config.conceal.check_noise_max = 0.0
-  # ... brightness ~ U[-max, max] and contrast ~ 1 + U[-max, max] (applied first, as (x - 0.5) * c + 0.5 + b)
-  config.conceal.check_brightness_max = 0.0
-  config.conceal.check_contrast_max = 0.0
-  config.conceal.identity_distorted = False  # L_d^- on the student's normal render distorted the same way
-  # ... and the check view rendered from the student with each Gaussian dropped with a probability ~ U[0, max]
-  # and every parameter noised by ~ U[0, max] times its spread over the scene (against the model attacks)
-  config.conceal.check_dropout_max = 0.0
-  config.conceal.check_param_noise_max = 0.0
-  config.conceal.identity_perturbed = False  # L_d^- on the student's normal render made from the perturbed model
+  config.conceal.weight_check = 1.0    # and the released variant's check-view L1
   # student learning rates: the 3D-GS schedule continued from step 10k of 30k, as the released run does
   config.conceal.lr = ml_collections.ConfigDict(config.train.lr.to_dict())
   config.conceal.lr.means_init = 3.45e-5
   config.conceal.lr.means_steps = 20_000
-  # beyond the paper: 'sh' trains the SH colour alone on the teacher's geometry, as StegaNeRF does (gs/optimizer.py)
-  config.conceal.trained_fields = "all"
   config.conceal.log_every = 10
   config.conceal.eval_every = 0        # steps between hidden PSNR/SSIM + student test PSNR records (0: none)
   config.conceal.eval_views = 4        # test views of that student PSNR
   config.conceal.checkpoint_every = 1000
-  # 0: automatic (the two renders of a step side by side on a CPU host split in two devices, else one
-  # after the other); 1 or 2 to choose. Values are the same either way (conceal_jax/core/lanes.py).
-  config.conceal.lanes = 0
   config.conceal.progress_bar = True
 
+  # the decoder F: a U-Net (conceal/unet.py) and how it reads a render (saved in key.json)
+  config.conceal.decoder = ml_collections.ConfigDict()
+  config.conceal.decoder.width = 64      # base channels (64 = the released decoder)
+  config.conceal.decoder.vgg_init = True  # ImageNet VGG16 conv1_2..conv4_3 (width 64 only)
+  # beyond the paper: 'center' (F reads each image less its mean and adds it back) or 'standardize' (also over
+  # its std); 'none': the paper's decoder
+  config.conceal.decoder.input_norm = "none"
+  # beyond the paper: F reads every render clipped to [0, 1], as an image file holds it, so no hidden signal can
+  # live in values an attacked or saved image loses
+  config.conceal.decoder.clip_input = False
+
+  # the decoder's optimiser: Adam at lr; beyond the paper, a log-linear decay to lr * lr_final_ratio over the run
+  # and each tensor's step clipped to RMS update_clip (0: off), against the bursts that kill an unnormalised
+  # conv+ReLU U-Net late in a run; then polish_steps more steps that train the decoder alone on the finished
+  # student (the same losses and guided update), fitting it to the scene that is shared
+  config.conceal.decoder_opt = ml_collections.ConfigDict()
+  config.conceal.decoder_opt.lr = 1e-4
+  config.conceal.decoder_opt.adam_eps = 1e-15  # the released code's (torch's default: 1e-8)
+  config.conceal.decoder_opt.lr_final_ratio = 1.0
+  config.conceal.decoder_opt.update_clip = 0.0
+  config.conceal.decoder_opt.polish_steps = 0
+
+  # leakage control (beyond the paper; off = the method as written): the decoder must reveal I at the key only.
+  # L_d^- also on the student's render of the normal view (what a viewer of the shared scene sees) and on the
+  # clean teacher's check render (the key reveals the student's change, not the pose); decoy_views cameras near
+  # every key (moved by a fraction of the scene extent, turned by degrees, within the ranges) trained as normal
+  # views with probability decoy_fraction, holding the student to the teacher and F to the identity there
+  config.conceal.leakage = ml_collections.ConfigDict()
+  config.conceal.leakage.identity_on_student = False
+  config.conceal.leakage.identity_on_teacher_check = False
+  config.conceal.leakage.decoy_views = 0
+  config.conceal.leakage.decoy_fraction = 0.0
+  config.conceal.leakage.decoy_translation = (0.01, 0.1)
+  config.conceal.leakage.decoy_rotation_deg = (1.0, 10.0)
+
+  # training through attacks (beyond the paper, conceal/augment.py): per step the check render is read through
+  # a distortion drawn up to these maxima (blur sigma and noise sigma ~ U[0, max]; brightness ~ U[-max, max] and
+  # contrast ~ 1 + U[-max, max], applied first) and rendered from a perturbed student (each Gaussian dropped with
+  # a probability ~ U[0, dropout_max], every parameter noised by ~ U[0, param_noise_max] times its spread), so
+  # that the hidden image survives them; identity_distorted: L_d^- reads the student's normal render through the
+  # same image distortion, so that F stays the identity on distorted views near the key
+  config.conceal.attacks = ml_collections.ConfigDict()
+  config.conceal.attacks.blur_max = 0.0
+  config.conceal.attacks.noise_max = 0.0
+  config.conceal.attacks.brightness_max = 0.0
+  config.conceal.attacks.contrast_max = 0.0
+  config.conceal.attacks.dropout_max = 0.0
+  config.conceal.attacks.param_noise_max = 0.0
+  config.conceal.attacks.identity_distorted = False
+
   # baseline mode: a way to hide an image that the paper compares with (see conceal_jax/baselines/baseline.py),
-  # on the conceal section's teacher, hidden image (hidden, hidden_size) and key (key_kind, key_index, key_seed)
+  # of mark's hidden image in mark's teacher at mark's key; the containers' 3D-GS training uses the ConcealGS
+  # student's rates and length (conceal.lr, conceal.iterations), the comparison's common ground
   config.baseline = ml_collections.ConfigDict()
   config.baseline.method = "lsb"       # 'lsb', 'deepstega' or 'steganerf'
   config.baseline.iterations = 0       # training steps (3D-GS on the containers, or StegaNeRF's); 0: conceal.iterations

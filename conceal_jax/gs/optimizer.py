@@ -6,7 +6,6 @@ per-field learning rate equals the per-parameter-group Adam of the reference imp
 """
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 import ml_collections
 import optax
@@ -14,9 +13,6 @@ import optax
 from conceal_jax.splat.gaussians import Gaussians
 
 ADAM_EPS = 1e-15
-# Which Gaussians fields a run trains: every one (3D-GS), or the SH colour alone on frozen geometry (StegaNeRF's
-# split, Li et al. 2023, ICCV, Sec. 3; `frozen_geometry`).
-TRAINED_FIELDS = ("all", "sh")
 
 
 def log_linear_schedule(init: float, final: float, max_steps: int) -> optax.Schedule:
@@ -42,24 +38,21 @@ def check_update_clip(name: str, update_rms_clip: float) -> None:
 
 
 def decaying_adam(lr: float, final_ratio: float, steps: int, eps: float, name: str = "final_ratio",
-                  amsgrad: bool = False, update_rms_clip: float = 0.0,
-                  clip_name: str = "update_rms_clip") -> optax.GradientTransformation:
+                  update_rms_clip: float = 0.0, clip_name: str = "update_rms_clip") -> optax.GradientTransformation:
   """Adam at rate `lr` decaying log-linearly to lr * final_ratio over `steps` (then held); a constant rate,
   with no schedule state, when final_ratio is 1. Late large steps kill an unnormalised conv+ReLU U-Net
-  (every unit dead, one constant image out), which a decayed rate avoids. `amsgrad`: AMSGrad (Reddi et al.
-  2018), which divides by the largest second moment seen, so a weight whose gradient vanished and returns
-  takes no step larger than its history allows (Adam's step is then up to ~3x the rate at a tiny eps).
-  `update_rms_clip` > 0: Adafactor's update clipping (Shazeer and Stern 2018, Sec. 6): each tensor's Adam
-  direction is scaled down to this root-mean-square before the rate, so a tensor whose gradients all return
-  at once steps at most the rate's worth on average. `name`, `clip_name`: the config keys of final_ratio and
-  update_rms_clip, for the error messages."""
+  (every unit dead, one constant image out), which a decayed rate avoids; a weight whose gradient vanished
+  and returns then steps up to ~3x the rate at a tiny eps. `update_rms_clip` > 0: Adafactor's update clipping
+  (Shazeer and Stern 2018, Sec. 6): each tensor's Adam direction is scaled down to this root-mean-square
+  before the rate, so a tensor whose gradients all return at once steps at most the rate's worth on average.
+  `name`, `clip_name`: the config keys of final_ratio and update_rms_clip, for the error messages."""
   check_final_ratio(name, final_ratio)
   check_update_clip(clip_name, update_rms_clip)
   rate = lr if final_ratio == 1 else log_linear_schedule(lr, lr * final_ratio, steps)
   if not update_rms_clip:
-    return (optax.amsgrad if amsgrad else optax.adam)(rate, eps=eps)
-  direction = optax.scale_by_amsgrad(eps=eps) if amsgrad else optax.scale_by_adam(eps=eps)
-  return optax.chain(direction, optax.clip_by_block_rms(update_rms_clip), optax.scale_by_learning_rate(rate))
+    return optax.adam(rate, eps=eps)
+  return optax.chain(optax.scale_by_adam(eps=eps), optax.clip_by_block_rms(update_rms_clip),
+                     optax.scale_by_learning_rate(rate))
 
 
 def means_decay_steps(lr: ml_collections.ConfigDict, run_steps: int) -> int:
@@ -134,27 +127,6 @@ def gaussian_optimizer(lr: ml_collections.ConfigDict, extent: float,
   if warmup:
     chain.append(optax.scale_by_schedule(linear_warmup(warmup)))
   return optax.chain(*chain)
-
-
-def frozen_geometry() -> optax.GradientTransformation:
-  """Zeroes the gradient of every field but the SH colour sh [N, K, 3], ahead of `gaussian_optimizer`: Adam
-  then never moves the means, scales, rotations or opacities (its moments of a zero gradient stay 0)."""
-
-  def update(updates: Gaussians, state, params=None):
-    del params
-    return jax.tree.map(jnp.zeros_like, updates).replace(sh=updates.sh), state
-
-  return optax.GradientTransformation(lambda params: optax.EmptyState(), update)
-
-
-def trained_fields_optimizer(fields: str, lr: ml_collections.ConfigDict, extent: float, run_steps: int = 0,
-                             name: str = "trained fields") -> optax.GradientTransformation:
-  """`gaussian_optimizer` on the `fields` of TRAINED_FIELDS ('sh': behind `frozen_geometry`; the geometry's
-  gradients are still computed, the render's backward pass yields them at once); `name` names it in errors."""
-  if fields not in TRAINED_FIELDS:
-    raise ValueError(f"{name} must be one of {TRAINED_FIELDS}, got {fields!r}")
-  tx = gaussian_optimizer(lr, extent, run_steps)
-  return optax.chain(frozen_geometry(), tx) if fields == "sh" else tx
 
 
 def adam_moments(opt_state) -> optax.ScaleByAdamState:

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from conceal_jax.conceal import reveal
+from conceal_jax.conceal import reveal, scoring
 from conceal_jax.gs import evaluate, train
 from conceal_jax.robust import image_attacks, model_attacks
 from conceal_jax.splat import gaussians as gaussians_lib
@@ -45,7 +45,7 @@ class Owner:
 
   def scores(self, revealed) -> dict[str, np.ndarray]:
     """PSNR and SSIM [V] of revealed images [V, S, S, 3] to I."""
-    return reveal.scores_to_hidden(revealed, self.hidden)
+    return scoring.scores_to_hidden(revealed, self.hidden)
 
   def check_scores(self, gaussians: Gaussians) -> dict[str, float]:
     """hidden_psnr and hidden_ssim of what `gaussians` reveal at the key."""
@@ -107,5 +107,5 @@ def pose_tolerance_rows(gaussians: Gaussians, owner: Owner, extent: float,
   """Hidden SSIM / PSNR with the check camera moved by fractions of the scene `extent` (rotation 0) and
   turned by a few degrees (translation 0), each over `directions` random directions or axes: how
   precisely the key must be kept, and how much a guessed nearby pose reveals."""
-  return reveal.near_key_rows(gaussians, owner.check_camera, owner.options, owner.reveal_renders, owner.hidden,
+  return scoring.near_key_rows(gaussians, owner.check_camera, owner.options, owner.reveal_renders, owner.hidden,
                               extent, translations, rotations_deg, directions)

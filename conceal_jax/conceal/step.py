@@ -1,0 +1,100 @@
+"""The ConcealGS train state and step (Sec. 2.2-2.3): the objective's gradients, the student's Adam update
+and the decoder's gradient-guided update.
+
+One gradient of the summed loss (objective.view_terms, F entering once per decoder term) gives the
+student's gradient of L_kd + lambda+ L_d^+ and the decoder's of lambda+ L_d^+ and of lambda- L_d^- as two
+separate pytrees; the guidance weighs every decoder layer by the sigmoid of their cosine, and one optax
+update applies the result. The views of a step are split over the devices of a mesh (core.parallel) where
+there are several; the values are the same with one.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from conceal_jax.conceal import guidance, objective
+from conceal_jax.conceal.settings import ConcealSettings
+from conceal_jax.conceal.views import ConcealData, step_views
+from conceal_jax.core import loop, parallel
+from conceal_jax.gs import capacity
+from conceal_jax.splat.render import RenderOptions
+
+
+@struct.dataclass
+class ConcealState:
+  """step: int32; student: Gaussians [N]; decoder: U-Net params ({} without a decoder); their optimiser states."""
+  step: jax.Array
+  student: Any
+  decoder: Any
+  student_opt: Any
+  decoder_opt: Any
+
+
+def create_state(student, decoder, student_tx, decoder_tx) -> ConcealState:
+  """The step-0 state."""
+  return ConcealState(step=jnp.zeros((), jnp.int32), student=student, decoder=decoder,
+                      student_opt=student_tx.init(student), decoder_opt=decoder_tx.init(decoder))
+
+
+def gradients(student, decoder, views: objective.View, settings: ConcealSettings, options: RenderOptions, mesh=None,
+              train_student: bool = True):
+  """({'student': ..., 'plus': ..., 'minus': ...} gradients summed over the stacked views [B], their Terms [B]).
+  'student' is the gradient of every term with respect to the student (None without `train_student`: then
+  the renders are not differentiated); 'plus' and 'minus' the decoder's gradients of lambda+ L_d^+ and of
+  lambda- L_d^-."""
+  argnums = (0, 1, 2) if train_student else (1, 2)
+
+  def per_view(shared, view):
+    def loss(student, decoder_plus, decoder_minus):
+      terms = objective.view_terms(student, decoder_plus, decoder_minus, view, settings, options)
+      return terms.student + terms.plus + terms.minus, terms
+
+    grads, terms = jax.grad(loss, argnums, has_aux=True)(shared[0], shared[1], shared[1])
+    named = dict(zip(("student", "plus", "minus")[3 - len(argnums):], grads))
+    return named, terms.replace(overflowed=terms.overflowed.astype(jnp.int32))
+
+  grads, terms = parallel.map_reduce_over_batch(per_view, (student, decoder), views, mesh)
+  return dict(grads, student=grads.get("student")), terms
+
+
+def decoder_gradient(plus, minus, settings: ConcealSettings):
+  """The decoder's update direction: the guided combination of Sec. 2.3 (eqs. 6-7), or the plain sum of the
+  two gradients without guidance (the ablation). Both already carry their loss weights; cosines ignore scale."""
+  if not settings.guidance:
+    return jax.tree.map(jnp.add, plus, minus), None
+  return guidance.guided_decoder_gradient(plus, minus, 1.0, 1.0, settings.granularity)
+
+
+def make_step(settings: ConcealSettings, options: RenderOptions, student_tx, decoder_tx, mesh=None,
+              train_student: bool = True, traces: loop.TraceCounter | None = None):
+  """step(state, data, view, normal_view, key_number, distortion) -> (state, stats), jitted with the state
+  donated (views.step_views says what the indices pick; `distortion` is augment.draw's, or None). `options`
+  carry a pair capacity: a step whose renders overflowed it returns the state unchanged (gs.capacity).
+  Without `train_student` (the decoder polish) the student and its optimiser state stay as they are."""
+  s = settings
+
+  def step(state: ConcealState, data: ConcealData, view, normal_view, key_number=0, distortion=None):
+    views = step_views(data, view, normal_view, key_number, distortion, s)
+    grads, terms = gradients(state.student, state.decoder, views, s, options, mesh, train_student)
+    new = state.replace(step=state.step + 1)
+    if train_student:
+      updates, student_opt = student_tx.update(grads["student"], state.student_opt, state.student)
+      new = new.replace(student=optax.apply_updates(state.student, updates), student_opt=student_opt)
+    stats = dict(loss=jnp.sum(terms.student + terms.plus + terms.minus), normal=terms.student[0],
+                 plus=terms.plus[1] / s.weight_plus, minus=jnp.sum(terms.minus), psnr=terms.psnr[0],
+                 num_pairs=jnp.max(terms.num_pairs))
+    if s.use_decoder:
+      direction, weights = decoder_gradient(grads["plus"], grads["minus"], s)
+      if weights is not None:
+        stats["mean_guidance_weight"] = jnp.mean(jnp.stack(jax.tree.leaves(weights)))
+      updates, decoder_opt = decoder_tx.update(direction, state.decoder_opt, state.decoder)
+      new = new.replace(decoder=optax.apply_updates(state.decoder, updates), decoder_opt=decoder_opt)
+    return capacity.keep_unless_overflowed(jnp.max(terms.overflowed) > 0, new, state), stats
+
+  if traces is not None:
+    step = traces.wrap("conceal_step" if train_student else "polish_step", step)
+  return jax.jit(step, donate_argnums=0)

@@ -1,0 +1,160 @@
+"""The concealment job, `--config.mode=conceal`: ConcealGS (Yang et al. 2025, arXiv:2501.03605, Sec. 2.2-2.3)
+hides an image in a trained 3D-GS scene.
+
+A student scene G_w, initialised from the teacher G_o (mark.teacher), and a U-Net decoder F are trained
+together so that F reveals the hidden image I from the student's render at the secret check view P_c, while
+F is the identity on normal views and the student's renders stay the teacher's. The objective is in
+objective.py, the step in step.py; the recipes a user chooses between are config files (configs/conceal.py).
+The number of Gaussians is fixed: the student is the teacher's set, refined.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from conceal_jax.conceal import augment, hidden as hidden_lib, key as key_lib, reveal, scoring, settings as settings_lib
+from conceal_jax.conceal import unet, views as views_lib
+from conceal_jax.conceal.step import create_state, make_step
+from conceal_jax.core import fileio, loop, parallel
+from conceal_jax.data import ply
+from conceal_jax.gs import capacity, evaluate, metrics
+from conceal_jax.splat import render as render_lib
+from conceal_jax.splat.render import render
+
+STUDENT_FILE = "student.ply"
+DECODER_FILE = "decoder.msgpack"
+KEY_FILE = "key.json"
+SUMMARY_FILE = "conceal.json"
+
+
+@dataclasses.dataclass
+class Run:
+  """A concealment run's fixed inputs: the plan, teacher, scene, hidden images [K][S, S, 3], key cameras
+  [K] with their key.json descriptions, decoy cameras, render options and the step's device data."""
+  plan: settings_lib.RunPlan
+  teacher: object
+  scene: object
+  hiddens: list
+  keys: list
+  decoys: list
+  options: render_lib.RenderOptions
+  data: views_lib.ConcealData
+
+
+def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Run:
+  """Loads the teacher, the scene and the hidden images, chooses the keys (and decoys around each, from its
+  own seed) and renders what the step reads of the teacher."""
+  s = plan.settings
+  teacher = ply.load_ply(config.mark.teacher)
+  hiddens = [hidden_lib.load_hidden_image(source, s.hidden_size) for source in plan.sources]
+  scene = evaluate.load_scene_data(config)
+  keys = key_lib.key_cameras(scene.train_cameras, plan.key_kind, plan.key_index, plan.key_seed, len(hiddens) - 1)
+  options = evaluate.render_options(config, scene.background)
+  decoys = [decoy for k, (camera, _) in enumerate(keys)
+            for decoy in key_lib.decoy_cameras(camera, scene.scene_extent(), plan.decoy_views, plan.decoy_translation,
+                                               plan.decoy_rotation_deg, plan.key_seed + k)]
+  # the released variant's check-view L1 target: the training image at a training-camera key, else the
+  # teacher's render (an orbit pose has no image)
+  key_images = ([scene.train_images[info["index"]] for _, info in keys] if plan.key_kind == "train_index" else None)
+  data = views_lib.build_data(scene.train_images, teacher, options, list(scene.train_cameras) + decoys,
+                              [camera for camera, _ in keys], hiddens, s.hidden_size, s.reading.clip, key_images)
+  return Run(plan, teacher, scene, hiddens, keys, decoys, options, data)
+
+
+def initial_decoder(config: ml_collections.ConfigDict, settings: settings_lib.ConcealSettings):
+  """A fresh decoder ({} without one), the VGG16 encoder loaded with conceal.decoder.vgg_init."""
+  if not settings.use_decoder:
+    return {}
+  params = unet.init_decoder(jax.random.key(config.seed), settings.decoder_width, settings.hidden_size)
+  return unet.load_vgg16_encoder(params) if config.conceal.decoder.vgg_init else params
+
+
+def curve_record(run: Run, state, eval_views) -> dict:
+  """One point of the curves over training: the hidden image's PSNR / SSIM at the check view (and at each
+  key with several) and the student's test PSNR on `eval_views` (cameras, targets)."""
+  s = run.plan.settings
+  revealed = [reveal.reveal_renders(state.decoder if s.use_decoder else None, render(state.student, camera,
+                                                                                     run.options).rgb,
+                                    s.decoder_width, s.hidden_size, s.reading) for camera, _ in run.keys]
+  record = dict(hidden_psnr=float(metrics.psnr(revealed[0], run.hiddens[0])),
+                hidden_ssim=float(metrics.ssim(revealed[0], run.hiddens[0])),
+                test_psnr=evaluate.views_psnr(state.student, *eval_views, run.options))
+  if len(run.keys) > 1:
+    record.update(hidden_psnr_keys=[float(metrics.psnr(r, h)) for r, h in zip(revealed, run.hiddens)],
+                  hidden_ssim_keys=[float(metrics.ssim(r, h)) for r, h in zip(revealed, run.hiddens)])
+  return record
+
+
+def save_outputs(run: Run, workdir: str, state) -> None:
+  """student.ply, decoder.msgpack, key.json (each extra key numbered, with its image's source) and the
+  hidden images."""
+  s = run.plan.settings
+  ply.save_ply(os.path.join(workdir, STUDENT_FILE), jax.device_get(state.student))
+  if s.use_decoder:
+    reveal.save_decoder(os.path.join(workdir, DECODER_FILE), state.decoder)
+  (check_camera, info), extra = run.keys[0], run.keys[1:]
+  info = dict(info, hidden_size=s.hidden_size, uses_decoder=s.use_decoder, decoder_width=s.decoder_width,
+              **s.reading.key_fields(), render_options=dataclasses.asdict(run.options))
+  key_lib.save_key(os.path.join(workdir, KEY_FILE), check_camera, info,
+                   [(camera, dict(more, number=k, hidden=source))
+                    for k, ((camera, more), source) in enumerate(zip(extra, run.plan.sources[1:]), 1)])
+  for k, image in enumerate(run.hiddens):
+    fileio.write_image(os.path.join(workdir, f"hidden_key{k}.png" if k else "hidden.png"), image)
+
+
+def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_steps: int | None = None) -> dict:
+  """Trains student + decoder (checkpointed, resumable), then writes the student, decoder, key, hidden
+  images, conceal.json (settings, timing, curves) and metrics.json (scoring.evaluate_concealment)."""
+  plan = settings_lib.plan(config)
+  s, c = plan.settings, config.conceal
+  run = prepare(config, plan)
+  mesh = parallel.batch_mesh(2)  # a step renders two views
+  data = parallel.replicate(run.data, mesh)
+  student_tx = settings_lib.student_optimizer(config, run.scene.scene_extent())
+  decoder_tx = settings_lib.decoder_optimizer(config)
+  traces = loop.TraceCounter()
+  # GrowingSteps' key is the phase: the joint steps (True), then the decoder polish's
+  steps = capacity.GrowingSteps(lambda joint, options: make_step(s, options, student_tx, decoder_tx, mesh, joint,
+                                                                 traces), run.options)
+  steps.grow(render_lib.initial_capacity(run.teacher.num, run.options))
+  num_views, num_keys = len(run.scene.train_cameras), len(run.keys)
+
+  def fresh(_meta=None):
+    student = jax.tree.map(lambda x: jnp.array(x, copy=True), run.teacher)  # the step donates its buffers
+    return create_state(student, initial_decoder(config, s), student_tx, decoder_tx)
+
+  def step(state, iteration):
+    rng = np.random.default_rng([config.seed, iteration])
+    views = [views_lib.draw_normal_view(rng, num_views, len(run.decoys), s.decoy_fraction) for _ in range(2)]
+    distortion = augment.draw(rng, s.augmentation) if s.augmentation.draws else None
+    return steps(iteration <= plan.iterations, parallel.replicate(state, mesh), data, *views,
+                 (iteration - 1) % num_keys, distortion)
+
+  eval_views = evaluate.held_out_views(run.scene, c.eval_views)[:2]
+  def after_window(state, iteration):
+    if not c.eval_every or iteration % c.eval_every:
+      return None
+    return curve_record(run, parallel.on_one_device(state.replace(student_opt=(), decoder_opt=()), mesh), eval_views)
+
+  result = loop.run("conceal", plan.loop, workdir, init_state=fresh, restore_template=fresh, step=step,
+                    after_window=after_window, postfix_keys=("plus",), max_steps=max_steps)
+  if not result.finished:
+    return dict(stopped_at=int(result.state.step))
+  state = parallel.on_one_device(result.state, mesh)
+  save_outputs(run, workdir, state)
+  summary = dict(iterations=plan.iterations, decoder_polish_steps=plan.polish_steps, resumed_from=result.start,
+                 settings=dataclasses.asdict(s), num_gaussians=int(run.teacher.num), num_keys=num_keys,
+                 num_decoys=len(run.decoys), **result.timing(), traces=dict(traces.counts),
+                 pair_capacity=steps.capacity, capacity_reruns=steps.reruns, capacity_shrinks=steps.shrinks,
+                 history=result.history)
+  fileio.write_json(os.path.join(workdir, SUMMARY_FILE), summary)
+  reveal_fn = reveal.decoder_reveal(state.decoder if s.use_decoder else None, s.decoder_width, s.hidden_size,
+                                    s.reading)
+  scored = scoring.evaluate_concealment(config, workdir, run.scene, run.teacher, state.student, reveal_fn,
+                                        [camera for camera, _ in run.keys], run.hiddens, run.options)
+  return dict(summary, metrics=scored)

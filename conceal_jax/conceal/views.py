@@ -1,0 +1,96 @@
+"""What a concealment step reads: the run's device-resident data, and the two `View`s of one step.
+
+`build_data` renders the teacher once per run at every normal view (the V training cameras, then the D
+decoys near the keys) and at every key; `step_views` picks one step's normal view and key from it and
+lays out the weights of each term (objective.View).
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from conceal_jax.conceal import reveal
+from conceal_jax.conceal.key import Key
+from conceal_jax.conceal.objective import View
+from conceal_jax.conceal.settings import ConcealSettings
+from conceal_jax.gs import evaluate
+from conceal_jax.splat import camera as camera_lib
+from conceal_jax.splat.camera import Camera
+from conceal_jax.splat.render import RenderOptions, render_batch
+
+# augment.distort and perturb_gaussians with these levels are the identity (a point kernel, zero noise, no
+# dropout, brightness 0, contrast 1): the distortion of a view that is not distorted
+NO_DISTORTION = dict(blur=np.float32(0.0), noise=np.float32(0.0), seed=np.uint32(0), dropout=np.float32(0.0),
+                     param_noise=np.float32(0.0), model_seed=np.uint32(0), brightness=np.float32(0.0),
+                     contrast=np.float32(1.0))
+
+
+@struct.dataclass
+class ConcealData:
+  """images [V, H, W, 3]: ground truth of the training views; teacher [V + D, H, W, 3] and teacher_small
+  [V + D, S, S, 3]: the teacher's renders of the normal views (training views, then decoys) at the render's
+  and the decoder's size; cameras: Camera [V + D]; keys: Key [K]."""
+  images: jax.Array
+  teacher: jax.Array
+  teacher_small: jax.Array
+  cameras: Camera
+  keys: Key
+
+
+def build_data(train_images, teacher, options: RenderOptions, normal_cameras: list[Camera], key_cameras, hiddens,
+               size: int, clip: bool = False, key_images=None) -> ConcealData:
+  """The device-resident inputs of the concealment step. `normal_cameras`: the training cameras then the
+  decoys; `key_cameras` and `hiddens` [S, S, 3]: one of each per key; `key_images` [H, W, 3] per key: the
+  released variant's check-view targets (None: the teacher's renders there). The teacher renders at the
+  decoder size are clipped to [0, 1] first with `clip` (reveal.Reading)."""
+  teacher_renders = evaluate.render_images(teacher, normal_cameras, options)
+  key_stack = camera_lib.stack(list(key_cameras))
+  teacher_keys = render_batch(teacher, key_stack, options).rgb
+  check_images = teacher_keys if key_images is None else jnp.stack([jnp.asarray(i) for i in key_images])
+  keys = Key(camera=key_stack, hidden=jnp.stack([jnp.asarray(h) for h in hiddens]), check_image=check_images,
+             teacher_check=reveal.resize_for_decoder(teacher_keys, size, clip))
+  return ConcealData(images=jnp.asarray(np.stack(train_images)), teacher=teacher_renders,
+                     teacher_small=reveal.resize_for_decoder(teacher_renders, size, clip),
+                     cameras=camera_lib.stack(list(normal_cameras)), keys=keys)
+
+
+def identity_weights(settings: ConcealSettings) -> dict:
+  """lambda- L_d^- (eq. 4) is the mean over its inputs (settings.identity_sources): lambda- / B on each of
+  them, 0 on the others ('student', 'teacher_normal', 'teacher_check')."""
+  sources = settings.identity_sources()
+  return {name: settings.weight_minus / len(sources) if name in sources else 0.0
+          for name in ("student", "teacher_normal", "teacher_check")}
+
+
+def step_views(data: ConcealData, view, normal_view, key_number, distortion, settings: ConcealSettings) -> View:
+  """The step's two views, stacked [2]: the normal view `view` (its render held to the teacher's, or to ground
+  truth; L_d^- on the teacher's render of view `normal_view` and, with identity_on_student, on its own) and the
+  check view of key `key_number` (L_d^+, through `distortion`; the released variant's L1 and L_d^- on the
+  teacher's check render). Indices may be traced."""
+  s = settings
+  w = identity_weights(s)
+  key = data.keys.at(key_number)
+  distortion = NO_DISTORTION if distortion is None else distortion
+  f32 = jnp.float32
+  released = s.variant == "released"
+  normal = View(camera=jax.tree.map(lambda x: x[view], data.cameras),
+                target=data.teacher[view] if s.distill else data.images[view],
+                l1_weight=f32(s.weight_kd if s.distill else 0.0), photometric_weight=f32(0.0 if s.distill else 1.0),
+                model=NO_DISTORTION, image=distortion if s.identity_distorted else NO_DISTORTION, hidden=key.hidden,
+                plus_weight=f32(0.0), own_minus_weight=f32(w["student"]), teacher_small=data.teacher_small[normal_view],
+                teacher_minus_weight=f32(w["teacher_normal"]))
+  check = View(camera=key.camera, target=key.check_image, l1_weight=f32(s.weight_check if released else 0.0),
+               photometric_weight=f32(0.0), model=distortion, image=distortion, hidden=key.hidden,
+               plus_weight=f32(s.weight_plus), own_minus_weight=f32(0.0), teacher_small=key.teacher_check,
+               teacher_minus_weight=f32(w["teacher_check"]))
+  return jax.tree.map(lambda a, b: jnp.stack([a, b]), normal, check)
+
+
+def draw_normal_view(rng: np.random.Generator, num_views: int, num_decoys: int, decoy_fraction: float) -> int:
+  """A step's normal view: a decoy (index num_views + k) with probability decoy_fraction, else a training
+  view, each uniformly."""
+  if num_decoys and rng.random() < decoy_fraction:
+    return num_views + int(rng.integers(num_decoys))
+  return int(rng.integers(num_views))

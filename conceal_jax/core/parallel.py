@@ -1,0 +1,91 @@
+"""Data parallelism over a batch of views: a sum over the batch computed by several devices at once.
+
+A step's gradient is a sum over views. `batch_mesh` makes a one-axis mesh of the devices that share a
+batch, and `map_reduce_over_batch` computes sum_b fn(shared, batch_b) with each device taking its slice of the
+batch (vmapped) and the partial sums added across devices; without a mesh it is a plain vmap and sum. The
+values are the same either way, to float summation order.
+
+XLA's CPU backend runs one computation's loops on one thread, so a 2-core host is worth splitting into two
+XLA devices for a step that renders two views. That split is the process's choice, made before JAX starts
+(`host_devices_flag`, set by `python -m conceal_jax.main --host_devices`), never by importing the library.
+"""
+from __future__ import annotations
+
+import os
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+from jax.flatten_util import ravel_pytree
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+BATCH_AXIS = "batch"
+HOST_DEVICES_FLAG = "--xla_force_host_platform_device_count"
+
+
+def host_devices_flag(count: int) -> None:
+  """Asks XLA for `count` host CPU devices (appended to XLA_FLAGS) unless the flag is already set. Only the
+  process's entry point calls it, before JAX's backend starts; it has no effect afterwards."""
+  flags = os.environ.get("XLA_FLAGS", "")
+  if HOST_DEVICES_FLAG not in flags:
+    os.environ["XLA_FLAGS"] = f"{flags} {HOST_DEVICES_FLAG}={count}".strip()
+
+
+def batch_mesh(batch_size: int) -> Mesh | None:
+  """A mesh over the largest number of local devices that divides `batch_size` (None where that is one)."""
+  devices = jax.local_devices()
+  count = max(n for n in range(1, min(len(devices), batch_size) + 1) if batch_size % n == 0)
+  return Mesh(devices[:count], (BATCH_AXIS,)) if count > 1 else None
+
+
+def replicate(tree, mesh: Mesh | None):
+  """`tree` with every array on every device of `mesh` (as it is without a mesh)."""
+  return tree if mesh is None else jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
+
+
+def on_one_device(tree, mesh: Mesh | None):
+  """`tree` on the first device only, for work outside the step (evaluation runs once, not per device)."""
+  return tree if mesh is None else jax.device_put(tree, jax.local_devices()[0])
+
+
+def _by_dtype(tree):
+  """(vectors {dtype name: the leaves of that dtype raveled into one vector}, a function that undoes it)."""
+  leaves, treedef = jax.tree.flatten(tree)
+  names = [jnp.asarray(leaf).dtype.name for leaf in leaves]
+  packed = {name: ravel_pytree([leaf for leaf, n in zip(leaves, names) if n == name]) for name in dict.fromkeys(names)}
+
+  def unpack(vectors):
+    groups = {name: iter(packed[name][1](vector)) for name, vector in vectors.items()}
+    return jax.tree.unflatten(treedef, [next(groups[name]) for name in names])
+
+  return {name: vector for name, (vector, _) in packed.items()}, unpack
+
+
+def map_reduce_over_batch(fn: Callable, shared, batch, mesh: Mesh | None):
+  """(sum_b s_b, stacked e_b) where fn(shared, batch[b]) = (s_b, e_b), over the leading axis of every leaf of
+  `batch`: s_b are what adds up over the batch (losses, gradients), e_b what is kept per example (a few
+  scalars). On a mesh each device maps its slice; the sums meet in one psum and the kept values in one
+  all-gather per dtype (the leaves raveled into one vector each), and both come back replicated."""
+
+  def local(shared, part):
+    sums, each = jax.vmap(fn, in_axes=(None, 0))(shared, part)
+    return jax.tree.map(lambda x: jnp.sum(x, axis=0), sums), each
+
+  if mesh is None:
+    return local(shared, batch)
+  unpackers = []
+
+  def on_device(shared, part):
+    sums, each = local(shared, part)
+    (sum_vectors, unpack_sums), (each_vectors, unpack_each) = _by_dtype(sums), _by_dtype(each)
+    unpackers[:] = [unpack_sums, unpack_each]
+    return ({name: jax.lax.psum(v, BATCH_AXIS) for name, v in sum_vectors.items()},
+            {name: jax.lax.all_gather(v, BATCH_AXIS) for name, v in each_vectors.items()})
+
+  # check_vma off: both outputs are combined over the axis, the same on every device (out_specs replicated)
+  sums, gathered = jax.shard_map(on_device, mesh=mesh, in_specs=(PartitionSpec(), PartitionSpec(BATCH_AXIS)),
+                                 out_specs=PartitionSpec(), check_vma=False)(shared, batch)
+  unpack_sums, unpack_each = unpackers
+  # gathered: [devices, per-device slice size] per dtype; the kept leaves back to [batch, ...] in batch order
+  per_device = [unpack_each({name: v[d] for name, v in gathered.items()}) for d in range(mesh.size)]
+  return unpack_sums(sums), jax.tree.map(lambda *xs: jnp.concatenate(xs), *per_device)

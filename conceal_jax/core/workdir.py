@@ -1,0 +1,51 @@
+"""A workdir holds one run: its config.json records the settings that shaped it, and running the workdir
+again with any of them changed is refused, so a resumed checkpoint is never trained on by another run.
+
+Settings that only change what is shown or how often it is saved (PRESENTATION_KEYS) may differ.
+"""
+from __future__ import annotations
+
+import json
+import os
+
+from conceal_jax.core import fileio
+
+CONFIG_FILE = "config.json"
+# Leaf names of settings that leave a run's result unchanged: logging, progress bars, checkpoint cadence.
+PRESENTATION_KEYS = frozenset({"progress_bar", "log_every", "checkpoint_every"})
+
+
+def flatten(tree: dict, prefix: str = "") -> dict:
+  """{'a.b.c': value} for every leaf of a nested dict."""
+  flat = {}
+  for name, value in tree.items():
+    path = f"{prefix}{name}"
+    flat.update(flatten(value, path + ".") if isinstance(value, dict) else {path: value})
+  return flat
+
+
+def differing_keys(saved: dict, config: dict) -> list[str]:
+  """The dotted keys whose values differ between two configs (missing on one side counts), ignoring
+  PRESENTATION_KEYS; lists and tuples compare alike (JSON stores tuples as lists)."""
+  a, b = flatten(json.loads(json.dumps(saved))), flatten(json.loads(json.dumps(config)))
+  return sorted(k for k in a.keys() | b.keys()
+                if k.rsplit(".", 1)[-1] not in PRESENTATION_KEYS and a.get(k, "<absent>") != b.get(k, "<absent>"))
+
+
+def claim(workdir: str, config: dict, resumable: bool = True) -> None:
+  """Writes `config` as workdir/config.json; for a `resumable` run (one that continues from the checkpoints
+  it finds), ValueError naming the differing keys if the workdir already holds a run of other settings
+  (nothing is written then). A run that is not resumable replaces what it writes whole."""
+  path = os.path.join(workdir, CONFIG_FILE)
+  if resumable and os.path.isfile(path):
+    with open(path) as f:
+      try:
+        saved = json.load(f)
+      except ValueError as error:
+        raise ValueError(f"{path} is not a readable config ({error}); remove it to start a fresh run") from error
+    differ = differing_keys(saved, config)
+    if differ:
+      shown = ", ".join(differ[:8]) + (f" and {len(differ) - 8} more" if len(differ) > 8 else "")
+      raise ValueError(f"{workdir} holds a run with other settings ({shown} differ); run it with the same settings "
+                       "to resume it, or choose a new workdir (or remove this one) to start fresh")
+  fileio.write_json(path, config)

@@ -1,0 +1,105 @@
+"""Every benchmark row and dataset config still resolves to the settings its stored results were measured with.
+
+tests/data/frozen_row_configs.json holds each row's resolved config from before the presets redesign (the
+config sections that shape a run). Under today's layout a row must resolve to the same values, its keys
+renamed by OLD_TO_NEW; options removed since may appear in a frozen row only at the value the method now
+always has (REMOVED); rows that used a removed option are retired (RETIRED_ROWS): their stored numbers stay
+in the results files.
+"""
+from __future__ import annotations
+
+import importlib
+import json
+import pathlib
+
+import pytest
+
+from conceal_jax.core import workdir
+from experiments import bench_baselines, bench_conceal
+
+FROZEN = json.loads((pathlib.Path(__file__).parent / "data" / "frozen_row_configs.json").read_text())
+TEACHER = pathlib.Path("TEACHER.ply")
+
+OLD_TO_NEW = {
+    "conceal.teacher": "mark.teacher", "conceal.hidden": "mark.hidden", "conceal.hidden_size": "mark.hidden_size",
+    "conceal.extra_hidden": "mark.extra_hidden", "conceal.key_kind": "mark.key_kind",
+    "conceal.key_index": "mark.key_index", "conceal.key_seed": "mark.key_seed",
+    "conceal.decoder_width": "conceal.decoder.width", "conceal.decoder_vgg_init": "conceal.decoder.vgg_init",
+    "conceal.decoder_input_norm": "conceal.decoder.input_norm",
+    "conceal.decoder_clip_input": "conceal.decoder.clip_input", "conceal.decoder_lr": "conceal.decoder_opt.lr",
+    "conceal.decoder_adam_eps": "conceal.decoder_opt.adam_eps",
+    "conceal.decoder_lr_final_ratio": "conceal.decoder_opt.lr_final_ratio",
+    "conceal.decoder_update_clip": "conceal.decoder_opt.update_clip",
+    "conceal.decoder_polish_steps": "conceal.decoder_opt.polish_steps",
+    "conceal.identity_distorted": "conceal.attacks.identity_distorted",
+    **{f"conceal.{k}": f"conceal.leakage.{k}" for k in ("identity_on_student", "identity_on_teacher_check",
+                                                         "decoy_views", "decoy_fraction", "decoy_translation",
+                                                         "decoy_rotation_deg")},
+    **{f"conceal.check_{k}_max": f"conceal.attacks.{k}_max" for k in ("blur", "noise", "brightness", "contrast",
+                                                                       "dropout", "param_noise")},
+}
+# Options removed by the redesign, at the one value every kept row ran with.
+REMOVED = {"conceal.key_at_decoder_size": False, "conceal.decoder_amsgrad": False, "conceal.decoder_average": 0.0,
+           "conceal.identity_perturbed": False, "conceal.trained_fields": "all", "conceal.lanes": 0}
+# Rows that used a removed option (their results stay in conceal_bench.json and REPRODUCTION's appendix).
+RETIRED_ROWS = {"ours_robust_clip_dec03_amsgrad", "ours_robust_clip_dec03_clip_polish_avg",
+                "ours_robust_clip_dec03_clip_sh", "ours_robust_clip_dec03_clip_sh_polish"}
+SECTIONS = ("seed", "mode", "data", "render", "eval", "conceal", "mark", "baseline", "train", "init")
+
+
+def renamed(frozen: dict) -> dict:
+  """A frozen config, flattened, in today's key names and without the removed options (checked at their value)."""
+  flat = {}
+  for key, value in workdir.flatten(frozen).items():
+    if key in REMOVED:
+      assert value == REMOVED[key], f"{key}={value!r}: a row that used a removed option must be retired"
+      continue
+    flat[OLD_TO_NEW.get(key, key)] = value
+  return flat
+
+
+def resolved(config, frozen: dict) -> dict:
+  """Today's config, flattened, restricted to the sections the frozen one holds."""
+  sections = {key.split(".")[0] for key in workdir.flatten(frozen)} | ({"mark"} if "conceal" in frozen else set())
+  plain = json.loads(json.dumps(config.to_dict()))
+  return {k: v for k, v in workdir.flatten(plain).items() if k.split(".")[0] in sections}
+
+
+def conceal_row(name: str):
+  row, width = name.rsplit("_w", 1)
+  return row, int(width)
+
+
+@pytest.mark.parametrize("name", sorted(FROZEN["conceal"]))
+def test_bench_conceal_rows_resolve_as_frozen(name):
+  row, width = conceal_row(name)
+  if row in RETIRED_ROWS:
+    assert row not in bench_conceal.ROWS
+    return
+  frozen = FROZEN["conceal"][name]
+  assert resolved(bench_conceal.run_config("lego", TEACHER, row, width, 0, 0), frozen) == renamed(frozen)
+
+
+@pytest.mark.parametrize("row", sorted(FROZEN["baselines"]))
+def test_bench_baselines_rows_resolve_as_frozen(row):
+  frozen = FROZEN["baselines"][row]
+  assert resolved(bench_baselines.run_config("lego", TEACHER, row, 0, 0), frozen) == renamed(frozen)
+
+
+@pytest.mark.parametrize("name", ["demo", "demo_robust", "lego", "beer", "colmap", "nerf_synthetic"])
+def test_dataset_configs_resolve_as_frozen(name):
+  frozen = {k: v for k, v in FROZEN["configs"][name].items() if k in SECTIONS}
+  config = importlib.import_module(f"conceal_jax.configs.{name}").get_config()
+  assert resolved(config, frozen) == renamed(frozen)
+
+
+def test_recipes_are_the_rows_they_are_measured_by():
+  """configs/lego_conceal.py's recipes are bench-conceal's rows at width 16: recommended is
+  ours_robust_clip_dec03_clip, paper is full, released is released (the decoder's width and rate aside)."""
+  lego_conceal = importlib.import_module("conceal_jax.configs.lego_conceal")
+  for recipe, row in (("recommended", "ours_robust_clip_dec03_clip"), ("paper", "full"), ("released", "released")):
+    config = lego_conceal.get_config(recipe)
+    expected = bench_conceal.run_config("lego", TEACHER, row, 16 if recipe == "recommended" else 64, 0, 0)
+    # the bench's paths are absolute and it scores every test view
+    config.mark.teacher, config.data.path, config.eval.max_views = str(TEACHER), expected.data.path, 0
+    assert workdir.differing_keys(expected.to_dict(), config.to_dict()) == []
