@@ -1,8 +1,9 @@
-"""ConcealGS beside StegaNeRF on one scene, the baselines issue's render-at-equal-hidden target as one table and one
-plot for REPRODUCTION.md: every run of either (bench-conceal's ConcealGS rows, the paper's ablations aside, and
-bench-baselines' StegaNeRF rows) at its render PSNR against ground truth, its hidden PSNR at the key and its worst
-leakage, and for each StegaNeRF run the ConcealGS runs ahead of it (`ahead`); then the recipes run from several
-seeds, on their means over the seeds (`over_seeds`), since one seed's lead can sit within a recipe's seed spread.
+"""ConcealGS beside StegaNeRF on one scene, the baselines issue's render-at-equal-hidden target as tables and one
+plot for REPRODUCTION.md: runs of either (bench-conceal's ConcealGS rows, the paper's ablations aside, and
+bench-baselines' StegaNeRF rows) at their render PSNR against ground truth, hidden PSNR at the key and worst
+leakage, and for each StegaNeRF run the ConcealGS runs ahead of it (`ahead`); on their means over seeds
+(`over_seeds`), since one seed's lead can sit within a recipe's seed spread. REPRODUCTION.md shows the recipes'
+means in its body (`recipe_table`) and every run (`table`, `seed_table`) in its appendix.
 """
 from __future__ import annotations
 
@@ -49,8 +50,8 @@ def ahead(ours: dict, theirs: dict) -> bool:
           and ours["render_psnr"] > theirs["render_psnr"] and ours["hidden_psnr"] >= theirs["hidden_psnr"])
 
 
-def over_seeds(runs: list[dict]) -> list[dict]:
-  """`points` -> one point per recipe run from two or more seeds (same method, recipe, decoder width and steps):
+def over_seeds(runs: list[dict], min_seeds: int = 2) -> list[dict]:
+  """`points` -> one point per recipe run from `min_seeds` or more seeds (same method, recipe, decoder width and steps):
   its render_psnr, render_loss and hidden_psnr averaged over the seeds, hidden_range (lowest, highest), its worst
   max_leakage, and seeds (sorted); its run is the recipe's name."""
   groups: dict[tuple, list[dict]] = {}
@@ -59,7 +60,7 @@ def over_seeds(runs: list[dict]) -> list[dict]:
   means = []
   for (method, name, width, steps), group in groups.items():
     seeds = sorted(p["seed"] for p in group)
-    if len(set(seeds)) < 2:
+    if len(set(seeds)) < min_seeds:
       continue
     mean = {k: float(np.mean([p[k] for p in group])) for k in ("render_psnr", "render_loss", "hidden_psnr")}
     hidden = [p["hidden_psnr"] for p in group]
@@ -71,6 +72,12 @@ def over_seeds(runs: list[dict]) -> list[dict]:
 
 def _render(entry: dict) -> str:
   return f"{entry['render_psnr']:.2f} ({-entry['render_loss']:+.2f})"
+
+
+def _hidden(mean: dict) -> str:
+  """A mean's hidden PSNR, with its range (lowest-highest) where it is over two or more seeds."""
+  low, high = mean["hidden_range"]
+  return f"{mean['hidden_psnr']:.2f}" + (f" ({low:.2f}-{high:.2f})" if len(mean["seeds"]) > 1 else "")
 
 
 def _lines(entries: list[dict], middle) -> list[str]:
@@ -85,26 +92,44 @@ def _lines(entries: list[dict], middle) -> list[str]:
   return lines
 
 
-def seed_table(scene: str, runs: list[dict]) -> list[str]:
-  """`over_seeds` of `points` as REPRODUCTION.md lines, each StegaNeRF recipe with the ConcealGS recipes `ahead` of
-  it on the means."""
-  means = over_seeds(runs)
-  lines = [f"#### On the means over seeds ({scene})", "",
-           "Recipes run from two or more seeds, each the mean of its runs above (hidden PSNR: mean, lowest-highest). "
-           "The same rule on the means: a ConcealGS recipe is ahead when its mean render PSNR is higher and its mean "
-           "hidden PSNR at least as high, with a decoder as wide and in no more steps.", "",
+def _means_lines(title: str, blurb: str, means: list[dict], empty: str) -> list[str]:
+  """`over_seeds` means as REPRODUCTION.md lines under `title`, each StegaNeRF recipe with the ConcealGS recipes
+  `ahead` of it on the means; `empty`'s line when there is none."""
+  lines = [f"### {title}", "", blurb, "",
            "| method | recipe | width | steps | seeds | render PSNR (student - teacher) | hidden PSNR | max leakage | "
            "ConcealGS recipes ahead |", "|---|---|---|---|---|---|---|---|---|"]
-  lines += _lines(means, lambda m: f"{', '.join(map(str, m['seeds']))} | {_render(m)} | {m['hidden_psnr']:.2f} "
-                                   f"({m['hidden_range'][0]:.2f}-{m['hidden_range'][1]:.2f})")
+  lines += _lines(means, lambda m: f"{', '.join(map(str, m['seeds']))} | {_render(m)} | {_hidden(m)}")
   if not means:
-    lines.append("| no recipe run from two seeds yet | | | | | | | | |")
+    lines.append(f"| {empty} | | | | | | | | |")
   return lines + [""]
 
 
-def table(scene: str, runs: list[dict]) -> list[str]:
+AHEAD_RULE = ("A ConcealGS recipe is ahead of a StegaNeRF one when its mean render PSNR is higher and its mean hidden "
+              "PSNR at least as high, with a decoder as wide and in no more steps. Max leakage is the highest SSIM to "
+              "I that the decoder reveals away from the key (student test views, clean teacher at the key, near the "
+              "key), worst over the seeds.")
+
+
+def recipe_table(scene: str, means: list[dict]) -> list[str]:
+  """Means over seeds (`over_seeds`, one seed enough) of the recipes and of StegaNeRF's rows, as REPRODUCTION.md
+  lines."""
+  return _means_lines(f"The recipes beside StegaNeRF ({scene}): which render better at equal or better hidden PSNR",
+                      "Each recipe and each StegaNeRF row at the recipes' length, the mean of its seeds (hidden PSNR: "
+                      "mean, lowest-highest over two or more seeds). " + AHEAD_RULE, means, "not run yet")
+
+
+def seed_table(scene: str, runs: list[dict], title: str = "") -> list[str]:
+  """`over_seeds` of `points` as REPRODUCTION.md lines, each StegaNeRF recipe with the ConcealGS recipes `ahead` of
+  it on the means."""
+  return _means_lines(title or f"On the means over seeds ({scene})",
+                      "Rows run from two or more seeds, each the mean of its runs (hidden PSNR: mean, lowest-highest). "
+                      + AHEAD_RULE, over_seeds(runs), "no recipe run from two seeds yet")
+
+
+def table(scene: str, runs: list[dict], title: str = "") -> list[str]:
   """`points` as REPRODUCTION.md lines, StegaNeRF's runs first, each with the ConcealGS runs `ahead` of it."""
-  lines = [f"### ConcealGS beside StegaNeRF ({scene}): which runs render better at equal or better hidden PSNR", "",
+  title = title or f"ConcealGS beside StegaNeRF ({scene}): which runs render better at equal or better hidden PSNR"
+  lines = [f"### {title}", "",
            "Every run of either on this scene. A ConcealGS run is ahead of a StegaNeRF run when its render PSNR is "
            "higher and its hidden PSNR at least as high, with a decoder as wide and in no more steps. Max leakage is "
            "the highest SSIM to I that the decoder reveals away from the key (student test views, clean teacher "
@@ -137,8 +162,8 @@ def figure(scene: str, runs: list[dict], results: pathlib.Path) -> str | None:
   fig.colorbar(drawn, ax=ax, label="max leakage (SSIM to I away from the key)")
   ax.set_xlabel("render PSNR loss to the teacher (dB; left is better)")
   ax.set_ylabel("hidden PSNR at the key (dB; up is better)")
-  ax.set_title(f"{scene}: ConcealGS and StegaNeRF runs")
-  ax.legend(loc="lower right")
+  ax.set_title(f"{scene}: ConcealGS and StegaNeRF")
+  ax.legend(loc="best")
   ax.grid(alpha=0.3)
   name = f"tradeoff_{scene}.png"
   fileio.save_figure(fig, results / name)

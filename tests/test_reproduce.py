@@ -1,4 +1,5 @@
-"""REPRODUCTION.md: the paper's numbers beside ours, read from the benchmarks' JSON; missing rows say so."""
+"""REPRODUCTION.md: the paper's numbers beside ours, read from the benchmarks' JSON; missing rows say so; one row
+per recipe over its seeds in the tables, every other run in the appendix."""
 import json
 import shutil
 
@@ -13,6 +14,7 @@ def _conceal_row(row, width, psnr, hidden_psnr):
   return dict(scene="lego", row=row, decoder_width=width, iterations=10_000, student_vs_ground_truth=scores(psnr),
               teacher_vs_ground_truth=scores(33.1), student_vs_teacher=scores(40.0),
               hidden=dict(psnr=hidden_psnr, ssim=0.995), curve=[], student_psnr_loss=33.1 - psnr, max_leakage=0.13,
+              wall_time_s=3000.0,
               leakage=dict(max_ssim_student_test_views=0.11, ssim_teacher_check_view=0.12, max_ssim_near_check=0.13))
 
 
@@ -29,12 +31,25 @@ def test_report_puts_ours_beside_the_paper_and_names_missing_rows(tmp_path):
   text = reproduce.report(results, workdir)
   table1 = text[text.index("Table 1"):text.index("Table 2")]
   assert "| 3D-GS | 34.45 / 0.9732 / 0.0220 | - / - | 33.11 / 0.9830 / 0.0188 |" in table1
-  assert "| ConcealGS | 33.14 / 0.9717 / 0.0240 | 33.98 / 0.9942 | 32.95 / 0.9700 / 0.0300 | 35.25 / 0.9950 |" in table1
-  assert table1.count(reproduce.NOT_RUN) == 3  # the three baselines
+  # one ConcealGS row per recipe, in RECIPE_ORDER, the paper's cells on the first; `full` runs the paper recipe
+  assert "| ConcealGS | 33.14 / 0.9717 / 0.0240 | 33.98 / 0.9942 | - | - | recommended: not run yet |" in table1
+  assert ("| ConcealGS | |  | 32.95 / 0.9700 / 0.0300 | 35.25 / 0.9950 | paper (full), width 16, 10000 steps, "
+          "1 seed (0) |") in table1
+  assert "| ConcealGS | |  | - | - | released: not run yet |" in table1
+  for method in reproduce.BASELINES:
+    assert f"| {method} | " in table1 and f"| - | - | {reproduce.NOT_RUN} |" in table1
+  assert table1.count(reproduce.NOT_RUN) == 5  # the three baselines, two recipes
   table3 = text[text.index("Table 3"):text.index("Leakage")]
-  assert "| no_guidance | 26.93" in table3
-  assert "| no_decoder | 26.25 / 0.8965 / 0.0884 | 37.56 / 0.9948 | - | - |" in table3
-  assert "| lego | full | 16 | 0.110 | 0.120 | 0.130 | - |" in text
+  assert "| no_guidance | 26.93 / 0.9043 / 0.0812 | 37.43 / 0.9912 | 32.50 / 0.9700 / 0.0300 | 34.00 / 0.9950 | " \
+      "16, 10000, 1 seed (0) |" in table3
+  assert "| no_decoder | 26.25 / 0.8965 / 0.0884 | 37.56 / 0.9948 | - | - | not run yet |" in table3
+  leakage = text[text.index("### Leakage"):text.index("### The recipes")]
+  assert "| lego | paper (full) | 1 seed (0) | 0.110 | 0.120 | 0.130 | - |" in leakage
+  assert "| lego | no_guidance | 1 seed (0) | 0.110 | 0.120 | 0.130 | - |" in leakage
+  appendix = text[text.index("## Appendix"):]
+  assert ("| lego | full | recipe: paper | 16 | 10000 | 32.95 / 0.9700 / 0.0300 | 35.25 / 0.9950 | 0.110 / 0.120 / "
+          "0.130 | - | 50.0 |") in appendix
+  assert "| lego | no_guidance | paper ablation | 16 |" in appendix
   assert "![lego](reproduction_lego.png)" in text and "beer: not run yet" in text
   assert (results / "reproduction_lego.png").is_file()
   ownership = text[text.index("### Ownership"):text.index("### Figures")]
@@ -50,16 +65,25 @@ def test_report_puts_ours_beside_the_paper_and_names_missing_rows(tmp_path):
 def test_rows_run_on_an_accelerator_say_so_and_leakage_shows_its_floor(tmp_path):
   results = tmp_path / "results"
   gpu = ["gpu: NVIDIA H100 80GB HBM3"]
-  row = dict(_conceal_row("full", 64, 32.9, 45.1), step_devices=gpu,
-             leakage_floor=dict(max_ssim_teacher_test_views=0.101, ssim_teacher_at_worst_test_view=0.1))
-  fileio.write_json(results / "conceal_bench.json", dict(rows=[row, _conceal_row("ours", 16, 32.9, 40.0)]))
+  floor = dict(leakage_floor=dict(max_ssim_teacher_test_views=0.101, ssim_teacher_at_worst_test_view=0.1))
+  wide = dict(_conceal_row("full", 64, 32.9, 45.1), step_devices=gpu, **floor)
+  recommended = dict(_conceal_row("ours_robust_clip_dec03_clip", 16, 33.0, 40.0), step_devices=gpu, **floor)
+  rows = [wide, recommended, _conceal_row("ours", 16, 32.9, 40.0)]
+  fileio.write_json(results / "conceal_bench.json", dict(rows=rows))
   fileio.write_json(results / "train_bench.json", dict(rows=[dict(scene="lego", test=dict(psnr=33.1, ssim=0.98,
                                                                                           lpips=0.02),
                                                                   step_devices=["cpu: cpu"])]))
   text = reproduce.report(results, tmp_path / "bench")
-  assert "full, width 64, 10000 steps (NVIDIA H100 80GB HBM3) |" in text
-  assert "teacher (bench-train) |" in text and "ours, width 16, 10000 steps |" in text
-  assert "| lego | full | 64 | 0.110 | 0.120 | 0.130 | 0.101 |" in text
+  body, appendix = text[:text.index("## Appendix")], text[text.index("## Appendix"):]
+  assert ("recommended (ours_robust_clip_dec03_clip), width 16, 10000 steps, 1 seed (0) (NVIDIA H100 80GB HBM3) |"
+          in body)
+  assert "teacher (bench-train) |" in body
+  # a recipe's run at another decoder width, and a row that is no recipe, are in the appendix only
+  assert "paper: not run yet" in body and "| lego | ours |" not in body and "| paper (full)" not in body
+  assert "| lego | recommended (ours_robust_clip_dec03_clip) | 1 seed (0) | 0.110 | 0.120 | 0.130 | 0.101 |" in body
+  assert ("| lego | full | recipe: paper | 64 | 10000 | 32.90 / 0.9700 / 0.0300 | 45.10 / 0.9950 | 0.110 / 0.120 / "
+          "0.130 | 0.101 | 50.0 (NVIDIA H100 80GB HBM3) |") in appendix
+  assert "| lego | ours | experiment | 16 |" in appendix
   assert results_io.on_device(dict(step_devices=["gpu: elsewhere", "cpu: cpu"])) == " (elsewhere)"
 
 
@@ -85,13 +109,16 @@ def test_figure_reads_the_images_kept_beside_the_json_when_the_workdir_is_gone(t
   baseline = dict(scene="lego", method="LSB", row="lsb4", label="LSB 4 bits", images=dict(revealed=images["hidden"]))
   assert reproduce.figure_grid("lego", dict(rows=[_conceal_row("full", 16, 32.95, 35.25)]), dict(rows=[baseline]),
                                results, workdir) == "reproduction_lego.png"
-  # each baseline shows once, in a row of its own below the runs
+  # the recipes' runs only (`tensor` is no recipe), each baseline once in a row of its own below them; a baseline
+  # run at another length is left out, another seed's says so
   bench = dict(rows=[row, dict(row, row="tensor")])
-  panels = reproduce.figure_panels("lego", bench, dict(rows=[baseline, dict(baseline, row="lsb1", label="LSB 1 bit")]),
-                                   results, workdir)
-  assert [label for label, _ in panels] == ["full w16", "tensor w16", "baselines"]
-  assert [len(files) for _, files in panels] == [4, 4, 2]
-  assert [title for title, _ in panels[-1][1]] == ["LSB 4 bits", "LSB 1 bit"]
+  baselines = [baseline, dict(baseline, row="lsb1", label="LSB 1 bit"),
+               dict(baseline, row="lsb1_seed1", label="LSB 1 bit"),
+               dict(baseline, row="lsb1_12k", iterations=12_000)]
+  panels = reproduce.figure_panels("lego", bench, dict(rows=baselines), results, workdir)
+  assert [label for label, _ in panels] == ["paper: full w16", "baselines"]
+  assert [len(files) for _, files in panels] == [4, 3]
+  assert [title for title, _ in panels[-1][1]] == ["LSB 4 bits", "LSB 1 bit", "LSB 1 bit, seed 1"]
 
 
 def test_report_without_any_benchmark_says_not_run(tmp_path):
@@ -110,7 +137,8 @@ def test_a_rebuilt_row_keeps_its_place_and_new_rows_follow(tmp_path):
 
 def _steganerf_row(row, iterations, psnr, hidden_psnr, width=16):
   return dict(_conceal_row(row, width, psnr, hidden_psnr), method="StegaNeRF", iterations=iterations,
-              steganerf=dict(settings=dict(decoder_width=width)))
+              steganerf=dict(settings=dict(decoder_width=width)),
+              protocol=f"check_view, {iterations} steps; over the test views 5.00 dB / 0.0200")
 
 
 def test_concealgs_is_ahead_of_a_steganerf_run_only_at_its_width_and_length_on_render_and_hidden(tmp_path):
@@ -144,7 +172,9 @@ def test_concealgs_is_ahead_of_a_steganerf_run_only_at_its_width_and_length_on_r
   fileio.write_json(results / "conceal_bench.json", dict(rows=conceal_rows))
   fileio.write_json(results / "baseline_bench.json", dict(rows=baseline_rows))
   text = reproduce.report(results, tmp_path / "bench")
-  assert "| StegaNeRF | stega_10k |" in text and "![ConcealGS beside StegaNeRF, lego](tradeoff_lego.png)" in text
+  # every run beside StegaNeRF in the appendix; the plot shows the recipes (none here) and StegaNeRF's rows
+  assert "| StegaNeRF | stega_10k |" in text[text.index("## Appendix"):]
+  assert "![The recipes beside StegaNeRF, lego](tradeoff_lego.png)" in text
   assert (results / "tradeoff_lego.png").is_file()
 
 
@@ -168,3 +198,44 @@ def test_recipes_from_several_seeds_are_compared_on_their_means():
   assert "| StegaNeRF | stega | 16 | 10000 | 0, 1 | 32.65 (-0.45) | 41.35 (41.00-41.70) | 0.130 | none |" in lines
   assert "| ConcealGS | joint | 16 | 10000 | 0, 1 | 33.40 (+0.30) | 40.75 (39.00-42.50) | 0.130 |  |" in lines
   assert tradeoff.seed_table("lego", runs[:1])[-2] == "| no recipe run from two seeds yet | | | | | | | | |"
+
+
+def test_each_recipe_is_one_row_over_its_seeds_and_every_other_run_is_in_the_appendix(tmp_path):
+  assert reproduce.recipe_of_row() == {"full": ("paper", 0), "released": ("released", 0),
+                                       "released_seed1": ("released", 1),
+                                       "ours_robust_clip_dec03_clip": ("recommended", 0)}
+  conceal_rows = [_conceal_row("released", 16, 33.4, 42.5), _conceal_row("released_seed1", 16, 33.3, 39.0),
+                  _conceal_row("ours_robust_clip_dec03_clip", 16, 33.0, 40.4),
+                  _conceal_row("released_plus2", 16, 33.3, 42.9),
+                  _conceal_row("ours_robust_clip_dec03_amsgrad", 16, 32.9, 37.1)]  # retired: not in ROWS
+  baseline_rows = [_steganerf_row("steganerf_check_view", 10_000, 32.5, 41.7),
+                   _steganerf_row("steganerf_check_view_seed1", 10_000, 32.8, 41.0),
+                   _steganerf_row("steganerf_check_view_12k", 12_000, 32.8, 45.3)]
+  results = tmp_path / "results"
+  fileio.write_json(results / "conceal_bench.json", dict(rows=conceal_rows))
+  fileio.write_json(results / "baseline_bench.json", dict(rows=baseline_rows))
+  text = reproduce.report(results, tmp_path / "bench")
+  body, appendix = text[:text.index("## Appendix")], text[text.index("## Appendix"):]
+  table1 = body[body.index("Table 1"):body.index("Table 2")]
+  assert ("| ConcealGS | 33.14 / 0.9717 / 0.0240 | 33.98 / 0.9942 | 33.00 / 0.9700 / 0.0300 | 40.40 / 0.9950 | "
+          "recommended (ours_robust_clip_dec03_clip), width 16, 10000 steps, 1 seed (0) |") in table1
+  assert ("| ConcealGS | |  | 33.35 (33.30-33.40) / 0.9700 / 0.0300 | 40.75 (39.00-42.50) / 0.9950 | "
+          "released (released, released_seed1), width 16, 10000 steps, 2 seeds (0, 1) |") in table1
+  assert ("| StegaNeRF | 30.33 / 0.9381 / 0.0787 | 24.60 / 0.9026 | 32.65 (32.50-32.80) / 0.9700 / 0.0300 | "
+          "41.35 (41.00-41.70) / 0.9950 | check_view, 10000 steps, 2 seeds (0, 1) |") in table1
+  for other in ("released_plus2", "ours_robust_clip_dec03_amsgrad", "steganerf_check_view_12k"):
+    assert other not in body and f"| {other} |" in appendix
+  assert "| lego | released_plus2 | experiment | 16 |" in appendix
+  assert "| lego | ours_robust_clip_dec03_amsgrad | retired | 16 |" in appendix
+  leakage = body[body.index("### Leakage"):]
+  assert ("| lego | released (released, released_seed1) | 2 seeds (0, 1) | 0.110 (0.110-0.110) | 0.120 (0.120-0.120) "
+          "| 0.130 (0.130-0.130) | - |") in leakage
+  # the recipes beside StegaNeRF, on their means; the figure's points are those means
+  means = {m["run"]: m for m in reproduce.recipe_points("lego", dict(rows=conceal_rows), dict(rows=baseline_rows))}
+  assert sorted(means) == ["recommended (ours_robust_clip_dec03_clip)", "released (released)", "steganerf_check_view"]
+  assert means["released (released)"]["seeds"] == [0, 1]
+  assert ("| ConcealGS | recommended (ours_robust_clip_dec03_clip) | 16 | 10000 | 0 | 33.00 (-0.10) | 40.40 | 0.130 "
+          "|  |") in body
+  assert ("| StegaNeRF | steganerf_check_view | 16 | 10000 | 0, 1 | 32.65 (-0.45) | 41.35 (41.00-41.70) | 0.130 "
+          "| none |") in body
+  assert "| ConcealGS | released | 16 | 10000 | 0, 1 | 33.35 (+0.25) | 40.75 (39.00-42.50) | 0.130 |  |" in appendix
