@@ -34,35 +34,25 @@ from experiments.reproduce import PAPER_TABLE1
 
 ROWS = {f"lsb{bits}": dict(method="lsb", lsb_bits=bits) for bits in range(1, 5)}
 ROWS["deepstega"] = dict(method="deepstega")
+# What each row is, what it measured and why it was tried: experiments/results/baseline_bench_rows.md.
 # ... with the hiding network writing the change to the cover (deepstega.Architecture.cover_skip): `deepstega`'s
-# networks reached only cover 23.5 dB / secret 17.0 dB on held-out pairs, so part of its miss is theirs. Probe,
-# 200 steps side by side (width 8, seed 0): held-out cover 24.6 dB / 0.957 with the skip, 16.4 / 0.664 without;
-# secret 14.9 / 14.6 dB.
+# own networks hide poorly on held-out pairs, so part of its miss is theirs.
+# (baseline config keys, dotted below the baseline section)
 ROWS["deepstega_skip"] = {"method": "deepstega", "deepstega.cover_skip": True}
-# baseline config keys, dotted below the baseline section
-# StegaNeRF's networks at a decaying rate (to 0.1x, STEGANERF_NETWORKS_LR_FINAL_RATIO): at a constant 1e-3 the
-# check-view row's decoder died at lego step 6160 (hidden MSE stuck at 0.133); replayed from step 6000 with the
-# decay, it does not.
-# ... and at 3e-4, not the recipe's 1e-3: with the decay, at 1e-3 the 12k check-view row's decoder still died at lego
-# step 1246 (hidden MSE from 0.0036 to 0.133, a constant image, for good), again at the same step when replayed from
-# its step-1000 checkpoint, and not at 3e-4 (hidden MSE 0.0039 at step 1450).
-# Measured at 3e-4 (lego, 10k): all_views renders 31.37 dB (-1.77) and reveals 35.22 / 0.9800 at the check view
-# (at 1e-3 without the decay: 32.07 dB, 40.13), revealing at every view as its protocol asks (leakage 0.98)
+# StegaNeRF's networks at a decaying rate (to 0.1x, STEGANERF_NETWORKS_LR_FINAL_RATIO) and at 3e-4, not the
+# recipe's 1e-3: at a constant 1e-3, and at 1e-3 with the decay, the check-view rows' decoder died on lego (a
+# constant image, for good), and not at these settings (baseline_bench_rows.md).
 STEGANERF_NETWORKS_LR, STEGANERF_NETWORKS_LR_FINAL_RATIO = 3e-4, 0.1
 ROWS.update({f"steganerf_{p}": {"method": "steganerf", "steganerf.protocol": p,
                                 "steganerf.networks_lr_final_ratio": STEGANERF_NETWORKS_LR_FINAL_RATIO,
                                 "steganerf.decoder_lr": STEGANERF_NETWORKS_LR,
                                 "steganerf.classifier_lr": STEGANERF_NETWORKS_LR}
              for p in ("all_views", "check_view")})
-# ... the check-view row at 12k steps: bench-conceal's best ConcealGS row (ours_robust_clip_dec03_clip_polish)
-# trains its decoder 2000 steps past the 10k joint ones, so this is StegaNeRF given as long (its rates decay over
-# the 12k)
+# ... the check-view row at 12k steps: bench-conceal's ours_robust_clip_dec03_clip_polish trains its decoder 2000
+# steps past the 10k joint ones, so this is StegaNeRF given as long (its rates decay over the 12k)
 ROWS["steganerf_check_view_12k"] = dict(ROWS["steganerf_check_view"], iterations=12_000)
 # ... and the 10k check-view row again from another seed (its networks' start and its order of views): the 10k
-# and 12k rows differ by 3.6 dB of hidden PSNR, more than their lengths explain, so one seed says little.
-# Measured: render 32.77 dB (-0.36), hidden 41.05 / 0.9963 (seed 0: 32.53, 41.67 / 0.9943), leakage 0.019 / 0.018 /
-# 0.040 (seed 0 revealed half the image at a test view, 0.490), 45.9 min. The 12k row's lead is its last 2000 steps:
-# its training hidden MSE was 5e-5 at 9.5k and 3e-5 at 11.5k, seed 0's 10k row's 7e-5 at 9.5k
+# and 12k rows differ in hidden PSNR by more than their lengths explain, so one seed says little
 ROWS["steganerf_check_view_seed1"] = dict(ROWS["steganerf_check_view"], seed=1)
 # row keys of the config's top level; the others are the baseline section's
 TOP_LEVEL_KEYS = ("seed",)
@@ -70,7 +60,7 @@ TOP_LEVEL_KEYS = ("seed",)
 # sit beside (bench-conceal's `ours`: configs/recipes.gentle_student); StegaNeRF trains SH colour only,
 # with the 3D-GS rates, as its own recipe does.
 CONTAINER_METHODS = ("lsb", "deepstega")
-# The baselines issue's targets: like the paper (6-11 dB), neither LSB nor DeepStega survives 3D-GS training;
+# The baselines issue's targets: like the paper, neither LSB nor DeepStega survives 3D-GS training;
 # StegaNeRF recovers the image at the check view at a measurable render cost.
 TARGETS = dict(lego=dict(hidden_psnr_below=12.0, steganerf_hidden_psnr_at_least=20.0))
 

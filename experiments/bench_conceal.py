@@ -28,7 +28,8 @@ from experiments import results_io
 from experiments.bench_train import scene_config
 
 # A row: the recipe it starts from (configs/recipes.py, or a function of the config) and dotted overrides below
-# the config (conceal.*, seed). Measured figures: experiments/results/conceal_bench.md and REPRODUCTION.md.
+# the config (conceal.*, seed). What each row is, what it measured and why it was tried:
+# experiments/results/conceal_bench_rows.md; its figures: conceal_bench.md and REPRODUCTION.md.
 OURS = lambda config: recipes.gentle_student(recipes.leakage_control(recipes.paper(config), recipes.DECOY_VIEWS))
 OURS_ROBUST = lambda config, clip: recipes.through_attacks(OURS(config), clip_input=clip)
 DEC03 = {"conceal.decoder_opt.lr_final_ratio": 0.3}

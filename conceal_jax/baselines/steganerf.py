@@ -50,10 +50,9 @@ CLASSIFIER_DEPTH = 3
 WATERMARK_LABELS = (1.0, 0.0)
 # Adam eps of the decoder and classifier: torch's default, as StegaNeRF trains them. 3D-GS's 1e-15 turns the
 # vanishing gradients of a classifier that already separates its two renders into full-size steps, so its
-# logits grow without bound until one changed render flips them (BCE 17 on lego at step 3500) and the
-# decoder, reading the score as its 4th channel, dies to a constant image. This eps alone does not keep the
-# decoder alive: at lr 1e-3 it still died at lego step 6160, with the classifier calm (replayed from step 6000,
-# the same collapse at 1e-3 and none at 1e-4).
+# logits grow without bound until one changed render flips them and the decoder, reading the score as its 4th
+# channel, dies to a constant image (measured on lego: experiments/results/baseline_bench_rows.md). This eps
+# alone does not keep the decoder alive at StegaNeRF's rate; bench-baselines also lowers and decays it.
 NETWORKS_ADAM_EPS = 1e-8
 
 
@@ -73,8 +72,7 @@ class StegaNerfSettings:
   classifier_lr: float = 1e-3
   networks_lr_final_ratio: float = 1.0
   # Adam eps of the SH colour: torch's default, as StegaNeRF trains its scene's colour. At 3D-GS's 1e-15 the
-  # lego check-view run's decoder died at step 3850 (networks rate decaying to 0.1x); replayed from step 3000
-  # with 1e-8 it did not (hidden MSE 0.0003 through step 4000, against 0.159 at 1e-15).
+  # lego check-view run's decoder died, and with 1e-8 it did not (experiments/results/baseline_bench_rows.md).
   sh_adam_eps: float = 1e-8
   mask_at: str = "gradient"
   hidden_size: int = 64

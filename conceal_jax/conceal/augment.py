@@ -1,51 +1,26 @@
 """Distortions of the student's check render during training, so that the hidden image survives them.
 
 An option beyond ConcealGS (arXiv:2501.03605), whose robustness figure (Sec. 3) only measures what blur and
-JPEG of the check render cost: with conceal.check_blur_max / check_noise_max, every step blurs the check
-render by a Gaussian of a standard deviation drawn from [0, check_blur_max] pixels and adds normal noise of
-a standard deviation drawn from [0, check_noise_max] before the decoder reads it for L_d^+ (eq. 5), as
-watermarking methods train through their attack layers. The draws are made on the host and enter the jitted
-step as values, so they never retrace it.
+JPEG of the check render cost: with conceal.attacks.blur_max / noise_max, every step blurs the check render
+by a Gaussian of a standard deviation drawn from [0, blur_max] pixels and adds normal noise of a standard
+deviation drawn from [0, noise_max] before the decoder reads it for L_d^+ (eq. 5), as watermarking methods
+train through their attack layers. The draws are made on the host and enter the jitted step as values, so
+they never retrace it. A decoder taught to read blurred check renders also reads blurred views near the key
+more readily; conceal.attacks.identity_distorted shows L_d^- the student's normal render distorted alike.
 
-Measured on the demo (configs/demo.py, 1300 steps; experiments/results/robust_bench_demo_augment.json) with
-check_blur_max 1.5 and check_noise_max 0.02: the mean hidden-SSIM drop under the paper's mild blur and JPEG
-fell from 0.036 to 0.003 (hidden 31.07 dB / 0.9727 against 31.20 / 0.9764), but a blur-tolerant decoder also
-reveals more near the key (SSIM 0.23 against 0.17) and the student lost 0.96 dB against 0.62.
-
-With conceal.check_brightness_max / check_contrast_max, the check render's brightness and contrast change
-first, by an offset drawn from [-max, max] and a factor drawn from 1 + [-max, max] (`photometric`). On lego
-(10k steps, configs/conceal_ours.robust without it) the blur- and noise-trained decoder turned fragile to a
-darker check render: brightness -0.1 left hidden SSIM 0.176 (0.888 without the augmentation), the one
-attack of the ownership test's 64 that fell below its threshold. On the demo (the robust settings below, 1300
-steps, scored as the table below) brightness 0.1 and contrast 0.2 lift brightness -0.1 from 0.534 to 0.934,
-parameter noise 0.05 from 0.335 to 0.690 and subsample 0.7 from 0.579 to 0.720 at the same near-key leakage
-(0.170), but the hidden image falls to 28.24 dB / 0.947 (30.65 / 0.969) and the student to 38.60 dB against
-its teacher (43.10): it must carry a signal that survives a global shift, so conceal_ours.robust leaves it off.
+With conceal.attacks.brightness_max / contrast_max, the check render's brightness and contrast change first,
+by an offset drawn from [-max, max] and a factor drawn from 1 + [-max, max] (`photometric`): the hidden image
+must then carry a signal that survives a global shift, which costs hidden and render quality.
 
 The model attacks of the robustness issue (robust/model_attacks.py: parameter noise, pruning, subsampling,
-quantisation) change the scene rather than its image. With conceal.check_dropout_max / check_param_noise_max
-the check render is made from a perturbed student (`perturb_gaussians`): each Gaussian dropped with a
-probability drawn from [0, check_dropout_max], and every stored parameter moved by normal noise of a relative
-level drawn from [0, check_param_noise_max], the relative noise of model_attacks.parameter_noise. A decoder
-taught to read perturbed check renders also reads near-key views of the student more readily; with
-conceal.identity_perturbed, L_d^- sees the student's normal render (decoys included) made from the same
-perturbed model, at the price of a second, forward-only render of the normal view per step.
+quantisation) change the scene rather than its image. With conceal.attacks.dropout_max / param_noise_max the
+check render is made from a perturbed student (`perturb_gaussians`): each Gaussian dropped with a probability
+drawn from [0, dropout_max], and every stored parameter moved by normal noise of a relative level drawn from
+[0, param_noise_max], the relative noise of model_attacks.parameter_noise. A decoder taught to read perturbed
+check renders also reads near-key views of the student more readily.
 
-Measured on the demo (configs/demo.py on the same teacher, 1300 steps; all with blur 1.5, noise 0.02 and
-identity_distorted; make bench-robust with --test-views=5): lowest hidden SSIM over the mild and medium
-attacks of robust/, the worst of them, and the concealment's own figures.
-
-  model perturbation               lowest SSIM (attack)       hidden dB / SSIM  near-key leak  student dB  step ms
-  none                             0.222 (prune_small 0.3)    30.65 / 0.969     0.169          43.10       142
-  dropout 0.3                      0.631 (prune_small 0.3)    29.81 / 0.965     0.421          41.01       152
-  dropout 0.3, noise 0.05          0.696 (prune_small 0.3)    28.41 / 0.955     0.273          38.73       156
-  dropout 0.3 + identity_perturbed 0.304 (noise 0.05)         30.44 / 0.966     0.264          37.49       194
-  dropout 0.3, noise 0.05 + i.p.   0.183 (brightness -0.1)    26.30 / 0.935     0.180          37.55       230
-
-(student dB: the student's test PSNR against its teacher; without any augmentation 43.00 dB, lowest SSIM
-0.150.) The model perturbation lifts prune_small 0.3, noise 0.05 and subsample 0.7 from 0.15-0.58 to
-0.63-0.96, but every variant so far costs the student 2-6 dB on the demo and either leaks near the key or
-turns fragile to brightness and contrast, so configs/conceal_ours.robust leaves it off.
+The recommended recipe (configs/recipes.through_attacks) trains through blur and noise only: what each
+distortion gained and cost is in experiments/results/conceal_options.md.
 """
 from __future__ import annotations
 

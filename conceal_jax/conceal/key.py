@@ -3,7 +3,7 @@
 Either a training camera by index (the released ConcealGS code uses the second to last) or a secret
 pose sampled from a seed on the orbit of the training cameras (a view nobody trains or tests on).
 Saved as key.json: the camera and what the reveal needs to know (hidden size, decoder width); a run with
-further hidden images (conceal.extra_hidden) adds their keys, of the same kind, as `extra_keys`.
+further hidden images (mark.extra_hidden) adds their keys, of the same kind, as `extra_keys`.
 """
 from __future__ import annotations
 
@@ -114,7 +114,7 @@ DECOY_SEED_BASE = 1_000_000
 
 def decoy_cameras(camera: Camera, extent: float, count: int, translation: Sequence[float],
                   rotation_deg: Sequence[float], seed: int = 0) -> list[Camera]:
-  """`count` cameras near the key, for training the decoder to stay the identity there (conceal.decoy_*).
+  """`count` cameras near the key, for training the decoder to stay the identity there (conceal.leakage.decoy_*).
 
   Each is moved by a fraction of `extent` drawn uniformly from `translation` (lo, hi), turned by degrees
   drawn from `rotation_deg` (lo, hi), or both, the three kinds in turn; directions are random.
@@ -143,7 +143,7 @@ def check_camera(cameras: Sequence[Camera], kind: str, index: int, seed: int) ->
 def key_cameras(cameras: Sequence[Camera], kind: str, index: int, seed: int,
                 extra: int) -> list[tuple[Camera, dict]]:
   """(camera, description) of the check view and of `extra` further keys of the same kind, one per extra
-  hidden image (conceal.extra_hidden): the k-th extra (0-based) is training camera index - 1 - k, or the
+  hidden image (mark.extra_hidden): the k-th extra (0-based) is training camera index - 1 - k, or the
   orbit pose of seed seed + 1 + k. Neighbouring indices suffice: the training cameras of a capture are
   not ordered by pose (the demo scene draws them at random). ValueError naming conceal.extra_hidden if an
   extra index is out of range or two keys are the same pose (a scene with fewer cameras than keys)."""

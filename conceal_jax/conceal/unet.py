@@ -8,31 +8,16 @@ conv3x3+ReLU) and a 1x1 conv to 3 channels. The output has no activation, so the
 (L_d^-) is not squashed near 0 and 1.
 base_channels = 64 is the paper width, the only one ImageNet VGG16 weights fit.
 
-`input_norm` (an option beyond the paper, conceal.decoder_input_norm) makes F equivariant to a brightness
+`input_norm` (an option beyond the paper, conceal.decoder.input_norm) makes F equivariant to a brightness
 shift, or to brightness and contrast, of what it reads, so that such a change of the check render changes
 the revealed image alike instead of unsettling the decoder, while the identity on normal views (L_d^-)
 stays reachable (reversible instance normalisation, `standardize_images` / `unstandardize_images`):
 - 'center': the U-Net reads each image less its mean and its output gets the mean back: F(x + b) = F(x) + b;
 - 'standardize': also divided by, and scaled back by, the image's standard deviation: F(a x + b) = a F(x) + b
   for every a > 0.
-The statistics are constants to the gradient: differentiated, they let L_d^+ move the whole check render
-(demo, 'standardize': student 32.47 dB against its teacher, hidden 28.61 dB; with constants 43.92 and 30.48).
-Demo scene, 1300 steps, configs/conceal_ours.robust, one run each, hidden SSIM under bench-robust's attacks
-(the attacks clip to [0, 1], and the demo's background is white, so brightening is no pure shift):
-
-  input_norm                     none            center          standardize
-  hidden dB / SSIM               30.65 / 0.969   30.75 / 0.973   30.48 / 0.965
-  student vs GT / vs teacher     30.29 / 43.10   29.32 / 37.02   30.43 / 43.92    (teacher vs GT 30.85)
-  near-key leakage               0.169           0.166           0.168
-  brightness -0.1 / +0.1         0.534 / 0.938   0.923 / 0.827   0.927 / 0.427
-  contrast 0.8 / 1.2             0.955 / 0.797   0.909 / 0.922   0.882 / 0.700
-  model noise 0.05               0.335           0.713           0.579
-  prune_small 0.3                0.222           0.142           0.138
-  subsample 0.7                  0.579           0.662           0.151
-
-Dividing by the spread turns a local change (holes where Gaussians were removed) into a global one, and
-subsampling fails. 'center' lifts the weakest attacks of 'none' (brightness -0.1, model noise, subsampling,
-contrast 1.2) but loses prune_small 0.3 and, in this run, 1 dB of the student.
+The statistics are constants to the gradient: differentiated, they would let L_d^+ move the whole check render.
+Dividing by the spread turns a local change (holes where Gaussians were removed) into a global one. What each
+mode gains and loses under the attacks is in experiments/results/conceal_options.md; no recipe sets it.
 """
 from __future__ import annotations
 

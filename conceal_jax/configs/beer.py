@@ -2,10 +2,10 @@
 
   python -m conceal_jax.main --config=conceal_jax/configs/beer.py --workdir=workdirs/bench/beer/teacher
 
-The CPU adjustments of cpu_budget.py, with at most 40k Gaussians, and no opacity reset: with the
-reset at 3k the test PSNR fell from 24.74 dB (step 2500) to 20.7 and ended at 21.93 dB after 10k steps;
-half of the Gaussians were pruned within 100 steps of the reset, and the 2k steps of densification left
-before step 5000 did not rebuild them. Test PSNR every 500 steps on all 9 held-out views.
+The CPU adjustments of cpu_budget.py, with at most 40k Gaussians, and no opacity reset: the reset at 3k
+pruned half of the Gaussians within 100 steps, and the 2k steps of densification left before step 5000 did
+not rebuild them (the test PSNR it cost: experiments/results/train_configs.md). Test PSNR every 500 steps on
+all 9 held-out views.
 """
 from conceal_jax.configs import colmap, cpu_budget
 

@@ -4,10 +4,9 @@
 
 The shared copy is stored at 400x400, so downscale 2 gives 1/4 of the original 800x800. It departs from
 the 3D-GS recipe of nerf_synthetic.py to fit 10k steps into 45 minutes on a 2-core CPU: the adjustments of
-cpu_budget.py with at most 50k Gaussians (a 40k cap gave 32.93 dB in 36 minutes), and 5k random start
-points instead of 100k. The start's splat-tile pairs set what the first steps cost: a 100k start ran its
-first 500 steps at about 1.1 s/step and ended at 33.30 dB against this config's 33.11 (all 200 test
-views). Test PSNR every 500 steps on 10 evenly spaced test views.
+cpu_budget.py with at most 50k Gaussians, and 5k random start points instead of 100k (the start's splat-tile
+pairs set what the first steps cost). What a smaller cap and the 100k start gave is in
+experiments/results/train_configs.md. Test PSNR every 500 steps on 10 evenly spaced test views.
 """
 from conceal_jax.configs import cpu_budget, nerf_synthetic
 

@@ -98,9 +98,8 @@ ATTACKS = {"noise": parameter_noise, "prune_transparent": prune_transparent, "pr
            "subsample": subsample}
 
 # Parameter noise is one class harsher than its nominal level suggests, judged by what a level costs the render
-# of bench-robust's lego student (test PSNR 33.60 dB): 0.01 costs 4.9 dB (the other attacks' mild levels at most
-# 4.4), 0.05 costs 15.1 dB (their medium levels at most 8.9; quantize 4, strong, 17.2). So 0.01 is its medium
-# level, 0.05 strong, and 0.002 (0.35 dB) its mild one.
+# of bench-robust's lego student beside the other attacks' levels (experiments/results/robust_levels.md): 0.01 is
+# its medium level, 0.05 strong, and 0.002 its mild one.
 LEVELS = (
     [("noise", s, MILD if s <= 0.002 else MEDIUM if s <= 0.01 else STRONG) for s in (0.002, 0.01, 0.05, 0.2)]
     + [(name, p, MILD if p <= 0.1 else MEDIUM if p <= 0.3 else STRONG)

@@ -134,8 +134,8 @@ def grow_capacity(options: RenderOptions, needed) -> RenderOptions:
 
 
 def initial_capacity(num_gaussians: int, options: RenderOptions) -> int:
-  """The automatic capacity before anything is known about the scene: a few tiles per Gaussian (garden
-  scenes need about 2.6 pairs per visible Gaussian at 16 px tiles and 6 at 8 px)."""
+  """The automatic capacity before anything is known about the scene: a few tiles per Gaussian, more for
+  smaller tiles (the pair counts it is set from: experiments/results/train_configs.md)."""
   per_gaussian = 2 + 48 / options.tile_size
   return capacity_bucket(int(num_gaussians * per_gaussian))
 
