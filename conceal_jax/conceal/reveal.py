@@ -3,6 +3,12 @@
 `--config.mode=reveal` takes any standard 3D-GS .ply, a decoder file and a key.json, writes
 revealed.png and, given a reference hidden image, its PSNR / SSIM (reveal.json). The render settings
 are read from the key, so the check view is rendered exactly as during concealment.
+
+A shared scene may have been turned, moved, resized or reordered on import (or re-saved by a converter that
+does so). Given the owner's own copy of the marked scene (reveal.owner), the reveal first registers the
+suspect scene onto it (gs.register: the similarity owner -> suspect from the Gaussians alone), moves the key
+camera with that similarity, and renders there: the check view the key names, seen in the suspect's frame.
+reveal.json then reports the transform and how well it fits.
 """
 from __future__ import annotations
 
@@ -19,7 +25,7 @@ import numpy as np
 from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, unet
 from conceal_jax.core import fileio, settings
 from conceal_jax.data import ply
-from conceal_jax.gs import metrics
+from conceal_jax.gs import metrics, register as register_lib, similarity as similarity_lib
 from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.gaussians import Gaussians
 from conceal_jax.splat.render import RenderOptions, render
@@ -109,6 +115,43 @@ def options_from_key(info: dict) -> RenderOptions:
   return settings.from_section(RenderOptions, info["render_options"])
 
 
+def moved_key(camera: Camera, options: RenderOptions,
+              similarity: similarity_lib.Similarity) -> tuple[Camera, RenderOptions]:
+  """The key camera and render options that see the scene moved by `similarity` as `camera` saw the
+  original: the camera transformed with it, and the near plane (an absolute camera-space depth, which the
+  scale multiplies) scaled by its scale, so that the same splats are culled and the render is the same."""
+  return (similarity_lib.transform_camera(camera, similarity),
+          dataclasses.replace(options, near=float(options.near) * similarity.scale))
+
+
+def aligned_key(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
+                seed: int = 0) -> tuple[Camera, RenderOptions, register_lib.Registration]:
+  """The key moved into the suspect scene's frame: registers `suspect` onto the owner's copy `owner` (the
+  scene the key was made for; any order, size or count of Gaussians in either) and moves `camera` and
+  `options` with the similarity found (moved_key). Returns them and the registration (similarity owner ->
+  suspect, residual, matched fraction). ValueError from register for scenes too small or not finite."""
+  registration = register_lib.register(owner, suspect, seed=seed)
+  return (*moved_key(camera, options, registration.similarity), registration)
+
+
+def similarity_report(similarity: similarity_lib.Similarity) -> dict:
+  """A similarity as reveal.json reports it: rotation [3, 3] and as an axis (unit [3]) and angle in degrees
+  (axis +z for no turn), translation [3], scale."""
+  quat = similarity_lib.matrix_to_quaternion(similarity.rotation)  # w >= 0: angle in [0, 180]
+  sin_half = float(np.linalg.norm(quat[1:]))
+  axis = quat[1:] / sin_half if sin_half > 1e-12 else np.array([0.0, 0.0, 1.0])
+  return dict(rotation=similarity.rotation.tolist(), axis=axis.tolist(),
+              angle_deg=float(np.degrees(2.0 * np.arctan2(sin_half, quat[0]))),
+              translation=similarity.translation.tolist(), scale=similarity.scale)
+
+
+def registration_report(registration: register_lib.Registration) -> dict:
+  """The transform found (similarity_report) with its fit: residual (trimmed RMS nearest-neighbour distance
+  / owner radius), matched_fraction and owner_radius (gs.register.Registration)."""
+  return dict(similarity_report(registration.similarity), residual=float(registration.residual),
+              matched_fraction=float(registration.matched_fraction), owner_radius=float(registration.owner_radius))
+
+
 def validate(config: ml_collections.ConfigDict) -> None:
   """The reveal job needs a scene and a key (the decoder is checked against the key when it is read)."""
   for name in ("ply", "key"):
@@ -117,26 +160,40 @@ def validate(config: ml_collections.ConfigDict) -> None:
   settings.check_count("reveal.key_number", config.reveal.key_number, minimum=0)
 
 
-def reveal_from_files(r: ml_collections.ConfigDict) -> np.ndarray:
-  """[S, S, 3] image revealed from the scene r.ply at key number r.key_number of the key file r.key (0: its
-  check view, k: its k-th extra key) with the decoder r.decoder (a `reveal` config section); S is the key's
-  hidden size."""
+def reveal_with_alignment(r: ml_collections.ConfigDict) -> tuple[np.ndarray, dict | None]:
+  """([S, S, 3] image revealed from the scene r.ply at key number r.key_number of the key file r.key (0: its
+  check view, k: its k-th extra key) with the decoder r.decoder (a `reveal` config section), S the key's
+  hidden size; the alignment report or None). With r.owner set, the key is first moved into r.ply's frame
+  (aligned_key against the owner's copy r.owner) and the report is registration_report's."""
   camera, info = key_lib.load_key(r.key, r.key_number)
   if info.get("uses_decoder", True) and not r.decoder:
     raise ValueError("reveal.decoder is required: this key was made with a decoder")
   decoder = load_decoder(r.decoder) if info.get("uses_decoder", True) else None
-  return np.asarray(reveal_image(ply.load_ply(r.ply), camera, options_from_key(info), decoder,
-                                 int(info.get("decoder_width", 0)), int(info["hidden_size"]),
-                                 Reading.from_key(info)))
+  suspect, options = ply.load_ply(r.ply), options_from_key(info)
+  alignment = None
+  if r.get("owner", ""):
+    camera, options, registration = aligned_key(ply.load_ply(r.owner), suspect, camera, options)
+    alignment = dict(owner=r.owner, **registration_report(registration))
+  revealed = np.asarray(reveal_image(suspect, camera, options, decoder, int(info.get("decoder_width", 0)),
+                                     int(info["hidden_size"]), Reading.from_key(info)))
+  return revealed, alignment
+
+
+def reveal_from_files(r: ml_collections.ConfigDict) -> np.ndarray:
+  """The [S, S, 3] image of reveal_with_alignment (re-aligned when r.owner is set)."""
+  return reveal_with_alignment(r)[0]
 
 
 def reveal(config: ml_collections.ConfigDict, workdir: str) -> dict:
-  """The reveal job: writes revealed.png and reveal.json (similarity to config.reveal.hidden if set)."""
+  """The reveal job: writes revealed.png and reveal.json (similarity to config.reveal.hidden if set; the
+  alignment found when config.reveal.owner is set)."""
   validate(config)
   r = config.reveal
-  revealed = reveal_from_files(r)
+  revealed, alignment = reveal_with_alignment(r)
   fileio.write_image(os.path.join(workdir, "revealed.png"), revealed)
   result = dict(ply=r.ply, key=r.key, decoder=r.decoder)
+  if alignment is not None:
+    result["alignment"] = alignment
   if r.hidden:
     reference = hidden_lib.load_hidden_image(r.hidden, revealed.shape[0])
     result.update(psnr=float(metrics.psnr(revealed, reference)), ssim=float(metrics.ssim(revealed, reference)))

@@ -236,6 +236,10 @@ def get_config() -> ml_collections.ConfigDict:
   config.reveal.key = ""      # key.json written by conceal
   config.reveal.hidden = ""   # optional reference hidden image (path or sample name) to score against
   config.reveal.key_number = 0  # which key of the key file: 0 its check view, k its k-th extra_keys entry
+  # the owner's own copy of the marked scene (e.g. the student.ply conceal wrote); set: the suspect scene is
+  # registered onto it and the key moved with the similarity found (a turned, moved, resized or reordered
+  # scene), reveal.json reporting the transform; empty: the key is used as saved
+  config.reveal.owner = ""
 
   # verify mode: the reveal section's ply, decoder, key and hidden image (required here), scored and
   # decided at the threshold chosen from a calibration file of measured clean and marked scores

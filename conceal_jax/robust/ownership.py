@@ -6,6 +6,8 @@ the threshold comes from a calibration file of measured scores: `clean` (scenes 
 with this image and key: other teachers and scenes, the student under wrong keys, another run's decoder)
 and `marked` (the student under mild and medium attacks). verify.json reports the score and decision
 with the false- and true-positive rates measured at that threshold, and how many trials they rest on.
+With reveal.owner set (the owner's copy of the marked scene), the key is first moved into the suspect's
+frame (conceal.reveal.aligned_key) and verify.json reports the transform found.
 """
 from __future__ import annotations
 
@@ -61,6 +63,11 @@ def load_calibration(path: str) -> dict:
   return dict(choose_threshold(clean, marked), source=path)
 
 
+def decide(score: float, calibration: dict) -> bool:
+  """The ownership decision: the score reaches the calibrated threshold (load_calibration)."""
+  return bool(score >= calibration["threshold"])
+
+
 def validate(config: ml_collections.ConfigDict) -> None:
   for name in ("ply", "key", "hidden"):
     if not config.reveal[name]:
@@ -75,10 +82,12 @@ def verify(config: ml_collections.ConfigDict, workdir: str) -> dict:
   validate(config)
   r = config.reveal
   calibration = load_calibration(config.verify.calibration)
-  revealed = reveal.reveal_from_files(r)
+  revealed, alignment = reveal.reveal_with_alignment(r)
   score = float(metrics.ssim(revealed, hidden_lib.load_hidden_image(r.hidden, revealed.shape[0])))
   result = dict(ply=r.ply, key=r.key, decoder=r.decoder, hidden=r.hidden, score=score,
-                owned=bool(score >= calibration["threshold"]), calibration=calibration)
+                owned=decide(score, calibration), calibration=calibration)
+  if alignment is not None:
+    result["alignment"] = alignment
   fileio.write_image(os.path.join(workdir, "revealed.png"), revealed)
   fileio.write_json(os.path.join(workdir, VERIFY_FILE), result)
   return result
