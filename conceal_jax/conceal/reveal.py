@@ -36,9 +36,10 @@ REVEAL_FILE = "reveal.json"
 @dataclasses.dataclass(frozen=True)
 class Reading:
   """How a decoder reads a render, beyond the paper (both saved in key.json): `input_norm` (unet.UNet,
-  conceal.decoder_input_norm) and `clip` (conceal.decoder_clip_input): the render clipped to [0, 1] first,
-  as an image file holds it, so that no hidden signal can live in values outside it (a lego student hid
-  its image in whites above 1 that any saved or attacked image loses: clipped, SSIM 0.994 -> 0.725)."""
+  conceal.decoder.input_norm) and `clip` (conceal.decoder.clip_input): the render clipped to [0, 1] first,
+  as an image file holds it, so that no hidden signal can live in values outside it (a lego student trained
+  without it hid its image in whites above 1, which any saved or attacked image loses:
+  experiments/results/conceal_options.md)."""
   input_norm: str = "none"
   clip: bool = False
 
