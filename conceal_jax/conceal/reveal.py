@@ -120,9 +120,11 @@ def moved_key(camera: Camera, options: RenderOptions,
               similarity: similarity_lib.Similarity) -> tuple[Camera, RenderOptions]:
   """The key camera and render options that see the scene moved by `similarity` as `camera` saw the
   original: the camera transformed with it, and the near plane (an absolute camera-space depth, which the
-  scale multiplies) scaled by its scale, so that the same splats are culled and the render is the same."""
+  scale multiplies) scaled by its scale, so that the same splats are culled and the render is the same (the near
+  plane is a static render option: each value compiles the render anew)."""
+  # rounded to 6 significant digits: a scale of 1 found to float precision keeps the compiled render
   return (similarity_lib.transform_camera(camera, similarity),
-          dataclasses.replace(options, near=float(options.near) * similarity.scale))
+          dataclasses.replace(options, near=float(f"{float(options.near) * similarity.scale:.6g}")))
 
 
 def aligned_key(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,

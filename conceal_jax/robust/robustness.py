@@ -47,10 +47,22 @@ class Owner:
     """PSNR and SSIM [V] of revealed images [V, S, S, 3] to I."""
     return scoring.scores_to_hidden(revealed, self.hidden)
 
-  def check_scores(self, gaussians: Gaussians) -> dict[str, float]:
-    """hidden_psnr and hidden_ssim of what `gaussians` reveal at the key."""
-    scores = self.scores(self.reveal_renders(render(gaussians, self.check_camera, self.options).rgb[None]))
+  def check_scores(self, gaussians: Gaussians, camera: Camera | None = None,
+                   options: RenderOptions | None = None) -> dict[str, float]:
+    """hidden_psnr and hidden_ssim of what `gaussians` reveal at the key (or at `camera` with `options`: the
+    key moved into a transformed scene's frame, reveal.moved_key)."""
+    camera = self.check_camera if camera is None else camera
+    options = self.options if options is None else options
+    scores = self.scores(self.reveal_renders(render(gaussians, camera, options).rgb[None]))
     return dict(hidden_psnr=float(scores["psnr"][0]), hidden_ssim=float(scores["ssim"][0]))
+
+  def aligned_scores(self, marked: Gaussians, suspect: Gaussians) -> dict:
+    """What `suspect` reveals at the key after re-alignment against the owner's copy `marked` (the scene the
+    key was made for; reveal.aligned_key): hidden_psnr, hidden_ssim and `registration`, the transform found
+    and its fit (reveal.registration_report)."""
+    camera, options, registration = reveal.aligned_key(marked, suspect, self.check_camera, self.options)
+    return dict(self.check_scores(jax.tree.map(jnp.asarray, suspect), camera, options),
+                registration=reveal.registration_report(registration))
 
 
 def scene_scores(gaussians: Gaussians, owner: Owner, test_cameras: Sequence[Camera], test_images) -> dict:

@@ -1,0 +1,386 @@
+"""Does the mark survive what happens to a shared scene (issue 39)? Similarity transforms, publishing round trips,
+fine-tuning and model extraction of marked students, each scored as the owner would: render PSNR of the attacked
+scene on the test views, hidden PSNR / SSIM at the key, and the ownership decision.
+
+  make bench-survive                                   # demo and lego (when its bench run exists), cheap attacks
+  make bench-survive BENCH_ARGS="--scenes=demo --finetune-steps=30,100,300"
+  make bench-survive BENCH_ARGS="--extraction --extraction-views=200 --extraction-steps=10000"
+
+Scenes are finished conceal workdirs (student.ply, decoder.msgpack, key.json, config.json); one that is missing
+is skipped with a note. Attacks (`level` in brackets):
+- none: the student as shared;
+- rotate (degrees about the up axis through the centroid), translate (fraction of the RMS radius), scale
+  (factor), each with the Gaussians shuffled (robust.scene_attacks): hidden_* are revealed after re-alignment
+  against the owner's copy (reveal.aligned_key: registration, key moved with the similarity found),
+  `unaligned` without it; `registration` reports the transform found and its error against the applied one;
+- sog, spz, compressed_ply (the format), decimate (fraction kept), sh_bands (bands kept): round trips through
+  @playcanvas/splat-transform (robust.converter; skipped without `make node_modules`), revealed as they come back
+  (hidden_*) and after re-alignment (`aligned`); `moved`: the same round trip of the student moved by a random
+  similarity first (any rotation, translation up to 10 radii, scale in [1/10, 10]), revealed after re-alignment;
+- finetune, finetune_densify (steps): 3D-GS training continued from the student on the training views with the
+  run's own training recipe, without and with densification (snapshots of one run per schedule);
+- extraction (views; `steps` in the row), with --extraction only: renders of the student at its training
+  cameras and random poses on their orbit, a fresh 3D-GS trained on them from random points.
+
+`decided` is robust.ownership's decision (hidden SSIM at or above the threshold chosen from --calibration, which
+`make bench-robust` writes). Rows are merged into <out>/survive_bench.json ({"rows": [...]}, one per scene,
+recipe, attack, level and steps) with survive_bench.md and survive_bench.png; finished rows are kept and not
+recomputed (--redo recomputes them), and each attack's files are cached under --workdir/<scene>/.
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import math
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+
+from conceal_jax.conceal import key as key_lib, reveal
+from conceal_jax.core import fileio
+from conceal_jax.data import ply
+from conceal_jax.gs import evaluate, similarity as sim, train
+from conceal_jax.robust import converter, ownership, robustness, scene_attacks
+from conceal_jax.splat.camera import opengl_camera_to_world
+from experiments import bench_robust, results_io
+
+NAME = "survive_bench"
+# scene name -> (conceal workdir, recipe label): the demo run is configs/demo.py's short recommended recipe, lego's
+# bench-conceal's recommended row
+SCENES = {"demo": ("workdirs/demo/conceal", "recommended"),
+          "lego": ("workdirs/bench/lego/conceal_ours_robust_clip_dec03_clip_w16", "recommended")}
+TRANSFORMS = ([("rotate", d) for d in (1.0, 5.0, 45.0, 180.0)] + [("translate", f) for f in (0.026, 1.0)]
+              + [("scale", f) for f in (0.5, 1.1, 2.0)])
+# attack, level -> converter.round_trip's arguments
+CONVERSIONS = ([("sog", None, dict(fmt="sog")), ("spz", None, dict(fmt="spz")),
+                ("compressed_ply", None, dict(fmt="compressed.ply"))]
+               + [("decimate", k, dict(fmt="ply", decimate=k)) for k in (0.8, 0.5)]
+               + [("sh_bands", d, dict(fmt="ply", sh_degree=d)) for d in (2, 1, 0)])
+CHEAP_ATTACKS = ("none", "transforms", "converter", "finetune", "finetune_densify")
+# the random similarity that moves the student before a round trip (scene_attacks.random_similarity)
+MOVED_MAX_SCALE, MOVED_SEED = 10.0, 7
+
+
+def row_key(row: dict) -> tuple:
+  return row["scene"], row["recipe"], row["attack"], json.dumps(row["level"]), row.get("steps")
+
+
+@dataclasses.dataclass
+class Scene:
+  """A marked scene under test: its name and recipe label, conceal workdir, run config, student (numpy), owner
+  (robustness.Owner), test cameras and images, the decision's calibration, and its cache folder."""
+  name: str
+  recipe: str
+  run: pathlib.Path
+  config: ml_collections.ConfigDict
+  student: object
+  owner: robustness.Owner
+  cameras: list
+  targets: list
+  calibration: dict
+  cache: pathlib.Path
+
+  def row(self, attack: str, level, scores: dict, **extra) -> dict:
+    """A result row: scores holds render_psnr, hidden_psnr and hidden_ssim; decided from hidden_ssim."""
+    return dict(scene=self.name, recipe=self.recipe, attack=attack, level=level, **scores,
+                decided=ownership.decide(scores["hidden_ssim"], self.calibration), **extra)
+
+
+def load_scene(name: str, run: pathlib.Path, recipe: str, test_views: int, calibration: dict,
+               workdir: pathlib.Path) -> Scene:
+  config, student, owner = bench_robust.load_run(run)
+  cameras, targets, _ = evaluate.held_out_views(evaluate.load_scene_data(config), test_views)
+  return Scene(name, recipe, run, config, jax.tree.map(np.asarray, student), owner, cameras, targets, calibration,
+               workdir / name)
+
+
+def scores_of(scene: Scene, gaussians, similarity: sim.Similarity | None = None) -> dict:
+  """render_psnr on the test views (cameras moved by `similarity`, the one applied to the scene, if given) and
+  hidden PSNR / SSIM at the key as saved (no re-alignment)."""
+  g = jax.tree.map(jnp.asarray, gaussians)
+  cameras, options = scene.cameras, scene.owner.options
+  if similarity is not None:
+    moved = [reveal.moved_key(c, options, similarity) for c in cameras]
+    cameras, options = [c for c, _ in moved], moved[0][1]
+  return dict(render_psnr=evaluate.views_psnr(g, list(cameras), scene.targets, options),
+              **scene.owner.check_scores(g), num_gaussians=int(np.asarray(gaussians.means).shape[0]))
+
+
+def registration_errors(found: dict, applied: sim.Similarity, radius: float) -> dict:
+  """The registration's error against the applied similarity: rotation (degrees), scale (relative),
+  translation (owner radii, after the scale)."""
+  rotation = np.asarray(found["rotation"]) @ applied.rotation.T
+  angle = math.degrees(math.acos(float(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0))))
+  return dict(rotation_error_deg=angle, scale_error=abs(found["scale"] / applied.scale - 1.0),
+              translation_error=float(np.linalg.norm(np.asarray(found["translation"]) - applied.translation)
+                                      / (radius * applied.scale)))
+
+
+def aligned(scene: Scene, suspect, applied: sim.Similarity | None = None) -> dict:
+  """hidden_psnr, hidden_ssim, decided and registration of `suspect` revealed after re-alignment (with its
+  errors against the applied similarity, identity if None)."""
+  scores = scene.owner.aligned_scores(scene.student, suspect)
+  registration = scores["registration"]
+  registration.update(registration_errors(registration, applied or sim.Similarity.identity(),
+                                          registration["owner_radius"]))
+  return dict(hidden_psnr=scores["hidden_psnr"], hidden_ssim=scores["hidden_ssim"],
+              decided=ownership.decide(scores["hidden_ssim"], scene.calibration), registration=registration)
+
+
+def cached_ply(path: pathlib.Path, make):
+  """The scene saved at `path`, made by make() and saved there first if missing (numpy arrays)."""
+  if not path.is_file():
+    path.parent.mkdir(parents=True, exist_ok=True)
+    ply.save_ply(path, jax.tree.map(np.asarray, make()))
+  return jax.tree.map(np.asarray, ply.load_ply(str(path)))
+
+
+def transform_rows(scene: Scene, todo) -> list[dict]:
+  rows = []
+  for attack, level in todo:
+    moved, applied = scene_attacks.attack(jax.tree.map(jnp.asarray, scene.student), attack, level)
+    moved = cached_ply(scene.cache / f"{attack}_{level:g}" / "scene.ply", lambda: moved)
+    plain = scores_of(scene, moved, applied)
+    unaligned = dict(hidden_psnr=plain.pop("hidden_psnr"), hidden_ssim=plain.pop("hidden_ssim"))
+    unaligned["decided"] = ownership.decide(unaligned["hidden_ssim"], scene.calibration)
+    realigned = aligned(scene, moved, applied)
+    registration = realigned.pop("registration")
+    realigned.pop("decided")
+    rows.append(scene.row(attack, level, dict(plain, **realigned), unaligned=unaligned, registration=registration))
+    print(json.dumps({k: v for k, v in rows[-1].items() if not isinstance(v, dict)}), flush=True)
+  return rows
+
+
+def converter_rows(scene: Scene, todo) -> list[dict]:
+  rows = []
+  applied = scene_attacks.random_similarity(scene.student, MOVED_MAX_SCALE, MOVED_SEED)
+  moved_student = None
+  for attack, level, arguments in todo:
+    folder = scene.cache / f"{attack}_{level}"
+    published = cached_ply(folder / "scene.ply", lambda: converter.round_trip(
+        scene.student, workdir=folder / "work", **arguments))
+    if moved_student is None:
+      moved_student, _ = scene_attacks.attack(jax.tree.map(jnp.asarray, scene.student), "similarity",
+                                              MOVED_MAX_SCALE, seed=MOVED_SEED)
+    moved = cached_ply(folder / "moved.ply", lambda: converter.round_trip(
+        moved_student, workdir=folder / "moved_work", **arguments))
+    padded = robustness.pad_like(published, max(scene.student.num, published.num), scene.student.sh_degree)
+    scores = scores_of(scene, padded)
+    scores["num_gaussians"] = int(published.num)
+    rows.append(scene.row(attack, level, scores, aligned=aligned(scene, published),
+                          moved=dict(aligned(scene, moved, applied), similarity=reveal.similarity_report(applied))))
+    print(json.dumps({k: v for k, v in rows[-1].items() if not isinstance(v, dict)}), flush=True)
+  return rows
+
+
+def finetune_rows(scene: Scene, steps: list[int], densify: bool, test_views: int) -> list[dict]:
+  """3D-GS training continued from the student on the training views with the run's training recipe (with or
+  without densification), scored at each of `steps` (snapshots of one run of max(steps), resumable in
+  <cache>/finetune_{fixed,densify}_<max(steps)>)."""
+  config = ml_collections.ConfigDict(scene.config.to_dict())
+  config.mode = "train"
+  config.init.kind, config.init.ply = "ply", str(scene.run / "student.ply")
+  config.train.iterations = max(steps)
+  config.train.snapshots = tuple(sorted(set(steps) - {max(steps)}))
+  config.train.log_every = math.gcd(int(config.train.log_every), *steps)  # snapshots fall on logged steps
+  config.train.sh_degree_start = config.train.sh_degree  # the student is trained: every band from the start
+  config.train.eval_every = 0
+  config.eval.max_views = test_views
+  if not densify:
+    config.train.densify.until = 0  # no densification and no opacity reset
+  workdir = scene.cache / f"finetune_{'densify' if densify else 'fixed'}_{max(steps)}"
+  workdir.mkdir(parents=True, exist_ok=True)
+  fileio.write_json(workdir / "config.json", config.to_dict())
+  train.train_and_evaluate(config, str(workdir))
+  rows = []
+  for length in sorted(steps):
+    name = "point_cloud.ply" if length == max(steps) else train.snapshot_name(length)
+    attacked = jax.tree.map(np.asarray, ply.load_ply(str(workdir / name)))
+    rows.append(scene.row("finetune_densify" if densify else "finetune", length, scores_of(scene, attacked)))
+    print(json.dumps(rows[-1]), flush=True)
+  return rows
+
+
+def extraction_cameras(scene: Scene, views: int, seed: int = 0) -> list:
+  """`views` cameras: the scene's training cameras, then random poses on their orbit (key.orbit_camera)."""
+  scene_data = evaluate.load_scene_data(scene.config)
+  cameras = list(scene_data.train_cameras)[:views]
+  cameras += [key_lib.orbit_camera(scene_data.train_cameras, 10_000 + seed * 100_000 + i)
+              for i in range(views - len(cameras))]
+  return cameras
+
+
+def write_blender_views(folder: pathlib.Path, gaussians, cameras, test_cameras, options) -> None:
+  """The scene rendered at `cameras` (train split) and `test_cameras` (test split) as a Blender-format dataset
+  (transforms_{train,test}.json, PNGs): what an extraction attacker trains on. Square pixels, centred
+  principal points, one field of view (that of cameras[0])."""
+  g = jax.tree.map(jnp.asarray, gaussians)
+  for split, split_cameras in (("train", cameras), ("test", test_cameras)):
+    frames = []
+    for index, camera in enumerate(split_cameras):
+      image = np.asarray(evaluate.render_images(g, [camera], options)[0])
+      fileio.write_image(folder / split / f"r_{index}.png", np.clip(image, 0.0, 1.0))
+      frames.append({"file_path": f"./{split}/r_{index}",
+                     "transform_matrix": opengl_camera_to_world(np.asarray(camera.world_to_camera)).tolist()})
+    fov_x = 2.0 * math.atan(0.5 * float(cameras[0].width) / float(cameras[0].fx))
+    fileio.write_json(folder / f"transforms_{split}.json", {"camera_angle_x": fov_x, "frames": frames})
+
+
+def extraction_rows(scene: Scene, views: int, steps: list[int], test_views: int) -> list[dict]:
+  """A fresh 3D-GS (random points, the run's training recipe) trained for max(steps) on `views` renders of the
+  student, scored at each of `steps`."""
+  folder = scene.cache / f"extraction_{views}"
+  if not (folder / "views" / "transforms_test.json").is_file():
+    write_blender_views(folder / "views", scene.student, extraction_cameras(scene, views), scene.cameras,
+                        scene.owner.options)
+  config = ml_collections.ConfigDict(scene.config.to_dict())
+  config.mode = "train"
+  config.data.path = str(folder / "views")
+  config.data.downscale = 1
+  config.init.kind = "random"
+  config.train.iterations = max(steps)
+  config.train.snapshots = tuple(sorted(set(steps) - {max(steps)}))
+  config.train.log_every = math.gcd(int(config.train.log_every), *steps)  # snapshots fall on logged steps
+  config.train.eval_every = 0
+  config.eval.max_views = test_views
+  workdir = folder / f"train_{max(steps)}"
+  workdir.mkdir(parents=True, exist_ok=True)
+  fileio.write_json(workdir / "config.json", config.to_dict())
+  train.train_and_evaluate(config, str(workdir))
+  rows = []
+  for length in sorted(steps):
+    name = "point_cloud.ply" if length == max(steps) else train.snapshot_name(length)
+    attacked = jax.tree.map(np.asarray, ply.load_ply(str(workdir / name)))
+    rows.append(scene.row("extraction", views, scores_of(scene, attacked), steps=length))
+    print(json.dumps(rows[-1]), flush=True)
+  return rows
+
+
+def level_label(row: dict) -> str:
+  level = row["level"]
+  text = "" if level is None else f"{level:g}" if isinstance(level, (int, float)) else str(level)
+  return text + (f" x{row['steps']}" if row.get("steps") is not None else "")
+
+
+def table(rows: list[dict]) -> str:
+  """survive_bench.md: one line per row."""
+  lines = ["# Survival of the mark (make bench-survive)", "",
+           "Hidden PSNR / SSIM at the key: after re-alignment against the owner's copy for the similarity "
+           "transforms (rotate, translate, scale), as the scene comes back for the others. Unaligned: the "
+           "transforms revealed at the key as saved; aligned: the round trips re-aligned first; moved: the round "
+           "trip of the student moved by a random similarity (scale 1/10-10) first, re-aligned. Registration: its "
+           "rotation error (degrees) and residual (owner radii). decided: SSIM at or above the calibrated "
+           "threshold (robust/ownership.py).", "",
+           "| scene | recipe | attack | level | render PSNR | hidden PSNR | hidden SSIM | decided | unaligned SSIM "
+           "| aligned SSIM | moved SSIM | registration |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+  cell = lambda x: "" if x is None else f"{x:.3f}"
+  for r in rows:
+    registration = r.get("registration") or (r.get("moved") or {}).get("registration")
+    reg = "" if registration is None else (f"{registration['rotation_error_deg']:.1e} deg, "
+                                           f"{registration['residual']:.1e}")
+    lines.append(f"| {r['scene']} | {r['recipe']} | {r['attack']} | {level_label(r)} | {r['render_psnr']:.2f} "
+                 f"| {r['hidden_psnr']:.2f} | {r['hidden_ssim']:.3f} | {'yes' if r['decided'] else 'no'} "
+                 f"| {cell((r.get('unaligned') or {}).get('hidden_ssim'))} "
+                 f"| {cell((r.get('aligned') or {}).get('hidden_ssim'))} "
+                 f"| {cell((r.get('moved') or {}).get('hidden_ssim'))} | {reg} |")
+  return "\n".join(lines) + "\n"
+
+
+def plot(rows: list[dict], path: pathlib.Path) -> None:
+  """Hidden SSIM per attack and level, one panel per scene: bars as the table's hidden SSIM, dots without
+  re-alignment (transforms) and moved first (round trips); the decision threshold dashed."""
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+  scenes = list(dict.fromkeys((r["scene"], r["recipe"]) for r in rows))
+  fig, axes = plt.subplots(len(scenes), 1, figsize=(max(8, 0.45 * len(rows) / max(1, len(scenes)) + 3),
+                                                    4.5 * len(scenes)), squeeze=False)
+  for ax, (name, recipe) in zip(axes[:, 0], scenes):
+    mine = [r for r in rows if (r["scene"], r["recipe"]) == (name, recipe)]
+    x = np.arange(len(mine))
+    ax.bar(x, [r["hidden_ssim"] for r in mine], color=["C0" if r["decided"] else "C3" for r in mine])
+    for field, marker, label in (("unaligned", "kx", "without re-alignment"),
+                                 ("moved", "g^", "moved first, re-aligned")):
+      points = [(i, r[field]["hidden_ssim"]) for i, r in enumerate(mine) if r.get(field)]
+      if points:
+        ax.plot(*zip(*points), marker, label=label)
+    threshold = mine[0].get("threshold")
+    if threshold is not None:
+      ax.axhline(threshold, color="k", linestyle="--", linewidth=0.8, label="ownership threshold")
+    ax.set_xticks(x, [f"{r['attack']}\n{level_label(r)}" for r in mine], fontsize=6, rotation=90)
+    ax.set_ylim(0, 1.02)
+    ax.set_ylabel("hidden SSIM")
+    ax.set_title(f"{name} ({recipe}): bars decided (blue) or not (red)", fontsize=9)
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(fontsize=7, loc="lower left")
+  fileio.save_figure(fig, path)
+
+
+def main(argv=None):
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--out", default="experiments/results")
+  parser.add_argument("--workdir", default="workdirs/survive", help="each attack's files, per scene")
+  parser.add_argument("--scenes", default="demo,lego", help=f"comma-separated names of {sorted(SCENES)}, or "
+                      "name=conceal_workdir")
+  parser.add_argument("--attacks", default=",".join(CHEAP_ATTACKS),
+                      help=f"comma-separated groups of {CHEAP_ATTACKS + ('extraction',)}")
+  parser.add_argument("--finetune-steps", default="30,100,300,1000", help="fine-tuning lengths (3000, 10000 too)")
+  parser.add_argument("--extraction", action="store_true", help="also run model extraction (long)")
+  parser.add_argument("--extraction-views", default="200", help="comma-separated numbers of rendered views")
+  parser.add_argument("--extraction-steps", default="10000", help="comma-separated training lengths")
+  parser.add_argument("--test-views", type=int, default=10, help="test views of render_psnr")
+  parser.add_argument("--calibration", default="experiments/results/ownership_calibration.json")
+  parser.add_argument("--redo", action="store_true", help="recompute rows already in the results")
+  args = parser.parse_args(argv)
+  out, workdir = pathlib.Path(args.out), pathlib.Path(args.workdir)
+  calibration = ownership.load_calibration(args.calibration)
+  groups = [g for g in args.attacks.split(",") if g] + (["extraction"] if args.extraction else [])
+  try:
+    done = {row_key(r) for r in json.loads((out / f"{NAME}.json").read_text())["rows"]}
+  except (OSError, ValueError, KeyError):
+    done = set()
+  done = set() if args.redo else done
+  finetune_steps = [int(n) for n in args.finetune_steps.split(",") if n]
+
+  def save(rows):
+    if rows:
+      for r in rows:
+        r["threshold"] = calibration["threshold"]
+      results_io.write_results(out, NAME, rows, row_key, table, plot, calibration=args.calibration)
+
+  for spec in (s for s in args.scenes.split(",") if s):
+    name, _, path = spec.partition("=")
+    run, recipe = (pathlib.Path(path), "recommended") if path else (pathlib.Path(SCENES[name][0]), SCENES[name][1])
+    if not all((run / f).is_file() for f in ("student.ply", "decoder.msgpack", "key.json", "config.json")):
+      print(f"skipping {name}: no finished conceal run in {run}")
+      continue
+    scene = load_scene(name, run, recipe, args.test_views, calibration, workdir)
+    missing = lambda attack, level, steps=None: (name, recipe, attack, json.dumps(level), steps) not in done
+    if "none" in groups and missing("none", None):
+      save([scene.row("none", None, scores_of(scene, scene.student))])
+    if "transforms" in groups:
+      save(transform_rows(scene, [(a, l) for a, l in TRANSFORMS if missing(a, l)]))
+    if "converter" in groups:
+      if converter.available():
+        save(converter_rows(scene, [c for c in CONVERSIONS if missing(c[0], c[1])]))
+      else:
+        print("skipping the round trips: splat-transform is not installed (make node_modules)")
+    for attack in ("finetune", "finetune_densify"):
+      todo = [n for n in finetune_steps if missing(attack, n)]
+      if attack in groups and todo:
+        save(finetune_rows(scene, todo, attack == "finetune_densify", args.test_views))
+    if "extraction" in groups:
+      steps = [int(n) for n in args.extraction_steps.split(",") if n]
+      for views in (int(v) for v in args.extraction_views.split(",") if v):
+        todo = [n for n in steps if missing("extraction", views, n)]
+        if todo:
+          save(extraction_rows(scene, views, todo, args.test_views))
+
+
+if __name__ == "__main__":
+  main()
