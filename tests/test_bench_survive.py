@@ -92,8 +92,11 @@ def test_transforms_and_round_trips_are_revealed_after_re_alignment(run, monkeyp
 
 
 @pytest.mark.slow  # a training run's compilation: over a minute on two shared cores
-def test_finetune_rows_at_each_length(run, monkeypatch):
-  rows = bench(run, monkeypatch, "--attacks=finetune", "--finetune-steps=2,4")
+def test_finetune_and_extraction_rows_at_each_length(run, monkeypatch):
+  rows = bench(run, monkeypatch, "--attacks=finetune", "--finetune-steps=2,4", "--extraction",
+               "--extraction-views=6", "--extraction-steps=2,4")
+  extracted = [r for r in rows if r["attack"] == "extraction"]
+  assert [(r["level"], r["steps"]) for r in extracted] == [(6, 2), (6, 4)] and all(FIELDS <= set(r) for r in extracted)
   tuned = [r for r in rows if r["attack"] == "finetune"]
   assert [r["level"] for r in tuned] == [2, 4] and all(FIELDS <= set(r) for r in tuned)
   assert (run / "work" / "tiny" / "finetune_fixed_4" / "point_cloud.ply").is_file()
