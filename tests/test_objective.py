@@ -157,7 +157,12 @@ def golden_settings(row):
   return settings(weight_kd=0.7, weight_plus=2.0, weight_minus=1.5, weight_check=0.5, **GOLDEN_ROWS[row])
 
 
-@pytest.mark.parametrize("row", sorted(GOLDEN_ROWS))
+# Rows whose code paths the others cover too: compiled only by `make test-slow`.
+SLOW_ROWS = ("paper", "distorted", "identity_distorted", "no_consistency", "photometric")
+
+
+@pytest.mark.parametrize("row", [pytest.param(r, marks=pytest.mark.slow) if r in SLOW_ROWS else r
+                                 for r in sorted(GOLDEN_ROWS)])
 def test_gradients_are_the_pre_redesign_steps(row):
   """The student's gradient and the two decoder gradient pytrees, and the loss values, as the step computed
   them before the objective was written once; finite."""
@@ -179,7 +184,8 @@ def test_gradients_are_the_pre_redesign_steps(row):
       np.testing.assert_allclose(sketch(a, i), b, rtol=2e-4, atol=1e-6 * float(b[0]) + 1e-12, err_msg=name)
 
 
-@pytest.mark.parametrize("row", ["ours", "released", "perturbed"])
+@pytest.mark.parametrize("row", ["ours", pytest.param("released", marks=pytest.mark.slow),
+                                 pytest.param("perturbed", marks=pytest.mark.slow)])
 def test_two_guided_steps_are_the_pre_redesign_steps(row):
   """Two steps of the guided update (state donated): the student, decoder and statistics the step gave before."""
   golden = golden_arrays(row)

@@ -133,11 +133,11 @@ def check_camera(cameras: Sequence[Camera], kind: str, index: int, seed: int) ->
   """The check view and a description of how it was chosen."""
   if kind == "train_index":
     if not -len(cameras) <= index < len(cameras):
-      raise ValueError(f"conceal.key_index {index} is out of range for {len(cameras)} training cameras")
+      raise ValueError(f"mark.key_index {index} is out of range for {len(cameras)} training cameras")
     return cameras[index], dict(kind=kind, index=index % len(cameras))
   if kind == "orbit":
     return orbit_camera(cameras, seed), dict(kind=kind, seed=seed)
-  raise ValueError(f"conceal.key_kind must be one of {KEY_KINDS}, got {kind!r}")
+  raise ValueError(f"mark.key_kind must be one of {KEY_KINDS}, got {kind!r}")
 
 
 def key_cameras(cameras: Sequence[Camera], kind: str, index: int, seed: int,
@@ -145,19 +145,19 @@ def key_cameras(cameras: Sequence[Camera], kind: str, index: int, seed: int,
   """(camera, description) of the check view and of `extra` further keys of the same kind, one per extra
   hidden image (mark.extra_hidden): the k-th extra (0-based) is training camera index - 1 - k, or the
   orbit pose of seed seed + 1 + k. Neighbouring indices suffice: the training cameras of a capture are
-  not ordered by pose (the demo scene draws them at random). ValueError naming conceal.extra_hidden if an
+  not ordered by pose (the demo scene draws them at random). ValueError naming mark.extra_hidden if an
   extra index is out of range or two keys are the same pose (a scene with fewer cameras than keys)."""
   keys = [check_camera(cameras, kind, index, seed)]
   for k in range(extra):
     if kind == "train_index" and not -len(cameras) <= index - 1 - k < len(cameras):
-      raise ValueError(f"conceal.extra_hidden: the key of extra image {k}, training camera conceal.key_index - "
+      raise ValueError(f"mark.extra_hidden: the key of extra image {k}, training camera mark.key_index - "
                        f"{k + 1} = {index - 1 - k}, is out of range for {len(cameras)} training cameras")
     keys.append(check_camera(cameras, kind, index - 1 - k, seed + 1 + k))
   poses = [np.asarray(camera.world_to_camera) for camera, _ in keys]
   for i in range(len(keys)):
     for j in range(i):
       if np.allclose(poses[i], poses[j]):
-        raise ValueError(f"conceal.extra_hidden: keys {j} and {i} are the same pose ({keys[i][1]}); each hidden "
+        raise ValueError(f"mark.extra_hidden: keys {j} and {i} are the same pose ({keys[i][1]}); each hidden "
                          "image needs its own key")
   return keys
 

@@ -84,24 +84,27 @@ def pixel_loss(rgb: jax.Array, view: View, settings: ConcealSettings) -> jax.Arr
 
 def view_terms(student, decoder_plus, decoder_minus, view: View, settings: ConcealSettings,
                options: RenderOptions) -> Terms:
-  """The terms of one view: the student rendered through view.model, its pixel loss; its render read
-  through view.image at the decoder size, decoded by `decoder_plus` against I (lambda+ L_d^+, eq. 5) and,
-  as a constant, by `decoder_minus` against itself (L_d^-, eq. 4), beside the teacher render."""
+  """The terms of one view: the student rendered through view.model and its pixel loss; the render read by F
+  at the decoder size (through view.image), once: against I where the view carries L_d^+ (lambda+ L_d^+,
+  eq. 5, through the render, F as `decoder_plus`), else against itself as a constant (its L_d^- share, eq. 4,
+  F as `decoder_minus`); and the teacher render against itself (its L_d^- share). A view carries L_d^+ or
+  holds F to the identity on its own render, never both (views.step_views)."""
   s = settings
   out = render(augment.perturb_gaussians(student, view.model, s.augmentation), view.camera, options)
   seen = decoder_view(augment.distort(out.rgb, view.image, s.augmentation), s)
-  plus = view.plus_weight * losses.hidden_image_loss(decoded(decoder_plus, seen, s), view.hidden)
-  identity = jnp.stack([jax.lax.stop_gradient(seen), view.teacher_small])
-  each = jax.vmap(lambda x: losses.decoder_identity_loss(decoded(decoder_minus, x, s), x))(identity)
-  minus = view.own_minus_weight * each[0] + view.teacher_minus_weight * each[1]
-  return Terms(student=pixel_loss(out.rgb, view, s), plus=plus, minus=minus,
+  reads_hidden = view.plus_weight > 0
+  own_decoder = jax.tree.map(lambda p, m: jnp.where(reads_hidden, p, m), decoder_plus, decoder_minus)
+  constant = jax.lax.stop_gradient(seen)
+  own = l1_of_decoded(own_decoder, jnp.where(reads_hidden, seen, constant),
+                      jnp.where(reads_hidden, view.hidden, constant), s)
+  teacher = l1_of_decoded(decoder_minus, view.teacher_small, view.teacher_small, s)
+  return Terms(student=pixel_loss(out.rgb, view, s), plus=view.plus_weight * own,
+               minus=view.own_minus_weight * own + view.teacher_minus_weight * teacher,
                psnr=metrics.psnr(jnp.clip(out.rgb, 0.0, 1.0), view.target), num_pairs=out.num_pairs,
                overflowed=out.overflowed)
 
 
-def total_loss(student, decoder_plus, decoder_minus, views: View, settings: ConcealSettings,
-               options: RenderOptions) -> tuple[jax.Array, Terms]:
-  """L summed over stacked views [B] (vmapped), and their terms [B]."""
-  terms = jax.vmap(view_terms, in_axes=(None, None, None, 0, None, None))(student, decoder_plus, decoder_minus,
-                                                                         views, settings, options)
-  return jnp.sum(terms.student + terms.plus + terms.minus), terms
+def l1_of_decoded(decoder, image: jax.Array, target: jax.Array, settings: ConcealSettings) -> jax.Array:
+  """|F(image) - target| for one image [S, S, 3]: L_d^+ (eq. 5, losses.hidden_image_loss) with target I, L_d^-
+  (eq. 4, losses.decoder_identity_loss) with target the image itself; the two are the same mean absolute error."""
+  return losses.hidden_image_loss(decoded(decoder, image, settings), target)

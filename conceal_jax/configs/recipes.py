@@ -4,7 +4,7 @@ recommended recipe, built from the named parts below. configs/conceal.py applies
   python -m conceal_jax.main --config=conceal_jax/configs/conceal.py:recommended --workdir=W \\
       --config.data.path=SCENE --config.mark.teacher=TEACHER.ply
 
-The figures behind each choice are in experiments/results/REPRODUCTION.md (rows named after the recipes).
+The figures behind each choice: experiments/results/REPRODUCTION.md (a row per recipe) and conceal_options.md.
 """
 
 RECIPES = ("paper", "released", "recommended")
