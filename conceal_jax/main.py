@@ -8,6 +8,7 @@ step spreads its views.
 """
 from __future__ import annotations
 
+import logging
 import os
 import sys
 
@@ -55,6 +56,8 @@ def main(argv):
   if len(argv) > 1:
     raise app.UsageError(f"unexpected arguments: {argv[1:]}")
   parallel.host_devices_flag(FLAGS.host_devices or min(2, os.cpu_count() or 1))
+  # JAX logs each accelerator platform it looks for and does not find ("Unable to initialize backend 'tpu'")
+  logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)
   try:
     run(FLAGS.config, FLAGS.workdir)
   except (ValueError, OSError) as error:  # bad input: one clear line, no traceback
