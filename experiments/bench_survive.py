@@ -273,8 +273,11 @@ def table(rows: list[dict]) -> str:
            "transforms (rotate, translate, scale), as the scene comes back for the others. Unaligned: the "
            "transforms revealed at the key as saved; aligned: the round trips re-aligned first; moved: the round "
            "trip of the student moved by a random similarity (scale 1/10-10) first, re-aligned. Registration: its "
-           "rotation error (degrees) and residual (owner radii). decided: SSIM at or above the calibrated "
-           "threshold (robust/ownership.py).", "",
+           "rotation error against the applied rotation (degrees) and residual (owner radii), for the round trips "
+           "that of the moved variant. decided: SSIM at or above the threshold chosen from the calibration file "
+           "(robust/ownership.py; make bench-robust's, measured on other runs' decoders). Fine-tuning: the run's "
+           "own training recipe continued on its training views; finetune_densify densifies from that recipe's "
+           "densify.start, so its shorter rows equal finetune's.", "",
            "| scene | recipe | attack | level | render PSNR | hidden PSNR | hidden SSIM | decided | unaligned SSIM "
            "| aligned SSIM | moved SSIM | registration |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|"]
