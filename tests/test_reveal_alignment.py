@@ -111,3 +111,12 @@ def test_verify_decides_after_re_alignment(marked, tmp_path):
     assert result["owned"] is owned and ("alignment" in result) is owned
     saved = json.loads((tmp_path / f"verify_{owned}" / ownership.VERIFY_FILE).read_text())
     assert saved["owned"] is owned
+
+
+def test_an_unrelated_scene_is_reported_as_a_doubtful_alignment(marked, tmp_path, caplog):
+  folder, _ = marked
+  ply.save_ply(tmp_path / "other.ply", jax.tree.map(np.asarray, blobs(seed=5)))
+  with caplog.at_level("WARNING"):
+    result = reveal.reveal(config_for(folder, tmp_path / "other.ply", str(folder / "owner.ply")), str(tmp_path / "o"))
+  assert result["alignment"]["matched_fraction"] < reveal.MIN_MATCHED_FRACTION
+  assert "doubtful" in caplog.text

@@ -16,6 +16,7 @@ import dataclasses
 import functools
 import os
 
+from absl import logging
 import flax.serialization
 import jax
 import jax.numpy as jnp
@@ -31,6 +32,9 @@ from conceal_jax.splat.gaussians import Gaussians
 from conceal_jax.splat.render import RenderOptions, render
 
 REVEAL_FILE = "reveal.json"
+# Below this fraction of the suspect's Gaussians matched to the owner's copy after registration, the reveal logs
+# that the transform found is doubtful (another scene, or one changed beyond re-alignment).
+MIN_MATCHED_FRACTION = 0.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -177,6 +181,10 @@ def reveal_with_alignment(r: ml_collections.ConfigDict) -> tuple[np.ndarray, dic
   if r.get("owner", ""):
     camera, options, registration = aligned_key(ply.load_ply(r.owner), suspect, camera, options)
     alignment = dict(owner=r.owner, **registration_report(registration))
+    if registration.matched_fraction < MIN_MATCHED_FRACTION:
+      logging.warning("re-alignment of %s onto %s matched only %.0f%% of its Gaussians (residual %.2g radii): the "
+                      "transform found is doubtful", r.ply, r.owner, 100 * registration.matched_fraction,
+                      registration.residual)
   revealed = np.asarray(reveal_image(suspect, camera, options, decoder, int(info.get("decoder_width", 0)),
                                      int(info["hidden_size"]), Reading.from_key(info)))
   return revealed, alignment
