@@ -16,7 +16,8 @@ is skipped with a note. Attacks (`level` in brackets):
 - sog, spz, compressed_ply (the format), decimate (fraction kept), sh_bands (bands kept): round trips through
   @playcanvas/splat-transform (robust.converter; skipped without `make node_modules`), revealed as they come back
   (hidden_*) and after re-alignment (`aligned`); `moved`: the same round trip of the student moved by a random
-  similarity first (any rotation, translation up to 10 radii, scale in [1/10, 10]), revealed after re-alignment;
+  similarity first (any rotation, translation up to 10 radii, scale in [1/10, 10]), revealed after re-alignment
+  (floater filtering, `-F`, is not among them: splat-transform 3.7.0 runs its voxelisation only on a GPU device);
 - finetune, finetune_densify (steps): 3D-GS training continued from the student on the training views with the
   run's own training recipe, without and with densification (snapshots of one run per schedule);
 - extraction (views; `steps` in the row), with --extraction only: renders of the student at its training
