@@ -9,6 +9,10 @@ from conceal_jax.core import parallel
 # Before JAX starts: two host devices, as `python -m conceal_jax.main` gives a 2-core machine, so that the tests
 # also run the concealment step with its views split over devices (never set by importing the library).
 parallel.host_devices_flag(2)
+# The tests' programs are small and compiled once each: compiling them without LLVM's optimisation passes takes
+# a fraction of the time and changes no result beyond the tests' tolerances.
+if "--xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
+  os.environ["XLA_FLAGS"] += " --xla_backend_optimization_level=0"
 
 import jax  # noqa: E402
 import pytest  # noqa: E402

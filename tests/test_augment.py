@@ -123,6 +123,7 @@ def test_perturb_gaussians_at_level_zero_is_the_identity_with_finite_gradients()
     np.testing.assert_array_equal(np.asarray(getattr(grads, name)), 1.0)
 
 
+@pytest.mark.slow
 def test_conceal_trains_through_distortions_in_one_trace(tiny, tmp_path):  # noqa: F811
   maxima = dict(blur_max=1.0, noise_max=0.02, dropout_max=0.2, param_noise_max=0.02, brightness_max=0.1,
                 contrast_max=0.2, identity_distorted=True)
@@ -130,6 +131,9 @@ def test_conceal_trains_through_distortions_in_one_trace(tiny, tmp_path):  # noq
   config = tiny_config(tiny, iterations=4, identity_on_student=True, **attacks)
   result = conceal_train.train_and_evaluate(config, str(tmp_path))
   assert result["traces"] == dict(conceal_step=1) and np.isfinite(result["metrics"]["hidden"]["psnr"])
+
+
+def test_bad_distortion_maxima_are_named(tiny, tmp_path):  # noqa: F811
   for key, bad in (("blur_max", -1.0), ("dropout_max", 1.0), ("param_noise_max", -0.1), ("brightness_max", -0.1),
                    ("contrast_max", 1.0), ("noise_max", float("nan"))):
     with pytest.raises(ValueError, match=f"conceal.attacks.{key}"):

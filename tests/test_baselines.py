@@ -218,10 +218,11 @@ def test_lsb_job_trains_on_containers_scores_and_resumes(lsb_run):
   assert metrics["hidden"]["psnr"] < check["psnr"] - 10
 
 
-def test_bench_rows_feed_the_reproduction(lsb_run, deepstega_run, tiny, tmp_path, capsys):
+def test_bench_rows_feed_the_reproduction(lsb_run, deepstega_run, tiny, tmp_path, capsys, monkeypatch):
   """bench-baselines reads finished runs into baseline_bench.json (keeping another method's rows), and
-  make reproduce puts them beside the paper's numbers; a row without a run or a scene without a teacher is
-  skipped, and a row's config is the one the job validates."""
+  make reproduce puts them beside the paper's numbers (the tiny runs' length standing for the recipes'); a row
+  without a run or a scene without a teacher is skipped, and a row's config is the one the job validates."""
+  monkeypatch.setattr(reproduce, "RECIPE_STEPS", 6)
   workdir, _, _ = lsb_run
   bench, out = tmp_path / "bench", tmp_path / "results"
   shutil.copytree(workdir, bench / "lego" / "baseline_lsb4")
@@ -253,10 +254,10 @@ def test_bench_rows_feed_the_reproduction(lsb_run, deepstega_run, tiny, tmp_path
   table1 = table1[table1.index("Table 1"):table1.index("Table 2")]
   h = metrics["hidden"]
   assert "| LSB | 33.05 / 0.9704 / 0.0253 | 6.13 / 0.1218 | " in table1
-  assert f"{h['psnr']:.2f} / {h['ssim']:.4f} | {row['protocol']} |" in table1
+  assert f"{h['psnr']:.2f} / {h['ssim']:.4f} | {row['protocol']}, 1 seed (0) |" in table1
   assert f"| DeepStega | 33.06 / 0.9702 / 0.0253 | 11.13 / 0.2265 | " in table1 and reproduce.NOT_RUN not in \
       table1[table1.index("| DeepStega"):table1.index("| StegaNeRF")]
-  assert "| StegaNeRF | 30.33" in table1 and "| theirs |" in table1
+  assert "| StegaNeRF | 30.33" in table1 and "| theirs, 1 seed (0) |" in table1
   assert "| StegaNeRF | steganerf_check_view | 2 | 6 |" in reproduce.report(out, bench)  # beside ConcealGS's runs
 
   assert bench_baselines.run("lego", ["lsb1"], 0, 0, tmp_path / "empty", out, reuse=False) == []

@@ -21,6 +21,7 @@ def run(tiny, tmp_path_factory):  # noqa: F811
   return workdir
 
 
+@pytest.mark.slow  # the module's `run` fixture conceals and attacks for minutes
 def test_bench_run_scores_every_attack_and_pose(run):
   result = bench_robust.bench_run(run, test_views=1)
   assert result["test_views"] == 1 and np.isfinite(result["hidden_ssim"])
@@ -30,12 +31,14 @@ def test_bench_run_scores_every_attack_and_pose(run):
   assert {r["kind"] for r in result["pose"]} == {"translation", "rotation"}
 
 
+@pytest.mark.slow  # the module's `run` fixture conceals and attacks for minutes
 def test_finetune_rows_score_each_snapshot(run, tiny):  # noqa: F811
   rows = bench_robust.finetune_rows(run, [10, 20], densify=False, test_views=1)
   assert [r["steps"] for r in rows] == [10, 20] and all(not r["densify"] for r in rows)
   assert all(np.isfinite(r["hidden_ssim"]) and np.isfinite(r["render_psnr"]) for r in rows)
 
 
+@pytest.mark.slow  # the module's `run` fixture conceals and attacks for minutes
 def test_calibration_counts_clean_models_at_the_key_and_orbit_poses(run, tiny):  # noqa: F811
   result = bench_robust.bench_run(run, test_views=1)
   teacher = tiny[1]
@@ -50,6 +53,7 @@ def test_calibration_counts_clean_models_at_the_key_and_orbit_poses(run, tiny): 
   assert 0.0 <= more["false_positive_rate"] <= 1.0
 
 
+@pytest.mark.slow  # the module's `run` fixture conceals and attacks for minutes
 def test_runs_of_one_mark_are_not_each_others_clean_trials(run, tmp_path):
   """A second run that hid the same image in the same teacher (here a copy of the run) adds no cross-run
   clean trials: its student carries I."""

@@ -296,12 +296,13 @@ def test_two_hidden_images_each_at_its_own_key(tiny, tmp_path):
     main_lib.run(reveal_config, str(tmp_path / "reveal"))
 
 
-@pytest.mark.parametrize("overrides", [dict(use_decoder=False), dict(consistency=False, guidance=False),
-                                       dict(variant="released", granularity="tensor", key_kind="orbit"),
-                                       dict(identity_on_student=True, identity_on_teacher_check=True, decoy_views=3,
-                                            decoy_fraction=0.5),
-                                       dict(decoder_input_norm="center", decoder_clip_input=True,
-                                            decoder_lr_final_ratio=0.3, decoder_update_clip=1.0)])
+@pytest.mark.parametrize("overrides", [
+    dict(use_decoder=False), pytest.param(dict(consistency=False, guidance=False), marks=pytest.mark.slow),
+    dict(variant="released", granularity="tensor", key_kind="orbit"),
+    pytest.param(dict(identity_on_student=True, identity_on_teacher_check=True, decoy_views=3, decoy_fraction=0.5),
+                 marks=pytest.mark.slow),
+    pytest.param(dict(decoder_input_norm="center", decoder_clip_input=True, decoder_lr_final_ratio=0.3,
+                      decoder_update_clip=1.0), marks=pytest.mark.slow)])
 def test_ablations_and_variants_run(tiny, tmp_path, overrides):
   result = conceal_train.train_and_evaluate(tiny_config(tiny, iterations=3, **overrides), str(tmp_path))
   assert np.isfinite(result["metrics"]["hidden"]["psnr"])

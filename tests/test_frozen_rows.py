@@ -103,3 +103,27 @@ def test_recipes_are_the_rows_they_are_measured_by():
     # the bench's paths are absolute and it scores every test view
     config.mark.teacher, config.data.path, config.eval.max_views = str(TEACHER), expected.data.path, 0
     assert workdir.differing_keys(expected.to_dict(), config.to_dict()) == []
+
+
+def test_the_generic_conceal_config_takes_a_scene_and_a_teacher(tmp_path):
+  """configs/conceal.py:<recipe> conceals with that recipe once data.path and mark.teacher are given; without them,
+  or with an unknown recipe, one clear error."""
+  from conceal_jax import main as main_lib
+  from conceal_jax.conceal import settings as conceal_settings
+  conceal = importlib.import_module("conceal_jax.configs.conceal")
+  lego_conceal = importlib.import_module("conceal_jax.configs.lego_conceal")
+  teacher = tmp_path / "teacher.ply"
+  teacher.write_bytes(b"ply")  # validation checks that the file exists; the job reads it
+  for recipe in ("recommended", "paper", "released"):
+    config = conceal.get_config(recipe)
+    assert config.mode == "conceal" and config.data.path == ""
+    with pytest.raises(ValueError, match="mark.teacher"):
+      main_lib.MODES["conceal"][0](config)
+    config.data.path, config.mark.teacher = "demo", str(teacher)
+    conceal_settings.validate(config)
+    # the same recipe as lego's, which records its curves besides
+    expected = lego_conceal.get_config(recipe).conceal.to_dict()
+    assert workdir.differing_keys(expected, config.conceal.to_dict()) == ["eval_every", "eval_views"]
+  assert conceal.get_config().conceal.to_dict() == conceal.get_config("recommended").conceal.to_dict()
+  with pytest.raises(ValueError, match="unknown concealment recipe 'best'"):
+    conceal.get_config("best")

@@ -37,6 +37,7 @@ def test_committed_notebook_is_clean_and_parameterised():
   assert tagged == [0], "the first code cell, and only it, is the papermill parameters cell"
 
 
+@pytest.mark.slow
 def test_walkthrough_runs_tiny(tmp_path, monkeypatch):
   workdir = tmp_path / "work"
   monkeypatch.setenv("CONCEAL_NB_TINY", "1")

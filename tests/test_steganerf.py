@@ -208,7 +208,9 @@ def test_check_view_run_freezes_geometry_and_scores(check_view_run, tiny):
   assert saved["steganerf"]["settings"]["mask_at"] == "gradient" and saved["resumed_from"] == 0
 
 
-def test_bench_rows_of_both_protocols_feed_the_reproduction(all_views_runs, check_view_run, tiny, tmp_path):
+def test_bench_rows_of_both_protocols_feed_the_reproduction(all_views_runs, check_view_run, tiny, tmp_path,
+                                                            monkeypatch):
+  monkeypatch.setattr(reproduce, "RECIPE_STEPS", 6)  # the tiny runs' length stands for the recipes'
   bench, out = tmp_path / "bench", tmp_path / "results"
   shutil.copytree(all_views_runs[0], bench / "lego" / "baseline_steganerf_all_views")
   shutil.copytree(check_view_run[0], bench / "lego" / "baseline_steganerf_check_view")
@@ -237,7 +239,7 @@ def test_bench_rows_of_both_protocols_feed_the_reproduction(all_views_runs, chec
   table1 = reproduce.report(out, bench)
   table1 = table1[table1.index("Table 1"):table1.index("Table 2")]
   h = saved[1]["hidden"]
-  assert f"{h['psnr']:.2f} / {h['ssim']:.4f} | {saved[1]['protocol']} |" in table1
+  assert f"{h['psnr']:.2f} / {h['ssim']:.4f} | {saved[1]['protocol']}, 1 seed (0) |" in table1
   assert reproduce.NOT_RUN not in table1[table1.index("| StegaNeRF"):table1.index("| ConcealGS")]
 
 
