@@ -4,7 +4,7 @@ ConcealGS (Yang et al. 2025, arXiv:2501.03605, Sec. 2.2) trains a student scene 
 L = L_kd (eq. 3) + L_d^- (eq. 4) + L_d^+ (eq. 5). A step renders two views: a normal view P_m (L_kd, and
 L_d^- on the teacher's render of it) and the check view P_c (L_d^+). Both are a `View`: what differs
 between them is data (targets and per-term weights, zero where a term does not apply), so one function
-serves both and the views stack on a leading axis (vmapped, or split over devices by the step).
+serves both and the views stack on a leading axis (in turn, or split over devices by the step).
 
 `view_terms` returns the terms grouped by what they train: `student` (the render's pixel loss), `plus`
 (lambda+ L_d^+, which trains the student and the decoder) and `minus` (lambda- L_d^-, the decoder only).

@@ -2,7 +2,7 @@
 
 A step's gradient is a sum over views. `batch_mesh` makes a one-axis mesh of the devices that share a
 batch, and `map_reduce_over_batch` computes sum_b fn(shared, batch_b) with each device taking its slice of the
-batch (vmapped) and the partial sums added across devices; without a mesh it is a plain vmap and sum. The
+batch and the partial sums added across devices; without a mesh, the examples in turn and their sum. The
 values are the same either way, to float summation order.
 
 XLA's CPU backend runs one computation's loops on one thread, so a 2-core host is worth splitting into two
@@ -63,13 +63,17 @@ def _by_dtype(tree):
 
 def map_reduce_over_batch(fn: Callable, shared, batch, mesh: Mesh | None):
   """(sum_b s_b, stacked e_b) where fn(shared, batch[b]) = (s_b, e_b), over the leading axis of every leaf of
-  `batch`: s_b are what adds up over the batch (losses, gradients), e_b what is kept per example (a few
-  scalars). On a mesh each device maps its slice; the sums meet in one psum and the kept values in one
-  all-gather per dtype (the leaves raveled into one vector each), and both come back replicated."""
+  `batch` (static and small: the examples are unrolled): s_b are what adds up over the batch (losses,
+  gradients), e_b what is kept per example (a few scalars). On a mesh each device maps its slice; the sums
+  meet in one psum and the kept values in one all-gather per dtype (the leaves raveled into one vector each),
+  and both come back replicated."""
 
   def local(shared, part):
-    sums, each = jax.vmap(fn, in_axes=(None, 0))(shared, part)
-    return jax.tree.map(lambda x: jnp.sum(x, axis=0), sums), each
+    # the examples of a slice in turn (unrolled), not vmapped: batching the renderer's loops and scatters
+    # costs a CPU more than running them one after the other
+    outs = [fn(shared, jax.tree.map(lambda x, i=i: x[i], part)) for i in range(jax.tree.leaves(part)[0].shape[0])]
+    sums = jax.tree.map(lambda *xs: sum(xs[1:], xs[0]), *[o[0] for o in outs])
+    return sums, jax.tree.map(lambda *xs: jnp.stack(xs), *[o[1] for o in outs])
 
   if mesh is None:
     return local(shared, batch)
