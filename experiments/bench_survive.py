@@ -185,25 +185,32 @@ def finetune_rows(scene: Scene, steps: list[int], densify: bool, test_views: int
   config = ml_collections.ConfigDict(scene.config.to_dict())
   config.mode = "train"
   config.init.kind, config.init.ply = "ply", str(scene.run / "student.ply")
-  config.train.iterations = max(steps)
-  config.train.snapshots = tuple(sorted(set(steps) - {max(steps)}))
-  config.train.log_every = math.gcd(int(config.train.log_every), *steps)  # snapshots fall on logged steps
   config.train.sh_degree_start = config.train.sh_degree  # the student is trained: every band from the start
-  config.train.eval_every = 0
-  config.eval.max_views = test_views
   if not densify:
     config.train.densify.until = 0  # no densification and no opacity reset
   workdir = scene.cache / f"finetune_{'densify' if densify else 'fixed'}_{max(steps)}"
+  attack = "finetune_densify" if densify else "finetune"
+  return [scene.row(attack, length, scores) for length, scores in snapshot_scores(scene, config, workdir, steps,
+                                                                                  test_views)]
+
+
+def snapshot_scores(scene: Scene, config, workdir: pathlib.Path, steps: list[int], test_views: int) -> list:
+  """(length, scores) at each of `steps` of one train run of `config` for max(steps) in `workdir` (resumable),
+  its snapshots saved at the others."""
+  config.train.iterations = max(steps)
+  config.train.snapshots = tuple(sorted(set(steps) - {max(steps)}))
+  config.train.log_every = math.gcd(int(config.train.log_every), *steps)  # snapshots fall on logged steps
+  config.train.eval_every = 0
+  config.eval.max_views = test_views
   workdir.mkdir(parents=True, exist_ok=True)
   fileio.write_json(workdir / "config.json", config.to_dict())
   train.train_and_evaluate(config, str(workdir))
-  rows = []
+  out = []
   for length in sorted(steps):
     name = "point_cloud.ply" if length == max(steps) else train.snapshot_name(length)
-    attacked = jax.tree.map(np.asarray, ply.load_ply(str(workdir / name)))
-    rows.append(scene.row("finetune_densify" if densify else "finetune", length, scores_of(scene, attacked)))
-    print(json.dumps(rows[-1]), flush=True)
-  return rows
+    out.append((length, scores_of(scene, jax.tree.map(np.asarray, ply.load_ply(str(workdir / name))))))
+    print(json.dumps(dict(step=length, hidden_ssim=out[-1][1].get("hidden_ssim"))), flush=True)
+  return out
 
 
 def extraction_cameras(scene: Scene, views: int, seed: int = 0) -> list:
@@ -243,22 +250,8 @@ def extraction_rows(scene: Scene, views: int, steps: list[int], test_views: int)
   config.data.path = str(folder / "views")
   config.data.downscale = 1
   config.init.kind = "random"
-  config.train.iterations = max(steps)
-  config.train.snapshots = tuple(sorted(set(steps) - {max(steps)}))
-  config.train.log_every = math.gcd(int(config.train.log_every), *steps)  # snapshots fall on logged steps
-  config.train.eval_every = 0
-  config.eval.max_views = test_views
-  workdir = folder / f"train_{max(steps)}"
-  workdir.mkdir(parents=True, exist_ok=True)
-  fileio.write_json(workdir / "config.json", config.to_dict())
-  train.train_and_evaluate(config, str(workdir))
-  rows = []
-  for length in sorted(steps):
-    name = "point_cloud.ply" if length == max(steps) else train.snapshot_name(length)
-    attacked = jax.tree.map(np.asarray, ply.load_ply(str(workdir / name)))
-    rows.append(scene.row("extraction", views, scores_of(scene, attacked), steps=length))
-    print(json.dumps(rows[-1]), flush=True)
-  return rows
+  return [scene.row("extraction", views, scores, steps=length)
+          for length, scores in snapshot_scores(scene, config, folder / f"train_{max(steps)}", steps, test_views)]
 
 
 def level_label(row: dict) -> str:
