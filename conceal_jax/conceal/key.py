@@ -34,10 +34,6 @@ class Key:
   check_image: jax.Array
   teacher_check: jax.Array
 
-  @property
-  def count(self) -> int:
-    return self.hidden.shape[0]
-
   def at(self, number) -> "Key":
     """Key `number` (0: the check view, k: the k-th extra; may be traced) without the leading axis."""
     return jax.tree.map(lambda x: x[number], self)

@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from conceal_jax.conceal import reveal
+from conceal_jax.conceal import key as key_lib, reveal
 from conceal_jax.conceal.key import Key
 from conceal_jax.conceal.objective import View
 from conceal_jax.conceal.settings import ConcealSettings
@@ -48,9 +48,8 @@ def build_data(train_images, teacher, options: RenderOptions, normal_cameras: li
   teacher_renders = evaluate.render_images(teacher, normal_cameras, options)
   key_stack = camera_lib.stack(list(key_cameras))
   teacher_keys = render_batch(teacher, key_stack, options).rgb
-  check_images = teacher_keys if key_images is None else jnp.stack([jnp.asarray(i) for i in key_images])
-  keys = Key(camera=key_stack, hidden=jnp.stack([jnp.asarray(h) for h in hiddens]), check_image=check_images,
-             teacher_check=reveal.resize_for_decoder(teacher_keys, size, clip))
+  keys = key_lib.stack_keys(key_cameras, hiddens, teacher_keys if key_images is None else key_images,
+                            reveal.resize_for_decoder(teacher_keys, size, clip))
   return ConcealData(images=jnp.asarray(np.stack(train_images)), teacher=teacher_renders,
                      teacher_small=reveal.resize_for_decoder(teacher_renders, size, clip),
                      cameras=camera_lib.stack(list(normal_cameras)), keys=keys)
