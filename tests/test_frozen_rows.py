@@ -19,6 +19,7 @@ from experiments import bench_baselines, bench_conceal
 
 FROZEN = json.loads((pathlib.Path(__file__).parent / "data" / "frozen_row_configs.json").read_text())
 TEACHER = pathlib.Path("TEACHER.ply")
+REPO = str(pathlib.Path(__file__).resolve().parents[1])  # the frozen rows' absolute data paths start with <repo>
 
 OLD_TO_NEW = {
     "conceal.teacher": "mark.teacher", "conceal.hidden": "mark.hidden", "conceal.hidden_size": "mark.hidden_size",
@@ -62,7 +63,10 @@ def resolved(config, frozen: dict) -> dict:
   """Today's config, flattened, restricted to the sections the frozen one holds."""
   sections = {key.split(".")[0] for key in workdir.flatten(frozen)} | ({"mark"} if "conceal" in frozen else set())
   plain = json.loads(json.dumps(config.to_dict()))
-  return {k: v for k, v in workdir.flatten(plain).items() if k.split(".")[0] in sections}
+  flat = {k: v for k, v in workdir.flatten(plain).items() if k.split(".")[0] in sections}
+  if flat.get("data.path", "").startswith(REPO + "/"):
+    flat["data.path"] = "<repo>" + flat["data.path"][len(REPO):]
+  return flat
 
 
 def conceal_row(name: str):
