@@ -7,7 +7,7 @@ WORKDIR ?= workdirs/demo
 JOBS ?= 2
 
 .PHONY: venv demo test test-slow bench-render bench-train profile-train bench-conceal profile-conceal bench-baselines \
-        bench-robust bench-survive reproduce clean
+        bench-robust bench-survive survive-runs reproduce clean
 
 venv: $(STAMP)
 
@@ -84,9 +84,25 @@ bench-robust: $(STAMP) | $(ROBUST_DEMO)/conceal/student.ply $(CLEAN_DEMO)
 
 # what a shared scene meets (issue 39): similarity transforms revealed after re-alignment, publishing round trips
 # (skipped without `make node_modules`), fine-tuning and, with BENCH_ARGS=--extraction, model extraction; of the demo
-# student (run `make demo` first) and of bench-conceal's lego run when present
+# student (run `make demo` first), the survival designs' runs of `make survive-runs` and bench-conceal's lego run when present
 bench-survive: $(STAMP)
 	$(PY) -m experiments.bench_survive --out=experiments/results --workdir=workdirs/survive $(BENCH_ARGS)
+
+# the survival designs' runs that bench-survive scores: demo.py's variants in the demo teacher of `make demo`
+# (trained first if missing), and lego_conceal.py:film in bench-train's lego teacher when present (LEGO_FILM_STEPS)
+SURVIVE_RUNS := workdirs/survive_runs
+LEGO_TEACHER := workdirs/bench/lego/teacher/point_cloud.ply
+LEGO_FILM_STEPS ?= 10000
+$(WORKDIR)/teacher/point_cloud.ply: | $(STAMP)
+	$(MAIN) --workdir=$(WORKDIR)/teacher
+survive-runs: $(STAMP) | $(WORKDIR)/teacher/point_cloud.ply
+	for variant in film drift orbit; do test -f $(SURVIVE_RUNS)/demo_$$variant/metrics.json || \
+	  $(PY) -m conceal_jax.main --config=conceal_jax/configs/demo.py:$$variant --workdir=$(SURVIVE_RUNS)/demo_$$variant \
+	  --config.mode=conceal --config.mark.teacher=$(WORKDIR)/teacher/point_cloud.ply || exit 1; done
+	test -f $(SURVIVE_RUNS)/lego_film/metrics.json || if [ -f $(LEGO_TEACHER) ]; then \
+	  $(PY) -m conceal_jax.main --config=conceal_jax/configs/lego_conceal.py:film --workdir=$(SURVIVE_RUNS)/lego_film \
+	  --config.mark.teacher=$(LEGO_TEACHER) --config.conceal.iterations=$(LEGO_FILM_STEPS); \
+	  else echo "no lego teacher ($(LEGO_TEACHER)): make bench-train"; fi
 
 # the paper's tables beside ours (experiments/results/REPRODUCTION.md); REUSE=1 only reads the benchmarks' JSON
 REUSE ?= 0

@@ -50,10 +50,15 @@ from conceal_jax.splat.camera import opengl_camera_to_world
 from experiments import bench_robust, results_io
 
 NAME = "survive_bench"
-# scene name -> (conceal workdir, recipe label): the demo run is configs/demo.py's short recommended recipe, lego's
-# bench-conceal's recommended row
-SCENES = {"demo": ("workdirs/demo/conceal", "recommended"),
-          "lego": ("workdirs/bench/lego/conceal_ours_robust_clip_dec03_clip_w16", "recommended")}
+# label -> (scene, conceal workdir, recipe): the demo's recommended run is configs/demo.py's short recommended recipe
+# (make demo), lego's bench-conceal's recommended row; the survival designs' runs are `make survive-runs`'
+# (configs/demo.py's variants, lego_conceal.py:film)
+SCENES = {"demo": ("demo", "workdirs/demo/conceal", "recommended"),
+          "demo_film": ("demo", "workdirs/survive_runs/demo_film", "film"),
+          "demo_drift": ("demo", "workdirs/survive_runs/demo_drift", "drift"),
+          "demo_orbit": ("demo", "workdirs/survive_runs/demo_orbit", "orbit"),
+          "lego": ("lego", "workdirs/bench/lego/conceal_ours_robust_clip_dec03_clip_w16", "recommended"),
+          "lego_film": ("lego", "workdirs/survive_runs/lego_film", "film")}
 TRANSFORMS = ([("rotate", d) for d in (1.0, 5.0, 45.0, 180.0)] + [("translate", f) for f in (0.026, 1.0)]
               + [("scale", f) for f in (0.5, 1.1, 2.0)])
 # attack, level -> converter.round_trip's arguments
@@ -92,11 +97,11 @@ class Scene:
 
 
 def load_scene(name: str, run: pathlib.Path, recipe: str, test_views: int, calibration: dict,
-               workdir: pathlib.Path) -> Scene:
+               cache: pathlib.Path) -> Scene:
   config, student, owner = bench_robust.load_run(run)
   cameras, targets, _ = evaluate.held_out_views(evaluate.load_scene_data(config), test_views)
   return Scene(name, recipe, run, config, jax.tree.map(np.asarray, student), owner, cameras, targets, calibration,
-               workdir / name)
+               cache)
 
 
 def scores_of(scene: Scene, gaussians, similarity: sim.Similarity | None = None) -> dict:
@@ -322,8 +327,8 @@ def main(argv=None):
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--out", default="experiments/results")
   parser.add_argument("--workdir", default="workdirs/survive", help="each attack's files, per scene")
-  parser.add_argument("--scenes", default="demo,lego", help=f"comma-separated names of {sorted(SCENES)}, or "
-                      "name=conceal_workdir")
+  parser.add_argument("--scenes", default=",".join(SCENES), help=f"comma-separated labels of {sorted(SCENES)}, "
+                      "or scene=conceal_workdir[@recipe] (recipe: recommended unless given)")
   parser.add_argument("--attacks", default=",".join(CHEAP_ATTACKS),
                       help=f"comma-separated groups of {CHEAP_ATTACKS + ('extraction',)}")
   parser.add_argument("--finetune-steps", default="30,100,300,1000", help="fine-tuning lengths (3000, 10000 too)")
@@ -351,12 +356,16 @@ def main(argv=None):
       results_io.write_results(out, NAME, rows, row_key, table, plot, calibration=args.calibration)
 
   for spec in (s for s in args.scenes.split(",") if s):
-    name, _, path = spec.partition("=")
-    run, recipe = (pathlib.Path(path), "recommended") if path else (pathlib.Path(SCENES[name][0]), SCENES[name][1])
+    label, _, path = spec.partition("=")
+    if path:
+      path, _, recipe = path.partition("@")
+      name, run, recipe = label, pathlib.Path(path), recipe or "recommended"
+    else:
+      name, run, recipe = SCENES[label][0], pathlib.Path(SCENES[label][1]), SCENES[label][2]
     if not all((run / f).is_file() for f in ("student.ply", "decoder.msgpack", "key.json", "config.json")):
-      print(f"skipping {name}: no finished conceal run in {run}")
+      print(f"skipping {label}: no finished conceal run in {run}")
       continue
-    scene = load_scene(name, run, recipe, args.test_views, calibration, workdir)
+    scene = load_scene(name, run, recipe, args.test_views, calibration, workdir / label)
     missing = lambda attack, level, steps=None: (name, recipe, attack, json.dumps(level), steps) not in done
     if "none" in groups and missing("none", None):
       save([scene.row("none", None, scores_of(scene, scene.student))])

@@ -276,6 +276,34 @@ def ownership_table(calibration: dict) -> list[str]:
   return lines + [""]
 
 
+SURVIVAL_STEPS = (30, 100, 300, 1000, 3000, 10000)
+
+
+def survival_table(survive_bench: dict) -> list[str]:
+  """The paper's research question 3 (is the mark retained after re-training?), which it leaves open: hidden SSIM
+  at the key after 3D-GS fine-tuning on the training views for each number of steps (bench-survive), per scene and
+  recipe, with the decision (*: decided owned) and the untouched scene's SSIM."""
+  rows = survive_bench.get("rows", [])
+  lines = ["### Research question 3: is the mark retained after re-training? (hidden SSIM at the key after "
+           "fine-tuning on the training views; * decided owned; the paper asks and reports none)", "",
+           "| scene | recipe | attack | untouched | " + " | ".join(f"{n} steps" for n in SURVIVAL_STEPS) + " |",
+           "|---|---|---|---|" + "---|" * len(SURVIVAL_STEPS)]
+  cell = lambda r: f"{r['hidden_ssim']:.3f}{'*' if r['decided'] else ''}" if r else "-"
+  groups = sorted({(r["scene"], r["recipe"]) for r in rows})
+  for scene, recipe in groups:
+    mine = [r for r in rows if (r["scene"], r["recipe"]) == (scene, recipe)]
+    untouched = next((r for r in mine if r["attack"] == "none"), None)
+    for attack in ("finetune", "finetune_densify"):
+      by_steps = {r["level"]: r for r in mine if r["attack"] == attack}
+      if by_steps:
+        lines.append(f"| {scene} | {recipe} | {attack} | {cell(untouched)} | "
+                     + " | ".join(cell(by_steps.get(n)) for n in SURVIVAL_STEPS) + " |")
+  if not groups:
+    lines.append(f"| {NOT_RUN} | | | |" + " |" * len(SURVIVAL_STEPS))
+  return lines + ["", "Every attack of a shared scene (transforms, publishing round trips) is in "
+                  "[survive_bench.md](survive_bench.md).", ""]
+
+
 def appendix_conceal_table(conceal_bench: dict) -> list[str]:
   """Every bench-conceal run, recipes and retired rows included, with what the row is."""
   lines = [f"### {APPENDIX} A: every bench-conceal run", "",
@@ -388,6 +416,7 @@ def report(results: pathlib.Path, workdir: pathlib.Path) -> str:
   lines += [f"![The recipes beside StegaNeRF, lego]({plot})", ""] if plot else []
   lines += robustness_table(robust_bench)
   lines += ownership_table(load(results, "ownership_calibration.json"))
+  lines += survival_table(load(results, "survive_bench.json"))
   lines += ["### Figures", ""]
   for scene in ("lego", "beer"):
     name = figure_grid(scene, conceal_bench, baseline_bench, results, workdir)

@@ -3,7 +3,8 @@
 tests/data/frozen_row_configs.json holds each row's resolved config from before the presets redesign (the
 config sections that shape a run). Under today's layout a row must resolve to the same values, its keys
 renamed by OLD_TO_NEW; options removed since may appear in a frozen row only at the value the method now
-always has (REMOVED); rows that used a removed option are retired (RETIRED_ROWS): their stored numbers stay
+always has (REMOVED), options added since only at the value that leaves a run as it was (ADDED); rows that
+used a removed option are retired (RETIRED_ROWS): their stored numbers stay
 in the results files.
 """
 from __future__ import annotations
@@ -42,6 +43,8 @@ OLD_TO_NEW = {
 # Options removed by the redesign, at the one value every kept row ran with.
 REMOVED = {"conceal.key_at_decoder_size": False, "conceal.decoder_amsgrad": False, "conceal.decoder_average": 0.0,
            "conceal.identity_perturbed": False, "conceal.trained_fields": "all", "conceal.lanes": 0}
+# Options added since, at the value that leaves a run as it was (the carrier film off).
+ADDED = {"conceal.carrier.film": False, "conceal.carrier.spacing": 2.0, "conceal.carrier.opacity": 0.5}
 # Rows that used a removed option (their results stay in conceal_bench.json and REPRODUCTION's appendix).
 RETIRED_ROWS = {"ours_robust_clip_dec03_amsgrad", "ours_robust_clip_dec03_clip_polish_avg",
                 "ours_robust_clip_dec03_clip_sh", "ours_robust_clip_dec03_clip_sh_polish"}
@@ -60,10 +63,14 @@ def renamed(frozen: dict) -> dict:
 
 
 def resolved(config, frozen: dict) -> dict:
-  """Today's config, flattened, restricted to the sections the frozen one holds."""
+  """Today's config, flattened, restricted to the sections the frozen one holds, without the options added since
+  (checked at the value that leaves a run as it was)."""
   sections = {key.split(".")[0] for key in workdir.flatten(frozen)} | ({"mark"} if "conceal" in frozen else set())
   plain = json.loads(json.dumps(config.to_dict()))
   flat = {k: v for k, v in workdir.flatten(plain).items() if k.split(".")[0] in sections}
+  for key, value in ADDED.items():
+    if key in flat:
+      assert flat.pop(key) == value, f"{key}: a frozen row must resolve to {value!r}"
   if flat.get("data.path", "").startswith(REPO + "/"):
     flat["data.path"] = "<repo>" + flat["data.path"][len(REPO):]
   return flat

@@ -1,7 +1,8 @@
 """The secret check view P_c: the key that, with the decoder, reveals the hidden image.
 
-Either a training camera by index (the released ConcealGS code uses the second to last) or a secret
-pose sampled from a seed on the orbit of the training cameras (a view nobody trains or tests on).
+A training camera by index (the released ConcealGS code uses the second to last), a secret pose sampled
+from a seed on the orbit of the training cameras (a view nobody trains or tests on), or (beyond the paper) a
+pose looking where no camera of the scene looks, into the space carrier.py's film fills.
 Saved as key.json: the camera and what the reveal needs to know (hidden size, decoder width); a run with
 further hidden images (mark.extra_hidden) adds their keys, of the same kind, as `extra_keys`.
 """
@@ -16,10 +17,14 @@ import numpy as np
 from flax import struct
 
 from conceal_jax.core import fileio
+from conceal_jax.gs import similarity
 from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat.camera import Camera, camera_centers, look_at, orbit_eye
 
-KEY_KINDS = ("train_index", "orbit")
+KEY_KINDS = ("train_index", "orbit", "unseen")
+# An unseen key stands this fraction of the median camera distance beyond the orbit target (the conceal job puts
+# its carrier film as far again beyond it).
+UNSEEN_OFFSET = 0.5
 
 
 @struct.dataclass
@@ -70,6 +75,32 @@ def orbit_camera(cameras: Sequence[Camera], seed: int) -> Camera:
   c = cameras[0]
   return Camera.from_intrinsics(look_at(eye, target, up), float(c.fx), float(c.fy), float(c.cx), float(c.cy),
                                 c.width, c.height)
+
+
+def unseen_direction(cameras: Sequence[Camera], samples: int = 4096) -> np.ndarray:
+  """[3] the unit direction farthest in angle from every camera's viewing direction (of `samples` spread evenly)."""
+  forward = np.stack([np.asarray(c.world_to_camera, np.float64)[2, :3] for c in cameras])
+  candidates = similarity.fibonacci_sphere(samples)
+  return candidates[np.argmin(np.max(candidates @ forward.T, axis=1))]
+
+
+def unseen_distance(cameras: Sequence[Camera]) -> float:
+  """How far an unseen key stands beyond the orbit target: UNSEEN_OFFSET median camera distances from it."""
+  return UNSEEN_OFFSET * float(np.median(np.linalg.norm(camera_centers(cameras) - orbit_target(cameras), axis=1)))
+
+
+def unseen_camera(cameras: Sequence[Camera], seed: int) -> Camera:
+  """A secret camera looking where none of `cameras` looks: unseen_distance from the orbit target along
+  unseen_direction, looking further along it, turned about its axis by an angle drawn from `seed`;
+  intrinsics of cameras[0]. What it sees beyond the scene is what carrier.py's film fills."""
+  target = orbit_target(cameras)
+  direction = unseen_direction(cameras)
+  eye = target + unseen_distance(cameras) * direction
+  helper = np.eye(3)[int(np.argmin(np.abs(direction)))]
+  up = rotation_about(direction, np.random.default_rng(seed).uniform(0, 2 * math.pi)) @ np.cross(direction, helper)
+  c = cameras[0]
+  return Camera.from_intrinsics(look_at(eye, eye + direction, up), float(c.fx), float(c.fy), float(c.cx),
+                                float(c.cy), c.width, c.height)
 
 
 def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -133,6 +164,8 @@ def check_camera(cameras: Sequence[Camera], kind: str, index: int, seed: int) ->
     return cameras[index], dict(kind=kind, index=index % len(cameras))
   if kind == "orbit":
     return orbit_camera(cameras, seed), dict(kind=kind, seed=seed)
+  if kind == "unseen":
+    return unseen_camera(cameras, seed), dict(kind=kind, seed=seed)
   raise ValueError(f"mark.key_kind must be one of {KEY_KINDS}, got {kind!r}")
 
 

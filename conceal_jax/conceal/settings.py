@@ -105,8 +105,8 @@ class ConcealSettings:
 class RunPlan:
   """What a concealment job reads from its config, checked: the step's settings, the loop (the joint
   iterations then conceal.decoder_opt.polish_steps decoder-only steps), the sources of the hidden images
-  (mark.hidden then mark.extra_hidden), the key's kind and the decoys' (count, translation and rotation
-  ranges)."""
+  (mark.hidden then mark.extra_hidden), the key's kind, the decoys' (count, translation and rotation
+  ranges) and the carrier film's (None: the student is the teacher's Gaussians)."""
   settings: ConcealSettings
   loop: loop.LoopSettings
   iterations: int
@@ -118,6 +118,27 @@ class RunPlan:
   decoy_views: int
   decoy_translation: tuple[float, float]
   decoy_rotation_deg: tuple[float, float]
+  film: Film | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Film:
+  """conceal.carrier with film on: the carrier film's grid spacing (pixels of the key's image) and opacity."""
+  spacing: float
+  opacity: float
+
+
+def film_plan(config: ml_collections.ConfigDict) -> Film | None:
+  """conceal.carrier checked: None with film off; a film needs mark.key_kind 'unseen' (it fills what only such
+  a key sees)."""
+  c = config.conceal.carrier
+  if not c.film:
+    return None
+  if config.mark.key_kind != "unseen":
+    raise ValueError(f"conceal.carrier.film needs mark.key_kind='unseen', got {config.mark.key_kind!r}")
+  if not (c.spacing > 0 and 0 < c.opacity < 1):
+    raise ValueError(f"conceal.carrier.spacing must be positive and opacity in (0, 1), got {c.spacing}, {c.opacity}")
+  return Film(float(c.spacing), float(c.opacity))
 
 
 def step_settings(config: ml_collections.ConfigDict) -> ConcealSettings:
@@ -163,7 +184,7 @@ def plan(config: ml_collections.ConfigDict) -> RunPlan:
     raise ValueError("conceal.decoder_opt.polish_steps needs a decoder (conceal.use_decoder)")
   return RunPlan(settings, dataclasses.replace(joint, iterations=joint.iterations + polish), c.iterations, polish,
                  sources, m.key_kind, m.key_index, m.key_seed, lk.decoy_views, ranges["decoy_translation"],
-                 ranges["decoy_rotation_deg"])
+                 ranges["decoy_rotation_deg"], film_plan(config))
 
 
 def extra_hidden(extra, use_decoder: bool) -> tuple[str, ...]:

@@ -82,7 +82,10 @@ def make_step(settings: ConcealSettings, options: RenderOptions, student_tx, dec
     grads, terms = gradients(state.student, state.decoder, views, s, options, mesh, train_student)
     new = state.replace(step=state.step + 1)
     if train_student:
-      updates, student_opt = student_tx.update(grads["student"], state.student_opt, state.student)
+      student_grads = grads["student"]
+      if data.trainable is not None:  # what is not trained gets a zero gradient, so Adam leaves it exactly
+        student_grads = jax.tree.map(jnp.multiply, student_grads, data.trainable)
+      updates, student_opt = student_tx.update(student_grads, state.student_opt, state.student)
       new = new.replace(student=optax.apply_updates(state.student, updates), student_opt=student_opt)
     stats = dict(loss=jnp.sum(terms.student + terms.plus + terms.minus), normal=terms.student[0],
                  plus=terms.plus[1] / s.weight_plus, minus=jnp.sum(terms.minus), psnr=terms.psnr[0],

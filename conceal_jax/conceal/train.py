@@ -5,7 +5,8 @@ A student scene G_w, initialised from the teacher G_o (mark.teacher), and a U-Ne
 together so that F reveals the hidden image I from the student's render at the secret check view P_c, while
 F is the identity on normal views and the student's renders stay the teacher's. The objective is in
 objective.py, the step in step.py; the recipes a user chooses between are config files (configs/conceal.py).
-The number of Gaussians is fixed: the student is the teacher's set, refined.
+The number of Gaussians is fixed: the student is the teacher's set, refined, or (conceal.carrier) the teacher's
+set unchanged and a carrier film that only the key sees.
 """
 from __future__ import annotations
 
@@ -18,12 +19,13 @@ import ml_collections
 import numpy as np
 
 from conceal_jax.conceal import augment, hidden as hidden_lib, key as key_lib, reveal, scoring, settings as settings_lib
-from conceal_jax.conceal import unet, views as views_lib
+from conceal_jax.conceal import carrier, unet, views as views_lib
 from conceal_jax.conceal.step import create_state, make_step
 from conceal_jax.core import fileio, loop, parallel
 from conceal_jax.data import ply
 from conceal_jax.gs import capacity, evaluate, metrics
 from conceal_jax.splat import render as render_lib
+from conceal_jax.splat.gaussians import concatenate
 from conceal_jax.splat.render import render
 
 STUDENT_FILE = "student.ply"
@@ -34,10 +36,12 @@ SUMMARY_FILE = "conceal.json"
 
 @dataclasses.dataclass
 class Run:
-  """A concealment run's fixed inputs: the plan, teacher, scene, hidden images [K][S, S, 3], key cameras
-  [K] with their key.json descriptions, decoy cameras, render options and the step's device data."""
+  """A concealment run's fixed inputs: the plan, teacher, the student's start (the teacher, with the carrier
+  film after it when there is one), scene, hidden images [K][S, S, 3], key cameras [K] with their key.json
+  descriptions, decoy cameras, render options and the step's device data."""
   plan: settings_lib.RunPlan
   teacher: object
+  start: object
   scene: object
   hiddens: list
   keys: list
@@ -61,9 +65,15 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
   # the released variant's check-view L1 target: the training image at a training-camera key, else the
   # teacher's render (an orbit pose has no image)
   key_images = ([scene.train_images[info["index"]] for _, info in keys] if plan.key_kind == "train_index" else None)
+  start, trainable = teacher, None
+  if plan.film is not None:  # before the first key, unseen from every training and test view
+    film = carrier.unseen_film(teacher, keys[0][0], list(scene.train_cameras) + list(scene.test_cameras), options,
+                               key_lib.unseen_distance(scene.train_cameras), plan.film.spacing, plan.film.opacity)
+    start, trainable = concatenate([teacher, film]), carrier.trainable_fields(teacher.num, film)
   data = views_lib.build_data(scene.train_images, teacher, options, list(scene.train_cameras) + decoys,
-                              [camera for camera, _ in keys], hiddens, s.hidden_size, s.reading.clip, key_images)
-  return Run(plan, teacher, scene, hiddens, keys, decoys, options, data)
+                              [camera for camera, _ in keys], hiddens, s.hidden_size, s.reading.clip, key_images,
+                              trainable)
+  return Run(plan, teacher, start, scene, hiddens, keys, decoys, options, data)
 
 
 def initial_decoder(config: ml_collections.ConfigDict, settings: settings_lib.ConcealSettings):
@@ -121,11 +131,11 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   # GrowingSteps' key is the phase: the joint steps (True), then the decoder polish's
   steps = capacity.GrowingSteps(lambda joint, options: make_step(s, options, student_tx, decoder_tx, mesh, joint,
                                                                  traces), run.options)
-  steps.grow(render_lib.initial_capacity(run.teacher.num, run.options))
+  steps.grow(render_lib.initial_capacity(run.start.num, run.options))
   num_views, num_keys = len(run.scene.train_cameras), len(run.keys)
 
   def fresh(_meta=None):
-    student = jax.tree.map(lambda x: jnp.array(x, copy=True), run.teacher)  # the step donates its buffers
+    student = jax.tree.map(lambda x: jnp.array(x, copy=True), run.start)  # the step donates its buffers
     return create_state(student, initial_decoder(config, s), student_tx, decoder_tx)
 
   def step(state, iteration):
@@ -148,7 +158,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   state = parallel.on_one_device(result.state, mesh)
   save_outputs(run, workdir, state)
   summary = dict(iterations=plan.iterations, decoder_polish_steps=plan.polish_steps, resumed_from=result.start,
-                 settings=dataclasses.asdict(s), num_gaussians=int(run.teacher.num), num_keys=num_keys,
+                 settings=dataclasses.asdict(s), num_gaussians=int(run.start.num),
+                 num_carrier=int(run.start.num - run.teacher.num), num_keys=num_keys,
                  num_decoys=len(run.decoys), **result.timing(), traces=dict(traces.counts),
                  pair_capacity=steps.capacity, capacity_reruns=steps.reruns, capacity_shrinks=steps.shrinks,
                  history=result.history)

@@ -6,6 +6,8 @@ lays out the weights of each term (objective.View).
 """
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -31,19 +33,22 @@ NO_DISTORTION = dict(blur=np.float32(0.0), noise=np.float32(0.0), seed=np.uint32
 class ConcealData:
   """images [V, H, W, 3]: ground truth of the training views; teacher [V + D, H, W, 3] and teacher_small
   [V + D, S, S, 3]: the teacher's renders of the normal views (training views, then decoys) at the render's
-  and the decoder's size; cameras: Camera [V + D]; keys: Key [K]."""
+  and the decoder's size; cameras: Camera [V + D]; keys: Key [K]; trainable: None (the whole student trains)
+  or a 0/1 Gaussians [N] mask of what does (carrier.trainable_fields)."""
   images: jax.Array
   teacher: jax.Array
   teacher_small: jax.Array
   cameras: Camera
   keys: Key
+  trainable: Any = None
 
 
 def build_data(train_images, teacher, options: RenderOptions, normal_cameras: list[Camera], key_cameras, hiddens,
-               size: int, clip: bool = False, key_images=None) -> ConcealData:
+               size: int, clip: bool = False, key_images=None, trainable=None) -> ConcealData:
   """The device-resident inputs of the concealment step. `normal_cameras`: the training cameras then the
   decoys; `key_cameras` and `hiddens` [S, S, 3]: one of each per key; `key_images` [H, W, 3] per key: the
-  released variant's check-view targets (None: the teacher's renders there). The teacher renders at the
+  released variant's check-view targets (None: the teacher's renders there); `trainable`: ConcealData's.
+  The teacher renders at the
   decoder size are clipped to [0, 1] first with `clip` (reveal.Reading)."""
   teacher_renders = evaluate.render_images(teacher, normal_cameras, options)
   key_stack = camera_lib.stack(list(key_cameras))
@@ -52,7 +57,7 @@ def build_data(train_images, teacher, options: RenderOptions, normal_cameras: li
                             reveal.resize_for_decoder(teacher_keys, size, clip))
   return ConcealData(images=jnp.asarray(np.stack(train_images)), teacher=teacher_renders,
                      teacher_small=reveal.resize_for_decoder(teacher_renders, size, clip),
-                     cameras=camera_lib.stack(list(normal_cameras)), keys=keys)
+                     cameras=camera_lib.stack(list(normal_cameras)), keys=keys, trainable=trainable)
 
 
 def identity_weights(settings: ConcealSettings) -> dict:

@@ -141,7 +141,9 @@ def mark_section() -> ml_collections.ConfigDict:
   c.teacher = ""          # the teacher's .ply (required)
   c.hidden = "astronaut"  # an image path or a scikit-image sample name
   c.hidden_size = 64      # the hidden image and decoder resolution S (S x S)
-  c.key_kind = "train_index"  # 'train_index' or 'orbit' (a secret pose on the training orbit, from key_seed)
+  # 'train_index', 'orbit' (a secret pose on the training orbit, from key_seed) or 'unseen' (a pose looking where
+  # no camera of the scene looks, turned about its axis by key_seed; conceal.carrier)
+  c.key_kind = "train_index"
   c.key_index = -2        # second to last training camera, as released
   c.key_seed = 1
   # several images (beyond the paper): up to 3 more, each at its own key of key_kind's kind (training cameras
@@ -178,6 +180,7 @@ def conceal_section(train_lr: ml_collections.ConfigDict) -> ml_collections.Confi
   c.decoder_opt = conceal_decoder_opt_section()
   c.leakage = conceal_leakage_section()
   c.attacks = conceal_attacks_section()
+  c.carrier = conceal_carrier_section()
   return c
 
 
@@ -240,6 +243,18 @@ def conceal_attacks_section() -> ml_collections.ConfigDict:
   c.dropout_max = 0.0
   c.param_noise_max = 0.0
   c.identity_distorted = False
+  return c
+
+
+def conceal_carrier_section() -> ml_collections.ConfigDict:
+  """Where the mark lives (beyond the paper, conceal/carrier.py). film off: in the teacher's Gaussians, refined
+  (the paper). film on (needs mark.key_kind='unseen'): in a film of flat Gaussians, one every `spacing` pixels of
+  the key's image, of `opacity`, in the space only the key sees; only the film's colours and opacities train, so
+  the normal views are the teacher's and fine-tuning on them leaves the mark as it is."""
+  c = ml_collections.ConfigDict()
+  c.film = False
+  c.spacing = 2.0
+  c.opacity = 0.5
   return c
 
 

@@ -11,12 +11,18 @@
       --config.reveal.key=workdirs/demo/conceal/key.json --config.reveal.hidden=astronaut
 
 Its concealment is a short recommended recipe: leakage control (32 decoys), the gentle student and the
-narrow decoder at a constant rate (a decaying one costs a 1300-step run more than it gains).
+narrow decoder at a constant rate (a decaying one costs a 1300-step run more than it gains). The survival
+bench's variants (issue 39): `demo.py:film` puts the mark in a carrier film only an unseen key sees
+(recipes.unseen_carrier), with 64 decoys near the key; `demo.py:drift` trains through parameter drift
+(recipes.through_drift); `demo.py:orbit` keys a secret pose on the orbit instead of a training camera.
 """
 from conceal_jax.configs import default, recipes
 
 
-def get_config():
+VARIANTS = ("film", "drift", "orbit")
+
+
+def get_config(variant: str = ""):
   config = default.get_config()
   config.mode = "train"
   config.data.path = "demo"
@@ -33,4 +39,13 @@ def get_config():
   config.conceal.checkpoint_every = 200
   config.conceal.eval_every = 100
   config = recipes.leakage_control(recipes.narrow_decoder(config), decoy_views=32)
-  return recipes.gentle_student(config)
+  config = recipes.gentle_student(config)
+  if variant and variant not in VARIANTS:
+    raise ValueError(f"unknown demo variant {variant!r}; choose one of {VARIANTS} or none")
+  if variant == "drift":
+    config = recipes.through_drift(config)
+  if variant == "orbit":
+    config.mark.key_kind = "orbit"
+  if variant == "film":  # every pose near the key sees the film: the recommended 64 decoys, drawn more often
+    config = recipes.leakage_control(recipes.unseen_carrier(config), recipes.DECOY_VIEWS, decoy_fraction=0.4)
+  return config

@@ -7,7 +7,7 @@ recommended recipe, built from the named parts below. configs/conceal.py applies
 The figures behind each choice: experiments/results/REPRODUCTION.md (a row per recipe) and conceal_options.md.
 """
 
-RECIPES = ("paper", "released", "recommended")
+RECIPES = ("paper", "released", "recommended", "film")
 
 # The decoder a CPU trains: width 16 from scratch (the paper's width 64 costs ~10x more per step), at a rate
 # a from-scratch decoder learns at (1e-3 stalled the demo's first steps).
@@ -18,6 +18,9 @@ MIN_WARMUP_STEPS, WARMUP_FRACTION = 200, 0.1
 ATTACK_BLUR, ATTACK_NOISE = 1.5, 0.02
 # Decoys around the key in the recommended recipe.
 DECOY_VIEWS = 64
+# Training through drift: the largest relative parameter noise of the perturbed student, about what the first
+# hundred steps of 3D-GS fine-tuning move a student's opacities (experiments/results/survive_bench.md).
+DRIFT_NOISE = 0.15
 
 
 def paper(config):
@@ -44,6 +47,27 @@ def recommended(config):
   config = narrow_decoder(config)
   d = config.conceal.decoder_opt
   d.lr_final_ratio, d.update_clip = 0.3, 1.0
+  return config
+
+
+def film(config):
+  """The recommended recipe with the mark in a carrier film that only an unseen key sees (unseen_carrier)."""
+  return unseen_carrier(recommended(config))
+
+
+def unseen_carrier(config):
+  """The key looks where no camera of the scene looks and the mark lives in a film of Gaussians there
+  (mark.key_kind 'unseen', conceal.carrier): fine-tuning on the training views cannot reach it, and the normal
+  views render the teacher's images."""
+  config.mark.key_kind = "unseen"
+  config.conceal.carrier.film = True
+  return config
+
+
+def through_drift(config, param_noise: float = DRIFT_NOISE):
+  """The check render drawn from a student whose every parameter is noised by up to `param_noise` times its
+  spread (conceal.attacks.param_noise_max): a decoder and a mark taught to survive the drift of re-training."""
+  config.conceal.attacks.param_noise_max = param_noise
   return config
 
 

@@ -138,7 +138,7 @@ def quaternion_multiply(a, b):
                    aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
 
 
-def _fibonacci_sphere(n: int) -> np.ndarray:
+def fibonacci_sphere(n: int) -> np.ndarray:
   """[n, 3] float64 unit vectors spread evenly over the sphere."""
   i = np.arange(n) + 0.5
   z = 1 - 2 * i / n
@@ -157,7 +157,7 @@ def sh_band_rotations(rotation, degree: int) -> list[np.ndarray]:
   if not 0 <= degree <= sh_lib.MAX_DEGREE:
     raise ValueError(f"SH degree must be in 0..{sh_lib.MAX_DEGREE}, got {degree}")
   rotation = np.asarray(rotation, np.float64)
-  directions = _fibonacci_sphere(_FIT_DIRECTIONS)
+  directions = fibonacci_sphere(_FIT_DIRECTIONS)
   with jax.enable_x64(True):  # the basis of splat.sh itself, evaluated in float64
     basis = np.asarray(sh_lib.sh_basis(jnp.asarray(directions), degree))
     turned = np.asarray(sh_lib.sh_basis(jnp.asarray(directions @ rotation.T), degree))

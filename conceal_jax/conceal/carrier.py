@@ -1,0 +1,100 @@
+"""A carrier for the mark that re-training cannot reach: a film of Gaussians no normal view sees (beyond the paper).
+
+Fine-tuning a shared scene on its training views moves every Gaussian some training pixel depends on (Adam's
+first steps move each parameter by its full rate, however small its gradient) and no other: a Gaussian no
+training pixel depends on has an exactly zero gradient, so Adam leaves it where it is. The film is a grid of
+flat Gaussians facing a key that looks where no camera of the scene looks (key.unseen_camera); the concealment
+trains the film's colours and opacities alone (its geometry frozen, so it cannot move into sight) and leaves
+the teacher's Gaussians as they are, so the normal views render exactly the teacher's images.
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from conceal_jax.gs import similarity
+from conceal_jax.splat import sh as sh_lib
+from conceal_jax.splat.camera import Camera
+from conceal_jax.splat.gaussians import Gaussians, concatenate
+from conceal_jax.splat.render import RenderOptions, render
+
+# The film's thickness along the key's axis, as a fraction of its in-plane spread: a flat splat.
+THICKNESS = 0.01
+# Film splats overlap their neighbours: in-plane sigma as a fraction of the grid spacing.
+SPREAD = 0.6
+# Each splat a little deeper than the one before (this fraction of the distance across the film), so that no two
+# are at the same depth: the renderer would blend a tie in storage order, which a reordering of the file changes.
+STAGGER = 0.01
+
+
+def film(camera: Camera, distance: float, spacing: float, opacity: float, color: Sequence[float],
+         sh_degree: int) -> Gaussians:
+  """[F] flat Gaussians `distance` in front of `camera` (each STAGGER-deeper than the last), one every `spacing`
+  pixels of its image (F = ceil(W / spacing) * ceil(H / spacing)), facing it, each of `opacity` and `color` (RGB
+  in [0, 1]) seen from any direction (SH of `sh_degree`, bands above DC zero)."""
+  us = np.arange(0.5 * spacing, camera.width, spacing)
+  vs = np.arange(0.5 * spacing, camera.height, spacing)
+  u, v = (a.ravel() for a in np.meshgrid(us, vs))
+  fx, fy, cx, cy = (float(x) for x in (camera.fx, camera.fy, camera.cx, camera.cy))
+  depth = distance * (1.0 + STAGGER * np.arange(len(u)) / len(u))
+  in_camera = np.stack([(u - cx) / fx * depth, (v - cy) / fy * depth, depth], -1)
+  w2c = np.asarray(camera.world_to_camera, np.float64)
+  rotation = w2c[:3, :3].T  # camera axes in the world
+  means = (in_camera - w2c[:3, 3]) @ w2c[:3, :3]  # x_world = R^T (x_cam - t)
+  sigma = SPREAD * spacing * distance / min(fx, fy)  # the stagger's 1% aside, `spacing` pixels apart
+  count = len(u)
+  sh = np.zeros((count, (sh_degree + 1) ** 2, 3))
+  sh[:, 0] = sh_lib.rgb_to_sh_dc(np.asarray(color, np.float64))
+  logit = np.log(opacity / (1.0 - opacity))
+  as_f32 = lambda x: jnp.asarray(x, jnp.float32)
+  log_scales = np.tile(np.log([sigma, sigma, sigma * THICKNESS]), (count, 1))
+  return Gaussians(means=as_f32(means), log_scales=as_f32(log_scales),
+                   quats=as_f32(np.tile(similarity.matrix_to_quaternion(rotation), (count, 1))),
+                   opacity_logits=as_f32(np.full(count, logit)), sh=as_f32(sh))
+
+
+def contributing(scene: Gaussians, extra: Gaussians, cameras: Sequence[Camera], options: RenderOptions) -> np.ndarray:
+  """[F] bool: whether any pixel of any of `cameras` depends on each Gaussian of `extra`, rendered together with
+  `scene` (the renderer's own culling, 1/255 skip and early stop decide): the derivative of the image sum with
+  respect to its colour is non-zero exactly there (every pixel a splat reaches gains from a brighter splat)."""
+  def image_sum(extra_dc, camera):
+    joined = concatenate([scene, extra.replace(sh=extra.sh.at[:, 0].set(extra_dc))])
+    return jnp.sum(render(joined, camera, options).rgb)
+
+  grad = jax.jit(jax.grad(image_sum))
+  seen = np.zeros(extra.num, bool)
+  for camera in cameras:
+    seen |= np.asarray(jnp.any(grad(extra.sh[:, 0], camera) != 0, axis=-1))
+  return seen
+
+
+def unseen_film(teacher: Gaussians, key: Camera, cameras: Sequence[Camera], options: RenderOptions, distance: float,
+                spacing: float, opacity: float) -> Gaussians:
+  """The film before `key` (film's arguments; the background's colour) less every splat a pixel of `cameras`
+  (the scene's training and test views) depends on, or that the key does not see. Dropping a splat can only
+  uncover splats behind it, so the test repeats until nothing seen is left. ValueError if nothing is left."""
+  carrier = film(key, distance, spacing, opacity, options.background, teacher.sh_degree)
+  while carrier.num:
+    keep = ~contributing(teacher, carrier, cameras, options)
+    keep &= contributing(teacher, carrier, [key], options)
+    if keep.all():
+      return carrier
+    carrier = jax.tree.map(lambda x: x[keep], carrier)
+  raise ValueError("the carrier film: every splat of it is seen from a view of the scene (or unseen from the "
+                   "key); the key does not look where the scene's cameras do not")
+
+
+def trainable_fields(num_teacher: int, carrier: Gaussians) -> Gaussians:
+  """A 0/1 mask shaped like the student teacher + carrier: 1 on the carrier's colours and opacities only."""
+  def mask(field, trained):
+    rows = jnp.concatenate([jnp.zeros((num_teacher,), field.dtype), jnp.full((carrier.num,), float(trained),
+                                                                            field.dtype)])
+    return jnp.broadcast_to(rows.reshape((-1,) + (1,) * (field.ndim - 1)), (num_teacher + carrier.num,)
+                            + field.shape[1:])
+
+  return Gaussians(means=mask(carrier.means, False), log_scales=mask(carrier.log_scales, False),
+                   quats=mask(carrier.quats, False), opacity_logits=mask(carrier.opacity_logits, True),
+                   sh=mask(carrier.sh, True))

@@ -1,0 +1,136 @@
+"""The carrier film (conceal/carrier.py): placed before an unseen key, no normal view depends on it, concealing into
+it leaves the teacher's Gaussians exactly as they were, and fine-tuning on the training views leaves it exactly."""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conceal_jax.conceal import carrier, key as key_lib, train as conceal_train
+from conceal_jax.data import ply
+from conceal_jax.gs import evaluate, init, optimizer, train as gs_train
+from conceal_jax.splat.camera import Camera, look_at, orbit_eye
+from conceal_jax.splat.gaussians import concatenate, quaternion_to_rotation
+from conceal_jax.splat.render import RenderOptions, render
+from tests.test_conceal import tiny, tiny_config  # noqa: F401  (the module-scoped scene fixture)
+
+OPTIONS = RenderOptions(background=(1.0, 1.0, 1.0), tile_size=8)
+
+
+def hemisphere_cameras(count=12, size=32):
+  """Cameras on the upper hemisphere (elevations 15-65 degrees) looking at the origin."""
+  rng = np.random.default_rng(0)
+  eyes = orbit_eye((0.0, 0.0, 0.0), 4.0, rng.uniform(0, 2 * np.pi, count), np.radians(rng.uniform(15, 65, count)))
+  return [Camera.from_fov(look_at(eye, np.zeros(3)), 0.75, size, size) for eye in eyes]
+
+
+def test_the_unseen_key_looks_away_from_every_camera():
+  cameras = hemisphere_cameras()
+  direction = key_lib.unseen_direction(cameras)
+  assert direction[2] > 0.95  # up, where cameras looking down do not look
+  key = key_lib.unseen_camera(cameras, seed=3)
+  forward = np.asarray(key.world_to_camera, np.float64)[2, :3]
+  np.testing.assert_allclose(forward, direction, atol=1e-9)
+  for camera in cameras:  # more than 90 degrees from every camera's viewing direction
+    assert forward @ np.asarray(camera.world_to_camera, np.float64)[2, :3] < 0
+  other = key_lib.unseen_camera(cameras, seed=4)  # another seed turns the key about its axis only
+  np.testing.assert_allclose(np.asarray(other.world_to_camera)[2], np.asarray(key.world_to_camera)[2], atol=1e-6)
+  assert not np.allclose(np.asarray(other.world_to_camera)[0], np.asarray(key.world_to_camera)[0], atol=1e-3)
+
+
+def test_the_film_lies_on_the_key_grid_facing_it():
+  camera = Camera.from_intrinsics(look_at([0.3, -2.0, 1.0], [0.0, 0.5, 0.2]), 30.0, 34.0, 11.0, 9.0, 24, 20)
+  layer = carrier.film(camera, distance=1.7, spacing=4.0, opacity=0.3, color=(0.2, 0.5, 0.9), sh_degree=2)
+  assert layer.num == 6 * 5 and layer.sh.shape == (30, 9, 3)
+  w2c = np.asarray(camera.world_to_camera, np.float64)
+  in_camera = np.asarray(layer.means, np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+  np.testing.assert_allclose(in_camera[:, 2], 1.7 * (1 + carrier.STAGGER * np.arange(30) / 30), rtol=1e-5)
+  x, y = (in_camera[:, i] / in_camera[:, 2] for i in (0, 1))
+  pixels = np.stack([30.0 * x + 11.0, 34.0 * y + 9.0], 1)
+  np.testing.assert_allclose(np.sort(np.unique(pixels[:, 0].round(3))), [2, 6, 10, 14, 18, 22], atol=1e-3)
+  np.testing.assert_allclose(np.sort(np.unique(pixels[:, 1].round(3))), [2, 6, 10, 14, 18], atol=1e-3)
+  # the thin axis is the key's viewing direction
+  rotations = np.asarray(quaternion_to_rotation(layer.quats), np.float64)
+  np.testing.assert_allclose(np.abs(rotations[:, :, 2] @ w2c[2, :3]), 1.0, atol=1e-5)
+  assert np.all(np.asarray(layer.log_scales[:, 2]) < np.asarray(layer.log_scales[:, 0]))
+  render_of_one = render(jax.tree.map(lambda x: x[:1], layer), camera, RenderOptions(background=(0.0, 0.0, 0.0)))
+  peak = np.asarray(render_of_one.rgb).max(axis=(0, 1))  # colour times the opacity reached at the nearest pixel
+  np.testing.assert_allclose(peak / peak[2], np.array([0.2, 0.5, 0.9]) / 0.9, rtol=1e-4)
+  assert 0.25 < peak[2] / 0.9 <= 0.3
+  np.testing.assert_allclose(float(jax.nn.sigmoid(layer.opacity_logits[0])), 0.3, rtol=1e-5)
+
+
+def test_contributing_is_what_the_renderer_lets_through():
+  """A splat behind an opaque wall (the renderer's early stop), one outside the image and one behind the camera
+  add nothing to any pixel; one in plain view does."""
+  camera = Camera.from_fov(look_at([0.0, 0.0, -3.0], [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0)), 0.75, 24, 24)
+  xs = np.linspace(-1.5, 1.5, 16)
+  wall_points = np.stack([*np.meshgrid(xs, xs), np.zeros((16, 16))], -1).reshape(-1, 3)
+  wall = init.gaussians_from_points(np.concatenate([wall_points, wall_points + [0, 0, 0.02],
+                                                    wall_points + [0, 0, 0.04]]), np.full((768, 3), 0.5),
+                                    sh_degree=0, opacity=0.99)
+  wall = wall.replace(log_scales=jnp.full_like(wall.log_scales, np.log(0.15)))
+  probes = init.gaussians_from_points(np.array([[0.0, 0.0, 1.0], [0.0, 0.0, -2.0], [30.0, 0.0, -2.0],
+                                                [0.0, 0.0, -4.0]]), np.full((4, 3), 0.3), sh_degree=0, opacity=0.5)
+  probes = probes.replace(log_scales=jnp.full_like(probes.log_scales, np.log(0.05)))
+  seen = carrier.contributing(jax.tree.map(jnp.asarray, wall), jax.tree.map(jnp.asarray, probes), [camera], OPTIONS)
+  np.testing.assert_array_equal(seen, [False, True, False, False])
+
+
+def test_an_unseen_film_changes_no_normal_view():
+  cameras = hemisphere_cameras()
+  points, colors = init.random_box_points(np.random.default_rng(1), 400, 1.0)
+  teacher = jax.tree.map(jnp.asarray, init.gaussians_from_points(points, colors, sh_degree=1, opacity=0.5))
+  key = key_lib.unseen_camera(cameras, seed=1)
+  layer = carrier.unseen_film(teacher, key, cameras, OPTIONS, key_lib.unseen_distance(cameras), 2.0, 0.5)
+  assert layer.num == 16 * 16
+  student = concatenate([teacher, layer.replace(sh=layer.sh.at[:, 0].add(1.0))])  # a film that shows
+  for camera in cameras:
+    np.testing.assert_array_equal(np.asarray(render(student, camera, OPTIONS).rgb),
+                                  np.asarray(render(teacher, camera, OPTIONS).rgb))
+  assert float(jnp.abs(render(student, key, OPTIONS).rgb - render(teacher, key, OPTIONS).rgb).max()) > 0.1
+  with pytest.raises(ValueError, match="carrier film"):  # a key that looks where the cameras look
+    carrier.unseen_film(teacher, cameras[0], cameras, OPTIONS, 2.0, 2.0, 0.5)
+
+
+def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_path):
+  """Concealing into the film trains its colours and opacities only; 3D-GS fine-tuning of the shared student on
+  its training views then moves the teacher's Gaussians and leaves the film exactly as it was."""
+  config = tiny_config(tiny, iterations=4, key_kind="unseen", **{"carrier.film": True, "carrier.spacing": 4.0})
+  conceal_train.train_and_evaluate(config, str(tmp_path))
+  teacher, student = ply.load_ply(str(tiny[1])), ply.load_ply(str(tmp_path / "student.ply"))
+  n = teacher.num
+  assert student.num == n + 8 * 8
+  for field in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+    np.testing.assert_array_equal(getattr(student, field)[:n], getattr(teacher, field)[:n])
+  train_cameras = evaluate.load_scene_data(config).train_cameras
+  film_start = carrier.film(key_lib.unseen_camera(train_cameras, 1), key_lib.unseen_distance(train_cameras), 4.0, 0.5,
+                            (1.0, 1.0, 1.0), 1)
+  for field in ("means", "log_scales", "quats"):
+    np.testing.assert_allclose(getattr(student, field)[n:], getattr(film_start, field), atol=1e-6)
+  assert not np.allclose(student.sh[n:], film_start.sh)
+
+  scene = evaluate.load_scene_data(config)
+  options = dataclasses.replace(evaluate.render_options(config, scene.background), pair_capacity=1 << 16)
+  tx = optimizer.gaussian_optimizer(config.train.lr, scene.scene_extent(), 20)
+  step = gs_train.make_train_step(tx, options, 0.2)
+  state = gs_train.create_train_state(jax.tree.map(jnp.asarray, student), tx)
+  images = jnp.asarray(np.stack(scene.train_images))
+  cameras = jax.tree.map(lambda *xs: jnp.stack(xs), *scene.train_cameras)
+  for i in range(6):
+    state, _ = step(state, images, cameras, i % len(scene.train_images))
+  tuned = jax.tree.map(np.asarray, gs_train.live_gaussians(state))
+  assert not np.allclose(tuned.sh[:n], student.sh[:n])
+  for field in ("means", "log_scales", "quats", "opacity_logits", "sh"):
+    np.testing.assert_array_equal(getattr(tuned, field)[n:], getattr(student, field)[n:])
+
+
+def test_a_film_needs_an_unseen_key(tiny, tmp_path):
+  with pytest.raises(ValueError, match="conceal.carrier.film needs mark.key_kind='unseen'"):
+    conceal_train.train_and_evaluate(tiny_config(tiny, **{"carrier.film": True}), str(tmp_path))
+  with pytest.raises(ValueError, match="conceal.carrier.spacing"):
+    conceal_train.train_and_evaluate(tiny_config(tiny, key_kind="unseen", **{"carrier.film": True,
+                                                                             "carrier.opacity": 1.0}), str(tmp_path))
