@@ -78,7 +78,8 @@ def row_key(row: dict) -> tuple:
 @dataclasses.dataclass
 class Scene:
   """A marked scene under test: its name and recipe label, conceal workdir, run config, student (numpy), owner
-  (robustness.Owner), test cameras and images, the decision's calibration, and its cache folder."""
+  (robustness.Owner), test cameras and images, the decision's calibration, its cache folder, and how many
+  Gaussians of the student are a carrier film (the last ones; conceal.carrier)."""
   name: str
   recipe: str
   run: pathlib.Path
@@ -89,6 +90,7 @@ class Scene:
   targets: list
   calibration: dict
   cache: pathlib.Path
+  carrier: int = 0
 
   def row(self, attack: str, level, scores: dict, **extra) -> dict:
     """A result row: scores holds render_psnr, hidden_psnr and hidden_ssim; decided from hidden_ssim."""
@@ -100,8 +102,9 @@ def load_scene(name: str, run: pathlib.Path, recipe: str, test_views: int, calib
                cache: pathlib.Path) -> Scene:
   config, student, owner = bench_robust.load_run(run)
   cameras, targets, _ = evaluate.held_out_views(evaluate.load_scene_data(config), test_views)
+  summary = json.loads((run / "conceal.json").read_text()) if (run / "conceal.json").is_file() else {}
   return Scene(name, recipe, run, config, jax.tree.map(np.asarray, student), owner, cameras, targets, calibration,
-               cache)
+               cache, int(summary.get("num_carrier", 0)))
 
 
 def scores_of(scene: Scene, gaussians, similarity: sim.Similarity | None = None) -> dict:
@@ -213,9 +216,31 @@ def snapshot_scores(scene: Scene, config, workdir: pathlib.Path, steps: list[int
   out = []
   for length in sorted(steps):
     name = "point_cloud.ply" if length == max(steps) else train.snapshot_name(length)
-    out.append((length, scores_of(scene, jax.tree.map(np.asarray, ply.load_ply(str(workdir / name))))))
+    tuned = jax.tree.map(np.asarray, ply.load_ply(str(workdir / name)))
+    out.append((length, dict(scores_of(scene, tuned), changed=change_profile(scene.student, tuned, scene.carrier))))
     print(json.dumps(dict(step=length, hidden_ssim=out[-1][1].get("hidden_ssim"))), flush=True)
   return out
+
+
+FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
+
+
+def change_profile(before, after, carrier: int = 0) -> dict | None:
+  """What training changed, per field of a scene whose Gaussians it kept in place (None where it added or removed
+  some): the fraction of Gaussians whose field moved at all, and the RMS change over the field's spread (the
+  standard deviation over the Gaussians, averaged over channels); with a carrier film (its `carrier` Gaussians
+  last), `carrier_moved`: the fraction of those that moved in any field."""
+  if after.num != before.num:
+    return None
+  rows = lambda g, f: np.asarray(getattr(g, f), np.float64).reshape(before.num, -1)
+  moved = {f: np.any(rows(before, f) != rows(after, f), axis=1) for f in FIELDS}
+  profile = {f: dict(moved=float(np.mean(moved[f])),
+                     relative_rms=float(np.mean(np.sqrt(np.mean((rows(after, f) - rows(before, f)) ** 2, axis=0)))
+                                        / max(float(np.mean(rows(before, f).std(axis=0))), 1e-12)))
+             for f in FIELDS}
+  if carrier:
+    profile["carrier_moved"] = float(np.mean(np.any(np.stack([moved[f][-carrier:] for f in FIELDS]), axis=0)))
+  return profile
 
 
 def extraction_cameras(scene: Scene, views: int, seed: int = 0) -> list:

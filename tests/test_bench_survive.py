@@ -114,3 +114,22 @@ def test_extraction_views_form_a_blender_dataset(run, tmp_path):
   np.testing.assert_allclose(np.asarray(loaded.train_cameras[5].world_to_camera),
                              np.asarray(cameras[5].world_to_camera), atol=1e-5)
   assert float(loaded.train_cameras[0].fx) == pytest.approx(float(cameras[0].fx), rel=1e-5)
+
+
+def test_the_change_profile_names_what_training_moved():
+  """Per field: the share of Gaussians moved and the RMS change over the spread; with a carrier film (the last
+  Gaussians), the share of it moved; None once training added or removed Gaussians."""
+  before = jax.tree.map(np.asarray, blobs(10))
+  before = before.replace(opacity_logits=np.random.default_rng(0).normal(size=10))
+  after = before.replace(opacity_logits=before.opacity_logits.copy(), sh=before.sh.copy())
+  after.opacity_logits[:4] += 0.5
+  after.sh[2, 0, 0] += 1.0
+  profile = bench_survive.change_profile(before, after, carrier=3)
+  assert profile["opacity_logits"]["moved"] == 0.4 and profile["sh"]["moved"] == 0.1
+  assert profile["means"] == dict(moved=0.0, relative_rms=0.0)
+  expected = np.sqrt(0.4 * 0.25) / before.opacity_logits.std()
+  np.testing.assert_allclose(profile["opacity_logits"]["relative_rms"], expected, rtol=1e-6)
+  assert profile["carrier_moved"] == 0.0
+  after.sh[-1, 3, 2] += 0.1
+  assert bench_survive.change_profile(before, after, carrier=3)["carrier_moved"] == 1 / 3
+  assert bench_survive.change_profile(before, jax.tree.map(lambda x: x[:9], before)) is None
