@@ -39,6 +39,11 @@ def test_the_unseen_key_looks_away_from_every_camera():
   other = key_lib.unseen_camera(cameras, seed=4)  # another seed turns the key about its axis only
   np.testing.assert_allclose(np.asarray(other.world_to_camera)[2], np.asarray(key.world_to_camera)[2], atol=1e-6)
   assert not np.allclose(np.asarray(other.world_to_camera)[0], np.asarray(key.world_to_camera)[0], atol=1e-3)
+  eye = lambda camera: np.linalg.inv(np.asarray(camera.world_to_camera, np.float64))[:3, 3]
+  target = key_lib.orbit_target(cameras)
+  np.testing.assert_allclose(np.linalg.norm(eye(key) - target), 4.0, rtol=1e-5)  # one camera distance out
+  half = key_lib.unseen_camera(cameras, seed=3, offset=0.5)
+  np.testing.assert_allclose(eye(half) - target, 0.5 * (eye(key) - target), atol=1e-5)
 
 
 def test_the_film_lies_on_the_key_grid_facing_it():
@@ -85,7 +90,7 @@ def test_an_unseen_film_changes_no_normal_view():
   points, colors = init.random_box_points(np.random.default_rng(1), 400, 1.0)
   teacher = jax.tree.map(jnp.asarray, init.gaussians_from_points(points, colors, sh_degree=1, opacity=0.5))
   key = key_lib.unseen_camera(cameras, seed=1)
-  layer = carrier.unseen_film(teacher, key, cameras, OPTIONS, key_lib.unseen_distance(cameras), 2.0, 0.5)
+  layer = carrier.unseen_film(teacher, key, cameras, OPTIONS, 0.1 * key_lib.camera_distance(cameras), 2.0, 0.5)
   assert layer.num == 16 * 16
   student = concatenate([teacher, layer.replace(sh=layer.sh.at[:, 0].add(1.0))])  # a film that shows
   for camera in cameras:
@@ -107,8 +112,8 @@ def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_p
   for field in ("means", "log_scales", "quats", "opacity_logits", "sh"):
     np.testing.assert_array_equal(getattr(student, field)[:n], getattr(teacher, field)[:n])
   train_cameras = evaluate.load_scene_data(config).train_cameras
-  film_start = carrier.film(key_lib.unseen_camera(train_cameras, 1), key_lib.unseen_distance(train_cameras), 4.0, 0.5,
-                            (1.0, 1.0, 1.0), 1)
+  film_start = carrier.film(key_lib.unseen_camera(train_cameras, 1), 0.1 * key_lib.camera_distance(train_cameras),
+                            4.0, 0.5, (1.0, 1.0, 1.0), 1)
   for field in ("means", "log_scales", "quats"):
     np.testing.assert_allclose(getattr(student, field)[n:], getattr(film_start, field), atol=1e-6)
   assert not np.allclose(student.sh[n:], film_start.sh)
@@ -131,6 +136,6 @@ def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_p
 def test_a_film_needs_an_unseen_key(tiny, tmp_path):
   with pytest.raises(ValueError, match="conceal.carrier.film needs mark.key_kind='unseen'"):
     conceal_train.train_and_evaluate(tiny_config(tiny, **{"carrier.film": True}), str(tmp_path))
-  with pytest.raises(ValueError, match="conceal.carrier.spacing"):
+  with pytest.raises(ValueError, match="conceal.carrier.distance and spacing"):
     conceal_train.train_and_evaluate(tiny_config(tiny, key_kind="unseen", **{"carrier.film": True,
                                                                              "carrier.opacity": 1.0}), str(tmp_path))

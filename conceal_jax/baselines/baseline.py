@@ -237,7 +237,8 @@ def baseline_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_s
   teacher = ply.load_ply(c.teacher)
   hidden = hidden_lib.load_hidden_image(c.hidden, c.hidden_size)
   scene = evaluate.load_scene_data(config)
-  check_camera, key_info = key_lib.check_camera(scene.train_cameras, c.key_kind, c.key_index, c.key_seed)
+  check_camera, key_info = key_lib.check_camera(scene.train_cameras, c.key_kind, c.key_index, c.key_seed,
+                                                c.key_offset)
   options = evaluate.render_options(config, scene.background)
   if s.method == "steganerf":
     run = steganerf_train.train_steganerf(config, workdir, run_length(config), teacher, hidden, scene, check_camera,

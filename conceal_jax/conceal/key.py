@@ -22,9 +22,6 @@ from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat.camera import Camera, camera_centers, look_at, orbit_eye
 
 KEY_KINDS = ("train_index", "orbit", "unseen")
-# An unseen key stands this fraction of the median camera distance beyond the orbit target (the conceal job puts
-# its carrier film as far again beyond it).
-UNSEEN_OFFSET = 0.5
 
 
 @struct.dataclass
@@ -84,18 +81,18 @@ def unseen_direction(cameras: Sequence[Camera], samples: int = 4096) -> np.ndarr
   return candidates[np.argmin(np.max(candidates @ forward.T, axis=1))]
 
 
-def unseen_distance(cameras: Sequence[Camera]) -> float:
-  """How far an unseen key stands beyond the orbit target: UNSEEN_OFFSET median camera distances from it."""
-  return UNSEEN_OFFSET * float(np.median(np.linalg.norm(camera_centers(cameras) - orbit_target(cameras), axis=1)))
+def camera_distance(cameras: Sequence[Camera]) -> float:
+  """The median distance of `cameras` from their orbit target: the unit of an unseen key's offset."""
+  return float(np.median(np.linalg.norm(camera_centers(cameras) - orbit_target(cameras), axis=1)))
 
 
-def unseen_camera(cameras: Sequence[Camera], seed: int) -> Camera:
-  """A secret camera looking where none of `cameras` looks: unseen_distance from the orbit target along
-  unseen_direction, looking further along it, turned about its axis by an angle drawn from `seed`;
+def unseen_camera(cameras: Sequence[Camera], seed: int, offset: float = 1.0) -> Camera:
+  """A secret camera looking where none of `cameras` looks: `offset` camera distances from the orbit target
+  along unseen_direction, looking further along it, turned about its axis by an angle drawn from `seed`;
   intrinsics of cameras[0]. What it sees beyond the scene is what carrier.py's film fills."""
   target = orbit_target(cameras)
   direction = unseen_direction(cameras)
-  eye = target + unseen_distance(cameras) * direction
+  eye = target + offset * camera_distance(cameras) * direction
   helper = np.eye(3)[int(np.argmin(np.abs(direction)))]
   up = rotation_about(direction, np.random.default_rng(seed).uniform(0, 2 * math.pi)) @ np.cross(direction, helper)
   c = cameras[0]
@@ -156,8 +153,9 @@ def decoy_cameras(camera: Camera, extent: float, count: int, translation: Sequen
   return cameras
 
 
-def check_camera(cameras: Sequence[Camera], kind: str, index: int, seed: int) -> tuple[Camera, dict]:
-  """The check view and a description of how it was chosen."""
+def check_camera(cameras: Sequence[Camera], kind: str, index: int, seed: int,
+                 offset: float = 1.0) -> tuple[Camera, dict]:
+  """The check view and a description of how it was chosen (`offset`: an unseen key's, unseen_camera)."""
   if kind == "train_index":
     if not -len(cameras) <= index < len(cameras):
       raise ValueError(f"mark.key_index {index} is out of range for {len(cameras)} training cameras")
@@ -165,23 +163,23 @@ def check_camera(cameras: Sequence[Camera], kind: str, index: int, seed: int) ->
   if kind == "orbit":
     return orbit_camera(cameras, seed), dict(kind=kind, seed=seed)
   if kind == "unseen":
-    return unseen_camera(cameras, seed), dict(kind=kind, seed=seed)
+    return unseen_camera(cameras, seed, offset), dict(kind=kind, seed=seed, offset=offset)
   raise ValueError(f"mark.key_kind must be one of {KEY_KINDS}, got {kind!r}")
 
 
-def key_cameras(cameras: Sequence[Camera], kind: str, index: int, seed: int,
-                extra: int) -> list[tuple[Camera, dict]]:
+def key_cameras(cameras: Sequence[Camera], kind: str, index: int, seed: int, extra: int,
+                offset: float = 1.0) -> list[tuple[Camera, dict]]:
   """(camera, description) of the check view and of `extra` further keys of the same kind, one per extra
   hidden image (mark.extra_hidden): the k-th extra (0-based) is training camera index - 1 - k, or the
   orbit pose of seed seed + 1 + k. Neighbouring indices suffice: the training cameras of a capture are
   not ordered by pose (the demo scene draws them at random). ValueError naming mark.extra_hidden if an
   extra index is out of range or two keys are the same pose (a scene with fewer cameras than keys)."""
-  keys = [check_camera(cameras, kind, index, seed)]
+  keys = [check_camera(cameras, kind, index, seed, offset)]
   for k in range(extra):
     if kind == "train_index" and not -len(cameras) <= index - 1 - k < len(cameras):
       raise ValueError(f"mark.extra_hidden: the key of extra image {k}, training camera mark.key_index - "
                        f"{k + 1} = {index - 1 - k}, is out of range for {len(cameras)} training cameras")
-    keys.append(check_camera(cameras, kind, index - 1 - k, seed + 1 + k))
+    keys.append(check_camera(cameras, kind, index - 1 - k, seed + 1 + k, offset))
   poses = [np.asarray(camera.world_to_camera) for camera, _ in keys]
   for i in range(len(keys)):
     for j in range(i):

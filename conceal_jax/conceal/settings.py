@@ -115,6 +115,7 @@ class RunPlan:
   key_kind: str
   key_index: int
   key_seed: int
+  key_offset: float
   decoy_views: int
   decoy_translation: tuple[float, float]
   decoy_rotation_deg: tuple[float, float]
@@ -123,9 +124,18 @@ class RunPlan:
 
 @dataclasses.dataclass(frozen=True)
 class Film:
-  """conceal.carrier with film on: the carrier film's grid spacing (pixels of the key's image) and opacity."""
+  """conceal.carrier with film on: the carrier film's distance from the key (in median camera distances from the
+  orbit target, key.camera_distance), grid spacing (pixels of the key's image) and opacity."""
+  distance: float
   spacing: float
   opacity: float
+
+
+def key_offset(config: ml_collections.ConfigDict) -> float:
+  """mark.key_offset checked (positive: an unseen key stands beyond the orbit target)."""
+  if not config.mark.key_offset > 0:
+    raise ValueError(f"mark.key_offset must be positive, got {config.mark.key_offset}")
+  return float(config.mark.key_offset)
 
 
 def film_plan(config: ml_collections.ConfigDict) -> Film | None:
@@ -136,9 +146,10 @@ def film_plan(config: ml_collections.ConfigDict) -> Film | None:
     return None
   if config.mark.key_kind != "unseen":
     raise ValueError(f"conceal.carrier.film needs mark.key_kind='unseen', got {config.mark.key_kind!r}")
-  if not (c.spacing > 0 and 0 < c.opacity < 1):
-    raise ValueError(f"conceal.carrier.spacing must be positive and opacity in (0, 1), got {c.spacing}, {c.opacity}")
-  return Film(float(c.spacing), float(c.opacity))
+  if not (c.distance > 0 and c.spacing > 0 and 0 < c.opacity < 1):
+    raise ValueError("conceal.carrier.distance and spacing must be positive and opacity in (0, 1), got "
+                     f"{c.distance}, {c.spacing}, {c.opacity}")
+  return Film(float(c.distance), float(c.spacing), float(c.opacity))
 
 
 def step_settings(config: ml_collections.ConfigDict) -> ConcealSettings:
@@ -183,8 +194,8 @@ def plan(config: ml_collections.ConfigDict) -> RunPlan:
   if polish and not settings.use_decoder:
     raise ValueError("conceal.decoder_opt.polish_steps needs a decoder (conceal.use_decoder)")
   return RunPlan(settings, dataclasses.replace(joint, iterations=joint.iterations + polish), c.iterations, polish,
-                 sources, m.key_kind, m.key_index, m.key_seed, lk.decoy_views, ranges["decoy_translation"],
-                 ranges["decoy_rotation_deg"], film_plan(config))
+                 sources, m.key_kind, m.key_index, m.key_seed, key_offset(config), lk.decoy_views,
+                 ranges["decoy_translation"], ranges["decoy_rotation_deg"], film_plan(config))
 
 
 def extra_hidden(extra, use_decoder: bool) -> tuple[str, ...]:

@@ -57,7 +57,8 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
   teacher = ply.load_ply(config.mark.teacher)
   hiddens = [hidden_lib.load_hidden_image(source, s.hidden_size) for source in plan.sources]
   scene = evaluate.load_scene_data(config)
-  keys = key_lib.key_cameras(scene.train_cameras, plan.key_kind, plan.key_index, plan.key_seed, len(hiddens) - 1)
+  keys = key_lib.key_cameras(scene.train_cameras, plan.key_kind, plan.key_index, plan.key_seed, len(hiddens) - 1,
+                             plan.key_offset)
   options = evaluate.render_options(config, scene.background)
   decoys = [decoy for k, (camera, _) in enumerate(keys)
             for decoy in key_lib.decoy_cameras(camera, scene.scene_extent(), plan.decoy_views, plan.decoy_translation,
@@ -68,7 +69,8 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
   start, trainable = teacher, None
   if plan.film is not None:  # before the first key, unseen from every training and test view
     film = carrier.unseen_film(teacher, keys[0][0], list(scene.train_cameras) + list(scene.test_cameras), options,
-                               key_lib.unseen_distance(scene.train_cameras), plan.film.spacing, plan.film.opacity)
+                               plan.film.distance * key_lib.camera_distance(scene.train_cameras), plan.film.spacing,
+                               plan.film.opacity)
     start, trainable = concatenate([teacher, film]), carrier.trainable_fields(teacher.num, film)
   data = views_lib.build_data(scene.train_images, teacher, options, list(scene.train_cameras) + decoys,
                               [camera for camera, _ in keys], hiddens, s.hidden_size, s.reading.clip, key_images,

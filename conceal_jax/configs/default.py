@@ -142,10 +142,12 @@ def mark_section() -> ml_collections.ConfigDict:
   c.hidden = "astronaut"  # an image path or a scikit-image sample name
   c.hidden_size = 64      # the hidden image and decoder resolution S (S x S)
   # 'train_index', 'orbit' (a secret pose on the training orbit, from key_seed) or 'unseen' (a pose looking where
-  # no camera of the scene looks, turned about its axis by key_seed; conceal.carrier)
+  # no camera of the scene looks, key_offset camera distances from their orbit target, turned about its axis by
+  # key_seed; conceal.carrier)
   c.key_kind = "train_index"
   c.key_index = -2        # second to last training camera, as released
   c.key_seed = 1
+  c.key_offset = 1.0
   # several images (beyond the paper): up to 3 more, each at its own key of key_kind's kind (training cameras
   # key_index - 1, key_index - 2, ... or orbit seeds key_seed + 1, ...), one decoder reading every key
   c.extra_hidden = ()
@@ -248,11 +250,13 @@ def conceal_attacks_section() -> ml_collections.ConfigDict:
 
 def conceal_carrier_section() -> ml_collections.ConfigDict:
   """Where the mark lives (beyond the paper, conceal/carrier.py). film off: in the teacher's Gaussians, refined
-  (the paper). film on (needs mark.key_kind='unseen'): in a film of flat Gaussians, one every `spacing` pixels of
-  the key's image, of `opacity`, in the space only the key sees; only the film's colours and opacities train, so
-  the normal views are the teacher's and fine-tuning on them leaves the mark as it is."""
+  (the paper). film on (needs mark.key_kind='unseen'): in a film of flat Gaussians `distance` camera distances
+  before the key (mark.key_offset's unit), one every `spacing` pixels of the key's image, of `opacity`, in the
+  space only the key sees; only the film's colours and opacities train, so the normal views are the teacher's and
+  fine-tuning on them leaves the mark as it is. A near film looks different from any pose moved off the key."""
   c = ml_collections.ConfigDict()
   c.film = False
+  c.distance = 0.1
   c.spacing = 2.0
   c.opacity = 0.5
   return c
