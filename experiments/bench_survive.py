@@ -55,6 +55,7 @@ NAME = "survive_bench"
 # (configs/demo.py's variants, lego_conceal.py:film)
 SCENES = {"demo": ("demo", "workdirs/demo/conceal", "recommended"),
           "demo_film": ("demo", "workdirs/survive_runs/demo_film", "film"),
+          "demo_film_far": ("demo", "workdirs/survive_runs/demo_film_far", "film_far"),
           "demo_drift": ("demo", "workdirs/survive_runs/demo_drift", "drift"),
           "demo_orbit": ("demo", "workdirs/survive_runs/demo_orbit", "orbit"),
           "lego": ("lego", "workdirs/bench/lego/conceal_ours_robust_clip_dec03_clip_w16", "recommended"),

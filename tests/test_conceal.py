@@ -162,6 +162,7 @@ def joint_run(tiny, tmp_path_factory):
   return conceal_train.train_and_evaluate(tiny_config(tiny, iterations=20), str(folder)), folder
 
 
+@pytest.mark.slow  # two runs of 40 steps; no recipe polishes (conceal.decoder_opt.polish_steps is 0 in each)
 def test_decoder_polish_trains_the_decoder_alone_and_resumes_across_phases(tiny, joint_run, tmp_path):
   joint, joint_dir = joint_run
   config = tiny_config(tiny, iterations=20, decoder_polish_steps=20)
