@@ -286,8 +286,28 @@ def test_colmap_opencv_camera_is_undistorted(tmp_path, downscale, tolerance):
 def test_colmap_image_size_mismatch_names_the_image(tmp_path):
   root = _write_colmap_text(tmp_path, "PINHOLE 16 12 20 20 8 6", ["a.png", "b.png"], (16, 12))
   _write_png(root / "images" / "b.png", _gradient(12, 15))
-  with pytest.raises(DatasetError, match=r"b\.png is 15x12 .*cameras\.txt is 16x12"):
+  with pytest.raises(DatasetError, match=r"b\.png is 15x12, not a downscaled copy of the 16x12 .*cameras\.txt"):
     datasets.load_colmap(root)
+
+
+def test_colmap_downscaled_copies_resize_the_cameras(tmp_path):
+  """images_2 as Inria's convert.py writes it: the cameras follow each copy's size, whatever the folder name."""
+  names = ["a.png", "b.png"]
+  root = _write_colmap_text(tmp_path, "PINHOLE 16 12 20 21 8.5 6.5", names, (16, 12))
+  for i, name in enumerate(names):
+    _write_png(root / "images_2" / name, _gradient(6, 8, seed=i))
+  full = datasets.load_scene(root, test_every=0).train_cameras[1]
+  for downscale, size in ((1, 2), (2, 4)):
+    scene = datasets.load_scene(root, downscale, images="images_2", test_every=0)
+    camera = scene.train_cameras[1]
+    assert (camera.width, camera.height) == (16 // size, 12 // size)
+    np.testing.assert_allclose([float(v) for v in (camera.fx, camera.fy, camera.cx, camera.cy)],
+                               np.array([20, 21, 8.5, 6.5]) / size, rtol=1e-6)
+    np.testing.assert_array_equal(np.asarray(camera.world_to_camera), np.asarray(full.world_to_camera))
+    assert scene.train_images[1].shape == (12 // size, 16 // size, 3)
+  _write_png(root / "images_2" / "b.png", _gradient(3, 8))
+  with pytest.raises(DatasetError, match=r"b\.png is 8x3, not a downscaled copy of the 16x12"):
+    datasets.load_scene(root, images="images_2")
 
 
 def test_colmap_unsupported_and_unknown_camera_models(tmp_path):
@@ -410,6 +430,31 @@ def test_load_scene_detects_the_format(tmp_path):
     datasets.load_scene(tmp_path / "empty")
   with pytest.raises(DatasetError, match="root"):
     datasets.load_scene("blender")
+
+
+def test_a_format_is_complete_only_with_every_file_its_loader_reads(tmp_path):
+  blender = _write_blender(tmp_path / "b")
+  colmap = _write_colmap_text(tmp_path / "c", "PINHOLE 8 6 9 9 4 3", ["a.png"], (8, 6))
+  transforms = _write_transforms(tmp_path / "t", {"fl_x": 10.0}, _frames(["a.png"]), {"a.png": _gradient(6, 8)})
+  assert datasets.format_check(blender, "blender").complete
+  assert datasets.format_check(colmap, "colmap") == (True, "a COLMAP model in sparse/0 (cameras, images, "
+                                                         "points3D), images in images/")
+  (blender / "transforms_test.json").unlink()
+  assert datasets.format_check(blender, "blender") == (False, "no transforms_test.json")
+  (colmap / "images").rename(colmap / "images_2")
+  assert datasets.format_check(colmap, "colmap").reason.endswith("but no images folder images/")
+  assert datasets.detect_format(colmap, images="images_2") == "colmap"
+  with pytest.raises(DatasetError, match=r"colmap: [^;]*no images folder images/;.* holding images: images_2/$"):
+    datasets.load_scene(colmap)
+  # A json that names each image leaves nothing for an images folder to choose.
+  check = datasets.format_check(transforms, "transforms", images="images_2")
+  assert check == (False, "the images are named in transforms.json, so the images folder 'images_2' does not apply")
+  with pytest.raises(DatasetError, match="the images folder 'images_2' does not apply"):
+    datasets.load_scene(transforms, images="images_2")
+  with pytest.raises(DatasetError, match="also given the format 'llff'"):
+    datasets.load_scene("colmap", root=colmap, data_format="llff")
+  with pytest.raises(DatasetError, match="unknown scene format 'nerf'"):
+    datasets.load_scene(colmap, data_format="nerf")
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -1,15 +1,20 @@
-"""LLFF loader: a tiny self-made forward-facing capture (poses_bounds.npy, images/, images_2/), and the
-real capture under ../shared/data when present (skipped otherwise)."""
+"""LLFF loader: a tiny self-made forward-facing capture (poses_bounds.npy, images/, images_2/), the layout
+LLFF captures are shared in (images_8/ only, a partial COLMAP model) through data.format and data.images, and
+the real capture under ../shared/data when present (skipped otherwise)."""
+
+import logging
+import re
 
 import imageio.v3 as iio
 import numpy as np
 import pytest
 
+from conceal_jax.configs import colmap as colmap_config
 from conceal_jax.configs import default
 from conceal_jax.data import datasets
 from conceal_jax.data.datasets import DatasetError
 from conceal_jax.data.llff import llff_bounds_box, load_llff
-from conceal_jax.gs import train
+from conceal_jax.gs import evaluate, train
 from conceal_jax.splat.camera import camera_centers, look_at
 from tests.helpers import DATA_DIR
 
@@ -148,12 +153,16 @@ def test_random_init_fills_the_bounds_box(llff_root):
   np.testing.assert_allclose(means.max(0), hi, atol=0.1 * np.max(hi - lo))
 
 
-def test_detect_format_prefers_a_colmap_model(llff_root):
+def test_detect_format_prefers_a_complete_colmap_model(llff_root):
   assert datasets.detect_format(llff_root) == "llff"
   assert datasets.load_scene(llff_root, downscale=2).train_images[0].shape == (HEIGHT // 2, WIDTH // 2, 3)
   assert datasets.load_scene("llff", root=llff_root, test_every=0).test_images == []
-  (llff_root / "sparse" / "0").mkdir(parents=True)
-  (llff_root / "sparse" / "0" / "cameras.txt").write_text("")
+  sparse = llff_root / "sparse" / "0"
+  sparse.mkdir(parents=True)
+  (sparse / "cameras.txt").write_text("")
+  assert datasets.detect_format(llff_root) == "llff"  # a partial model is passed over
+  (sparse / "images.txt").write_text("")
+  (sparse / "points3D.txt").write_text("")
   assert datasets.detect_format(llff_root) == "colmap"
 
 
@@ -195,6 +204,93 @@ def test_image_of_another_aspect_ratio_names_the_image(llff_root):
   iio.imwrite(llff_root / "images_2" / "004.png", np.zeros((HEIGHT // 2, WIDTH // 2 + 2, 3), np.uint8))
   with pytest.raises(DatasetError, match=r"004.png is 10x6, not a downscaled copy .* row 4"):
     load_llff(llff_root, images_dir="images_2")
+
+
+# ---------------------------------------------------------------------------------------------------
+# The layout LLFF captures are commonly shared in, through the config keys data.format and data.images
+
+
+@pytest.fixture
+def shared_llff(tmp_path):
+  """poses_bounds.npy, only images_8/ and a partial COLMAP model: sparse/cameras.bin and points3D.bin, no
+  images.bin. The copies are half size (the loader reads the size, not the folder name)."""
+  root = tmp_path / "shared"
+  _write_images(root / "images_8", HEIGHT // 2, WIDTH // 2)
+  np.save(root / "poses_bounds.npy", np.stack([_llff_row(i) for i in range(COUNT)]))
+  (root / "sparse").mkdir()
+  for name in ("cameras.bin", "points3D.bin"):
+    (root / "sparse" / name).write_bytes(b"\0" * 8)  # detection reads no model file
+  return root
+
+
+def _config(root, **data):
+  config = default.get_config()
+  config.data.path = str(root)
+  for key, value in data.items():
+    setattr(config.data, key, value)
+  return config
+
+
+def test_shared_layout_loads_as_llff_from_the_folder_named(shared_llff, caplog):
+  caplog.set_level(logging.INFO, logger="absl")
+  scene = evaluate.load_scene_data(_config(shared_llff, images="images_8"))
+  camera = scene.train_cameras[0]
+  assert (camera.width, camera.height) == (WIDTH // 2, HEIGHT // 2)
+  np.testing.assert_allclose(float(camera.fx), _focal(1) / 2, rtol=1e-6)
+  log = caplog.text
+  assert "not colmap: the COLMAP model in sparse has no images.bin or .txt" in log
+  assert "loading as llff (the first complete format of blender, colmap, transforms, llff)" in log
+  assert "images in images_8/" in log
+
+
+def test_a_missing_images_folder_is_one_error_listing_the_folders_there(shared_llff):
+  with pytest.raises(DatasetError) as info:
+    evaluate.load_scene_data(_config(shared_llff))
+  message = str(info.value)
+  assert "holds no complete scene format" in message
+  assert "colmap: the COLMAP model in sparse has no images.bin or .txt" in message
+  assert "llff: poses_bounds.npy, but no images folder images/" in message
+  assert message.endswith("Folders holding images: images_8/")
+
+
+def test_a_named_format_is_checked_and_used(shared_llff, llff_root):
+  with pytest.raises(DatasetError, match=r"is not a complete colmap scene: colmap: .* no images\.bin"):
+    evaluate.load_scene_data(_config(shared_llff, format="colmap", images="images_8"))
+  with pytest.raises(DatasetError, match="blender: no transforms_train.json"):
+    evaluate.load_scene_data(_config(llff_root, format="blender"))
+  sparse = llff_root / "sparse" / "0"  # a complete model (detection picks it), passed over by the name
+  sparse.mkdir(parents=True)
+  for stem in ("cameras", "images", "points3D"):
+    (sparse / f"{stem}.txt").write_text("")
+  assert datasets.detect_format(llff_root) == "colmap"
+  assert len(evaluate.load_scene_data(_config(llff_root, format="llff")).test_images) == 2
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("format", "nerf", "data.format must be one of auto, blender, colmap, transforms, llff, got 'nerf'"),
+    ("images", "", "data.images must be a folder name"),
+    ("images", "../images", "data.images must be a folder inside the scene folder"),
+    ("images", "/data/images", "data.images must be a folder inside the scene folder")])
+def test_bad_data_keys_are_named(key, value, message):
+  config = _config("demo", **{key: value})
+  for call in (evaluate.validate, evaluate.load_scene_data):
+    with pytest.raises(ValueError, match=re.escape(message)):
+      call(config)
+
+
+def test_points_init_on_a_capture_without_points_starts_in_its_bounds(shared_llff, caplog):
+  """configs/colmap.py asks for SfM points; an LLFF capture has none, so it starts randomly in the box
+  around its frustums, with a note."""
+  config = colmap_config.get_config()
+  config.data.path, config.data.images, config.data.downscale = str(shared_llff), "images_8", 1.0
+  config.init.num_random_points = 300
+  train.validate(config)
+  caplog.set_level(logging.WARNING, logger="absl")
+  means = np.asarray(train.initial_gaussians(config, evaluate.load_scene_data(config),
+                                             np.random.default_rng(0)).means)
+  lo, hi = datasets.llff_bounds_box(shared_llff)
+  assert means.shape == (300, 3) and np.all(means >= lo - 1e-6) and np.all(means <= hi + 1e-6)
+  assert "init.kind='points' but" in caplog.text and "has no point cloud" in caplog.text
 
 
 # ---------------------------------------------------------------------------------------------------

@@ -68,6 +68,10 @@ def data_section() -> ml_collections.ConfigDict:
   c = ml_collections.ConfigDict()
   # 'demo' (generated, cached) or a Blender / COLMAP / transforms.json / LLFF folder
   c.path = "demo"
+  # 'auto' (the first complete one of blender, colmap, transforms, llff; the choice is logged) or one of those
+  c.format = "auto"
+  # COLMAP and LLFF: the images folder in data.path, e.g. 'images_4' (downscaled copies; cameras follow them)
+  c.images = "images"
   c.downscale = 1.0        # image resolution divisor
   c.background = "default"  # 'white', 'black' or 'default' (white for Blender, black otherwise)
   return c
@@ -76,7 +80,9 @@ def data_section() -> ml_collections.ConfigDict:
 def init_section() -> ml_collections.ConfigDict:
   """Train mode: where the Gaussians start."""
   c = ml_collections.ConfigDict()
-  c.kind = "auto"          # 'auto', 'points' (SfM / point file), 'random' (box) or 'ply'
+  # 'points' (SfM / point file; a capture without any starts as 'random', with a logged note), 'auto' (the
+  # same, without the note), 'random' (box) or 'ply'
+  c.kind = "auto"
   c.ply = ""               # init.kind='ply': a trained 3D-GS .ply to train further (fine-tuning)
   c.num_random_points = 100_000
   c.box_half_extent = 1.3

@@ -1,5 +1,5 @@
-"""COLMAP scenes: a sparse model (binary or text, read with pycolmap) and its images; every 8th image
-is held out, as 3D-GS does."""
+"""COLMAP scenes: a sparse model (binary or text, read with pycolmap) and its images, at full size or as a
+downscaled copy (images_2, images_4, ...); every 8th image is held out, as 3D-GS does."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -23,19 +23,26 @@ _COLMAP_MODELS: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "OPENCV": (("fx", "fy", "cx", "cy"), ("k1", "k2", "p1", "p2")),
     "FULL_OPENCV": (("fx", "fy", "cx", "cy"), ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")),
 }
+# The files of a model, each as .bin or .txt; pycolmap reads a model only when all three are there.
+MODEL_FILES = ("cameras", "images", "points3D")
 
 
 def load_colmap(root: PathLike, downscale: float = 1, background: Sequence[float] = BLACK,
                 images_dir: str = "images", test_every: int = 8) -> SceneData:
   """COLMAP scene: root/sparse/0 (or root/sparse) binary or text model, images in root/images_dir.
 
-  Images sorted by name; every `test_every`-th (index % test_every == 0) is a test image, as 3D-GS
-  (0 puts every image in training). Distorted cameras are resampled to pinhole.
+  images_dir may hold downscaled copies (Inria 3D-GS's convert.py writes images_2, _4, _8): each camera
+  is resized to its image's actual size (`frames.downscaled_copy_size`). Images sorted by name; every
+  `test_every`-th (index % test_every == 0) is a test image, as 3D-GS (0 puts every image in training).
+  Distorted cameras are resampled to pinhole.
   """
   root = Path(root)
   frames_lib.require_dir(root, "COLMAP scene")
   background = frames_lib.check_background(background)
-  sparse = _colmap_sparse_dir(root)
+  sparse = model_dir(root)
+  if sparse is None:
+    raise DatasetError(f"no COLMAP model (cameras.bin or cameras.txt) in {root / 'sparse' / '0'} "
+                       f"or {root / 'sparse'}")
   frames_lib.require_dir(root / images_dir, "COLMAP images")
   reconstruction = _read_colmap(sparse)
   cameras_file = _colmap_file(sparse, "cameras")
@@ -49,12 +56,18 @@ def load_colmap(root: PathLike, downscale: float = 1, background: Sequence[float
                                     points, colors)
 
 
-def _colmap_sparse_dir(root: Path) -> Path:
+def model_dir(root: Path) -> Path | None:
+  """The model folder: root/sparse/0, else root/sparse, whichever first holds cameras.bin or .txt (None:
+  neither)."""
   for folder in (root / "sparse" / "0", root / "sparse"):
-    if any((folder / f"cameras{ext}").is_file() for ext in (".bin", ".txt")):
+    if _colmap_file(folder, "cameras").is_file():
       return folder
-  raise DatasetError(f"no COLMAP model (cameras.bin or cameras.txt) in {root / 'sparse' / '0'} "
-                     f"or {root / 'sparse'}")
+  return None
+
+
+def missing_model_files(sparse: Path) -> list[str]:
+  """The MODEL_FILES stems that `sparse` has neither as .bin nor as .txt."""
+  return [stem for stem in MODEL_FILES if not _colmap_file(sparse, stem).is_file()]
 
 
 def _colmap_file(sparse: Path, stem: str) -> Path:
@@ -64,9 +77,9 @@ def _colmap_file(sparse: Path, stem: str) -> Path:
 
 def _read_colmap(sparse: Path):
   import pycolmap
-  for stem in ("cameras", "images", "points3D"):
-    if not _colmap_file(sparse, stem).is_file():
-      raise DatasetError(f"COLMAP model file not found: {sparse / stem}.bin (or .txt)")
+  missing = missing_model_files(sparse)
+  if missing:
+    raise DatasetError(f"COLMAP model file not found: {sparse / missing[0]}.bin (or .txt)")
   try:
     return pycolmap.Reconstruction(str(sparse))
   except Exception as e:  # pycolmap reports malformed files as ValueError or RuntimeError
@@ -79,7 +92,11 @@ def _colmap_frame(images_dir: Path, cameras_file: Path, image, colmap_camera) ->
   w2c = np.eye(4)
   w2c[:3] = np.asarray(pose.matrix(), np.float64)
   camera, distortion = _colmap_camera(colmap_camera, image.camera_id, cameras_file, w2c)
-  return Frame(images_dir / image.name, cameras_file, camera, distortion, image.name)
+  path = images_dir / image.name
+  size = frames_lib.downscaled_copy_size(path, (camera.width, camera.height),
+                                         f"camera {image.camera_id} in {cameras_file}")
+  # Lens distortion is in normalised image coordinates, so it holds for the resized camera unchanged.
+  return Frame(path, cameras_file, camera.resized(*size), distortion, image.name)
 
 
 def _colmap_camera(colmap_camera, camera_id: int, source: Path,

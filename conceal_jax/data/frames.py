@@ -20,6 +20,11 @@ from conceal_jax.splat.camera import Camera
 
 # Image decoding releases the GIL, so a few threads hide most of the file and PNG/JPEG cost.
 _MAX_IO_THREADS = 8
+# Image files found by folder (LLFF, and the folders an error lists): NeRF's load_llff_data reads JPG, jpg and
+# png; JPEG spellings cost nothing to accept as well. Compared in lower case.
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+# Downscaled copies (images_4, ...) are resized with whole-pixel sizes (LLFF's minify uses ImageMagick).
+_SIZE_TOLERANCE_PX = 1.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -96,6 +101,35 @@ def check_background(background: Sequence[float]) -> Color:
 def require_dir(path: Path, what: str) -> None:
   if not path.is_dir():
     raise DatasetError(f"{what} folder not found: {path}")
+
+
+def image_folders(root: Path) -> list[str]:
+  """Names of the folders directly in `root` that hold at least one image file, sorted: what an error about a
+  missing images folder offers instead."""
+  return sorted(child.name for child in root.iterdir()
+                if child.is_dir() and not child.name.startswith(".") and _holds_images(child))
+
+
+def _holds_images(folder: Path) -> bool:
+  return any(p.suffix.lower() in IMAGE_SUFFIXES and p.is_file() for p in folder.iterdir())
+
+
+def downscaled_copy_size(path: Path, full_size: tuple[float, float], what: str) -> tuple[int, int]:
+  """(width, height) of the image at `path`: `full_size` (width, height) itself, or a copy smaller on both
+  sides by one factor up to whole-pixel rounding, as folders such as images_4 hold. The folder name is
+  never trusted; the intrinsics follow the actual size. DatasetError naming the image and `what` (where
+  the full size comes from) otherwise."""
+  actual_width, actual_height = image_size(path)
+  width, height = full_size
+  same = (actual_width, actual_height) == (width, height)
+  smaller = actual_width < width and actual_height < height
+  # One factor must explain both sides: each side predicted from the other's factor.
+  consistent = (abs(width * actual_height / height - actual_width) <= _SIZE_TOLERANCE_PX
+                and abs(height * actual_width / width - actual_height) <= _SIZE_TOLERANCE_PX)
+  if not (same or (smaller and consistent)):
+    raise DatasetError(f"image {path} is {actual_width}x{actual_height}, not a downscaled copy of the "
+                       f"{width:g}x{height:g} (width x height) of {what}")
+  return actual_width, actual_height
 
 
 def read_json(path: Path) -> Any:

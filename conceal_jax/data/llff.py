@@ -22,10 +22,6 @@ from conceal_jax.data.scene import BLACK, DatasetError, PathLike, SceneData
 from conceal_jax.splat.camera import Camera
 
 POSES_FILE = "poses_bounds.npy"
-# NeRF's load_llff_data reads JPG, jpg and png; JPEG spellings cost nothing to accept as well.
-_IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
-# LLFF's minify resizes with ImageMagick, which rounds sizes to whole pixels.
-_SIZE_TOLERANCE_PX = 1.0
 _ROTATION_TOLERANCE = 1e-3
 
 
@@ -90,7 +86,7 @@ def _check_pose(pose: np.ndarray, source: Path, index: int) -> None:
 def llff_image_paths(folder: Path) -> list[Path]:
   """Image files of `folder` in sorted name order, the order LLFF wrote the poses in."""
   return sorted((p for p in folder.iterdir()
-                 if p.suffix.lower() in _IMAGE_SUFFIXES and not p.name.startswith(".") and p.is_file()),
+                 if p.suffix.lower() in frames_lib.IMAGE_SUFFIXES and not p.name.startswith(".") and p.is_file()),
                 key=lambda p: p.name)
 
 
@@ -104,13 +100,8 @@ def llff_opengl_camera_to_world(pose: np.ndarray) -> np.ndarray:
 
 def _llff_frame(path: Path, source: Path, index: int, pose: np.ndarray) -> Frame:
   height, width, focal = pose[:, 4]
-  actual_width, actual_height = frames_lib.image_size(path)
+  actual_width, actual_height = frames_lib.downscaled_copy_size(path, (width, height), f"row {index} in {source}")
   scale_x, scale_y = actual_width / width, actual_height / height
-  # One factor must explain both sides, up to the pixel rounding of the downscaled copy.
-  if (abs(width * scale_y - actual_width) > _SIZE_TOLERANCE_PX
-      or abs(height * scale_x - actual_height) > _SIZE_TOLERANCE_PX):
-    raise DatasetError(f"image {path} is {actual_width}x{actual_height}, not a downscaled copy of the "
-                       f"{width:g}x{height:g} (width x height) of row {index} in {source}")
   # LLFF (and NeRF) assume a centred principal point and square pixels at full resolution.
   camera = Camera.from_opengl_camera_to_world(llff_opengl_camera_to_world(pose), focal * scale_x,
                                               focal * scale_y, actual_width / 2, actual_height / 2,

@@ -36,6 +36,7 @@ def validate(config: ml_collections.ConfigDict) -> None:
     raise ValueError(f"data.background must be one of {sorted(BACKGROUNDS)}, got {config.data.background!r}")
   if not (isinstance(config.data.downscale, (int, float)) and config.data.downscale > 0):
     raise ValueError(f"data.downscale must be a positive number, got {config.data.downscale!r}")
+  scene_format(config)
   render_options(config)
   if config.eval.max_views < 0:
     raise ValueError(f"eval.max_views must be >= 0, got {config.eval.max_views}")
@@ -43,8 +44,21 @@ def validate(config: ml_collections.ConfigDict) -> None:
 
 
 def load_scene_data(config: ml_collections.ConfigDict) -> datasets.SceneData:
-  """The dataset of `config.data`: path ('demo' or a folder), downscale, background name."""
-  return datasets.load_scene(config.data.path, config.data.downscale, BACKGROUNDS[config.data.background])
+  """The dataset of `config.data`: path ('demo' or a folder), format, images folder, downscale, background
+  name."""
+  return datasets.load_scene(config.data.path, config.data.downscale, BACKGROUNDS[config.data.background],
+                             **scene_format(config))
+
+
+def scene_format(config: ml_collections.ConfigDict) -> dict:
+  """load_scene's data_format and images from data.format and data.images; ValueError naming the key."""
+  choices = (datasets.AUTO, *datasets.FORMATS)
+  if config.data.format not in choices:
+    raise ValueError(f"data.format must be one of {', '.join(choices)}, got {config.data.format!r}")
+  problem = datasets.images_folder_problem(config.data.images)
+  if problem:
+    raise ValueError(f"data.images {problem}")
+  return dict(data_format=config.data.format, images=config.data.images)
 
 
 def render_options(config: ml_collections.ConfigDict, background=None) -> RenderOptions:

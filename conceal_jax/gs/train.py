@@ -124,7 +124,8 @@ def loop_settings(config: ml_collections.ConfigDict) -> loop.LoopSettings:
 
 def initial_gaussians(config: ml_collections.ConfigDict, scene, rng: np.random.Generator) -> Gaussians:
   """init.kind 'points' (SfM / point file), 'random' (uniform in a box), 'auto' (points when the
-  dataset has them) or 'ply' (a trained scene, init.ply, to train further: fine-tuning). The box is the
+  dataset has them) or 'ply' (a trained scene, init.ply, to train further: fine-tuning). 'points' on a
+  capture without points starts randomly, with a logged note: the capture still trains. The box is the
   cube of half extent init.box_half_extent (synthetic scenes), or for an LLFF capture the box around its
   cameras' near..far frustums."""
   kind = config.init.kind
@@ -134,10 +135,12 @@ def initial_gaussians(config: ml_collections.ConfigDict, scene, rng: np.random.G
     except ValueError as error:
       raise ValueError(f"init.ply {config.init.ply}: {error} (train.sh_degree)") from error
   if kind == "points" and scene.points is None:
-    raise ValueError("init.kind='points' but the dataset has no point cloud")
-  if kind == "random" or (kind == "auto" and scene.points is None):
+    logging.warning("init.kind='points' but %s has no point cloud: starting from %d random points, as "
+                    "init.kind='random' does", config.data.path, config.init.num_random_points)
+  if kind == "random" or scene.points is None:
     box = (config.init.box_half_extent,)
-    if config.data.path != "demo" and datasets.detect_format(config.data.path) == "llff":
+    if (config.data.path != "demo"
+        and datasets.choose_format(config.data.path, **evaluate.scene_format(config)).kind == "llff"):
       box = datasets.llff_bounds_box(config.data.path)
     points, colors = init.random_box_points(rng, config.init.num_random_points, *box)
   else:
