@@ -7,6 +7,11 @@ holding the raw (pre-activation) parameters: opacity as a logit, scale as a log,
 (w, x, y, z).
 f_rest is channel-major: all higher-order coefficients of R, then those of G, then those of B. The
 normals are unused by 3D-GS and written as zeros.
+
+The other trainers' exports read the same way, as properties are found by name, not position: gsplat's
+exporter writes the same properties without the normals, nerfstudio's splatfacto export (ns-export
+gaussian-splat) writes Inria's layout, or with ply_color_mode='rgb' 8-bit red, green, blue in place of the
+SH (read as degree-0 colours). Unknown extra properties are ignored.
 """
 from __future__ import annotations
 
@@ -21,6 +26,7 @@ import plyfile
 
 from conceal_jax.core.fileio import atomic_path
 from conceal_jax.splat.gaussians import Gaussians
+from conceal_jax.splat.sh import rgb_to_sh_dc
 
 _POSITION = ("x", "y", "z")
 _NORMAL = ("nx", "ny", "nz")
@@ -28,7 +34,7 @@ _DC = ("f_dc_0", "f_dc_1", "f_dc_2")
 _OPACITY = ("opacity",)
 _SCALE = ("scale_0", "scale_1", "scale_2")
 _ROTATION = ("rot_0", "rot_1", "rot_2", "rot_3")
-_REQUIRED = _POSITION + _DC + _OPACITY + _SCALE + _ROTATION
+_RGB = ("red", "green", "blue")
 _REST_PATTERN = re.compile(r"f_rest_(\d+)")
 # Properties of the PlayCanvas/SuperSplat compressed ply, whose quantised chunks need decoding first.
 _COMPRESSED_MARKERS = ("packed_position", "packed_rotation", "packed_scale", "packed_color")
@@ -89,10 +95,12 @@ def save_ply(path: str | os.PathLike, gaussians: Gaussians) -> None:
 def load_ply(path: str | os.PathLike) -> Gaussians:
   """Reads any standard 3D-GS ply (SH degree inferred from the f_rest count) into float32 Gaussians.
 
-  Infinite opacity logits (opacities of exactly 0 or 1) are clipped to +-OPACITY_LOGIT_LIMIT with a
-  PlyWarning that says how many. Raises PlyError, naming the file, when it is missing, is not a
-  well-formed ply, is a compressed ply, lacks a required property, has an f_rest count that is no SH
-  degree, or holds any other non-finite value (NaN anywhere, an infinity outside the opacities).
+  A file without f_dc but with red, green, blue (nerfstudio's rgb export) gets the DC coefficient of
+  those colours (integers scaled by their type's maximum, floats taken as [0, 1]). Infinite opacity
+  logits (opacities of exactly 0 or 1) are clipped to +-OPACITY_LOGIT_LIMIT with a PlyWarning that says
+  how many. Raises PlyError, naming the file, when it is missing, is not a well-formed ply, is a
+  compressed ply, lacks a required property, has an f_rest count that is no SH degree, or holds any
+  other non-finite value (NaN anywhere, an infinity outside the opacities).
   """
   path = os.fspath(path)
   vertices = _read_vertices(path)
@@ -100,11 +108,13 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
   if any(name in names for name in _COMPRESSED_MARKERS):
     raise PlyError(f"{path}: a compressed ply (packed_* properties); decompress it first, e.g. with "
                    "splat-transform (conceal_jax.robust.converter)")
-  missing = [name for name in _REQUIRED if name not in names]
+  colour = _colour_fields(names)
+  required = _POSITION + colour + _OPACITY + _SCALE + _ROTATION
+  missing = [name for name in required if name not in names]
   if missing:
     raise PlyError(f"{path}: missing vertex properties {', '.join(missing)}")
   sh_degree = _sh_degree_from_rest(path, names)
-  used = _REQUIRED + tuple(rest_names(sh_degree))
+  used = required + tuple(rest_names(sh_degree))
   non_numeric = [name for name in used if vertices.dtype[name].kind not in "fiu"]
   if non_numeric:
     raise PlyError(f"{path}: vertex properties {', '.join(non_numeric)} are not scalars")
@@ -123,10 +133,24 @@ def load_ply(path: str | os.PathLike) -> Gaussians:
     return np.stack([values[name] for name in fields], axis=1) if fields else np.zeros((n, 0), np.float32)
 
   rest = columns(rest_names(sh_degree)).reshape(n, 3, (sh_degree + 1)**2 - 1)
-  sh = np.concatenate([columns(_DC)[:, None, :], np.transpose(rest, (0, 2, 1))], axis=1)
+  dc = columns(_DC) if colour == _DC else _dc_of_colours(columns(_RGB), vertices.dtype["red"])
+  sh = np.concatenate([dc[:, None, :], np.transpose(rest, (0, 2, 1))], axis=1)
   return Gaussians(means=jnp.asarray(columns(_POSITION)), log_scales=jnp.asarray(columns(_SCALE)),
                    quats=jnp.asarray(columns(_ROTATION)), opacity_logits=jnp.asarray(values["opacity"]),
                    sh=jnp.asarray(sh))
+
+
+def _colour_fields(names: tuple[str, ...]) -> tuple[str, ...]:
+  """Where the DC colour comes from: f_dc_0..2, or red, green, blue in a file with no f_dc at all."""
+  if not any(name in names for name in _DC) and all(name in names for name in _RGB):
+    return _RGB
+  return _DC
+
+
+def _dc_of_colours(rgb: np.ndarray, dtype: np.dtype) -> np.ndarray:
+  """[N, 3] SH DC coefficients rendering as the colours `rgb` ([N, 3], stored as `dtype`)."""
+  scale = np.iinfo(dtype).max if dtype.kind in "iu" else 1.0
+  return np.asarray(rgb_to_sh_dc(rgb / np.float32(scale)), np.float32)
 
 
 def _read_vertices(path: str) -> np.ndarray:

@@ -46,7 +46,8 @@ _capacity_cache: dict = {}
 class RenderOptions:
   """Static rendering options (hashable; a change retraces `render`).
 
-  sh_degree: SH bands to evaluate, 0..3; None uses every band the scene stores.
+  sh_degree: SH bands to evaluate, 0..3; None uses every band the scene stores, and so does a scene storing
+    fewer (a degree-1 file under a degree-3 config renders at degree 1: its missing bands would add zero).
   background: RGB composited behind the splats, weighted by the final transmittance.
   tile_size: square tile edge in pixels.
   max_per_tile: None (default): exact, every splat 3D-GS composites. An int K is an APPROXIMATION: each
@@ -191,7 +192,7 @@ def _concrete_max(x: jax.Array) -> int | None:
 @functools.partial(jax.jit, static_argnames=("options",))
 def _render(gaussians: Gaussians, camera: Camera, options: RenderOptions,
             means2d_offset: jax.Array | None = None) -> RenderOutput:
-  degree = gaussians.sh_degree if options.sh_degree is None else options.sh_degree
+  degree = gaussians.sh_degree if options.sh_degree is None else min(options.sh_degree, gaussians.sh_degree)
   dtype = gaussians.means.dtype
   background = jnp.asarray(options.background, dtype)
   capacity = options.pair_capacity
