@@ -67,6 +67,20 @@ CONVERSIONS = ([("sog", None, dict(fmt="sog")), ("spz", None, dict(fmt="spz")),
                 ("compressed_ply", None, dict(fmt="compressed.ply"))]
                + [("decimate", k, dict(fmt="ply", decimate=k)) for k in (0.8, 0.5)]
                + [("sh_bands", d, dict(fmt="ply", sh_degree=d)) for d in (2, 1, 0)])
+# What each recipe label of the rows is (the survival designs of issue 39 beside the recommended recipe).
+RECIPE_NOTES = {
+    "recommended": "the mark in the teacher's Gaussians, refined (configs/demo.py; bench-conceal's recommended lego "
+                   "row)",
+    "film": "the carrier film: the key looks where no camera looks, one camera distance out from their orbit target, "
+            "and the film 0.1 camera distances before it; its base colours and opacities trained (demo.py:film, "
+            "lego_conceal.py:film)",
+    "film_far": "the film with the key half a camera distance out and the film as far again (demo.py:film_far)",
+    "film_far_sh": "film_far with the film's SH bands above DC trained too (demo.py:film at commit faa029a; retired: "
+                   "the mark went into those bands, which publishing formats drop or coarsen)",
+    "drift": "recommended, the check render drawn from students noised by up to 0.15 of each field's spread "
+             "(demo.py:drift)",
+    "orbit": "recommended with the key a secret pose on the training orbit (demo.py:orbit)",
+}
 CHEAP_ATTACKS = ("none", "transforms", "converter", "finetune", "finetune_densify")
 # the random similarity that moves the student before a round trip (scene_attacks.random_similarity)
 MOVED_MAX_SCALE, MOVED_SEED = 10.0, 7
@@ -302,7 +316,9 @@ def table(rows: list[dict]) -> str:
            "that of the moved variant. decided: SSIM at or above the threshold chosen from the calibration file "
            "(robust/ownership.py; make bench-robust's, measured on other runs' decoders). Fine-tuning: the run's "
            "own training recipe continued on its training views; finetune_densify densifies from that recipe's "
-           "densify.start, so its shorter rows equal finetune's.", "",
+           "densify.start, so its shorter rows equal finetune's.", "", "Recipes:", "",
+           *[f"- {name}: {note}" for name, note in RECIPE_NOTES.items()
+             if any(r["recipe"] == name for r in rows)], "",
            "| scene | recipe | attack | level | render PSNR | hidden PSNR | hidden SSIM | decided | unaligned SSIM "
            "| aligned SSIM | moved SSIM | registration |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|"]

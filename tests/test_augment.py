@@ -123,6 +123,31 @@ def test_perturb_gaussians_at_level_zero_is_the_identity_with_finite_gradients()
     np.testing.assert_array_equal(np.asarray(getattr(grads, name)), 1.0)
 
 
+def test_quantize_8bit_matches_the_spz_bytes_and_passes_gradients_through():
+  """Against a float64 encoder of .spz's bytes: the base colours and opacities land on its 8-bit grids, the
+  other fields stay, the gradient is the identity's; a step that does not quantize leaves the Gaussians."""
+  g = _random_gaussians(2000, seed=3)
+  q = augment.quantize_8bit(g)
+  dc = np.asarray(g.sh[:, 0], np.float64)
+  byte = np.clip(np.round(255 * (0.15 * dc + 0.5)), 0, 255)
+  np.testing.assert_allclose(np.asarray(q.sh[:, 0]), (byte / 255 - 0.5) / 0.15, atol=1e-5)
+  opacity = np.clip(np.round(255 / (1 + np.exp(-np.asarray(g.opacity_logits, np.float64)))), 0.5, 254.5) / 255
+  np.testing.assert_allclose(np.asarray(jax.nn.sigmoid(q.opacity_logits)), opacity, atol=1e-6)
+  np.testing.assert_array_equal(np.asarray(q.sh[:, 1:]), np.asarray(g.sh[:, 1:]))
+  np.testing.assert_array_equal(np.asarray(q.means), np.asarray(g.means))
+  grads = jax.grad(lambda gs: sum(jnp.sum(x) for x in jax.tree.leaves(augment.quantize_8bit(gs))))(g)
+  assert all(np.all(np.asarray(x) == 1.0) for x in jax.tree.leaves(grads))
+  a = augment.Augmentation(quantize_fraction=0.5)
+  draws = [augment.draw(np.random.default_rng(i), a)["quantize"] for i in range(400)]
+  assert set(draws) == {0.0, 1.0} and abs(np.mean(draws) - 0.5) < 0.1
+  drawn = dict(augment.draw(np.random.default_rng(0), a), quantize=np.float32(0.0))
+  for x, y in zip(jax.tree.leaves(augment.perturb_gaussians(g, drawn, a)), jax.tree.leaves(g)):
+    np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+  drawn["quantize"] = np.float32(1.0)
+  for x, y in zip(jax.tree.leaves(augment.perturb_gaussians(g, drawn, a)), jax.tree.leaves(q)):
+    np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
 @pytest.mark.slow
 def test_conceal_trains_through_distortions_in_one_trace(tiny, tmp_path):  # noqa: F811
   maxima = dict(blur_max=1.0, noise_max=0.02, dropout_max=0.2, param_noise_max=0.02, brightness_max=0.1,

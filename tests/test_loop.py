@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 from flax import struct
@@ -69,6 +70,12 @@ def test_step_devices_name_each_machine_that_ran_steps_once(tmp_path, monkeypatc
 def test_non_finite_stats_stop_the_run_naming_the_step(tmp_path):
   with pytest.raises(FloatingPointError, match="toy diverged at step 3"):
     _run(tmp_path, loop.TraceCounter(), blow_up_at=2)
+
+
+def test_a_psnr_of_plus_inf_is_an_identical_render_not_a_divergence():
+  assert not loop.diverged(dict(loss=0.1, psnr=np.inf))
+  assert loop.diverged(dict(loss=0.1, psnr=np.nan)) and loop.diverged(dict(loss=0.1, psnr=-np.inf))
+  assert loop.diverged(dict(loss=np.inf, psnr=30.0)) and loop.diverged(dict(loss=np.nan))
 
 
 def test_bad_loop_settings_are_rejected():

@@ -17,7 +17,10 @@ quantisation) change the scene rather than its image. With conceal.attacks.dropo
 check render is made from a perturbed student (`perturb_gaussians`): each Gaussian dropped with a probability
 drawn from [0, dropout_max], and every stored parameter moved by normal noise of a relative level drawn from
 [0, param_noise_max], the relative noise of model_attacks.parameter_noise. A decoder taught to read perturbed
-check renders also reads near-key views of the student more readily.
+check renders also reads near-key views of the student more readily. With conceal.attacks.quantize_fraction, that
+share of the steps renders the check view from the student's base colours and opacities rounded to 8 bits as
+.spz stores them, the coarsest grid of the publishing formats (`quantize_8bit`; the gradient passes the rounding
+straight through), so that a mark carried by colours survives the round trip.
 
 The recommended recipe (configs/recipes.through_attacks) trains through blur and noise only: what each
 distortion gained and cost is in experiments/results/conceal_options.md.
@@ -38,8 +41,10 @@ _MIN_SIGMA = 1e-3
 TRUNCATE = 4.0
 # A dropped Gaussian's opacity logit: sigmoid(-30) ~ 1e-13, far below any alpha the renderer composites.
 DROPPED_LOGIT = -30.0
+# .spz's 8-bit base colour: byte = round(255 (0.15 dc + 0.5)), the SH DC term scaled by this before the offset.
+SPZ_COLOR_SCALE = 0.15
 # An Augmentation field f is config key conceal.attacks.<f>; a contrast factor and a dropout probability stay below 1.
-UPPER_BOUNDS = dict(contrast_max=1.0, dropout_max=1.0)
+UPPER_BOUNDS = dict(contrast_max=1.0, dropout_max=1.0, quantize_fraction=1.0 + 1e-9)
 # Gaussians fields that parameter noise moves: all of them (robust.model_attacks.FIELDS).
 MODEL_FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 
@@ -84,6 +89,7 @@ class Augmentation:
   contrast_max: float = 0.0     # factor ~ 1 + U[-max, max]
   dropout_max: float = 0.0      # each Gaussian dropped with probability ~ U[0, max] (`perturb_gaussians`)
   param_noise_max: float = 0.0  # relative parameter noise ~ U[0, max]
+  quantize_fraction: float = 0.0  # the share of steps whose check render is of 8-bit colours and opacities
 
   def __post_init__(self):
     for f in dataclasses.fields(self):
@@ -99,7 +105,7 @@ class Augmentation:
   @property
   def perturbs_model(self) -> bool:
     """Whether a step renders the check view from a perturbed student (`perturb_gaussians`)."""
-    return self.dropout_max > 0 or self.param_noise_max > 0
+    return self.dropout_max > 0 or self.param_noise_max > 0 or self.quantize_fraction > 0
 
   @property
   def draws(self) -> bool:
@@ -123,17 +129,32 @@ def distort(image: jax.Array, distortion: dict | None, augmentation: Augmentatio
   return image
 
 
+def quantize_8bit(gaussians):
+  """Gaussians with their base colours (SH DC) and opacities on .spz's 8-bit grids (SPZ_COLOR_SCALE; opacity in
+  steps of 1/255), the rounding passed straight through by the gradient."""
+  straight_through = lambda x, rounded: x + jax.lax.stop_gradient(rounded - x)
+  dc = gaussians.sh[:, 0]
+  byte = jnp.clip(jnp.round(255.0 * (SPZ_COLOR_SCALE * dc + 0.5)), 0.0, 255.0)
+  dc_8bit = (byte / 255.0 - 0.5) / SPZ_COLOR_SCALE
+  opacity = jnp.clip(jnp.round(255.0 * jax.nn.sigmoid(gaussians.opacity_logits)), 0.5, 254.5) / 255.0
+  return gaussians.replace(sh=gaussians.sh.at[:, 0].set(straight_through(dc, dc_8bit)),
+                           opacity_logits=straight_through(gaussians.opacity_logits, jax.scipy.special.logit(opacity)))
+
+
 def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmentation):
   """Gaussians [N] as the check render sees them: every field of MODEL_FIELDS plus normal noise of
   distortion["param_noise"] times that field's per-channel standard deviation over the N Gaussians (a
   constant: the noise's scale is not trained), then each Gaussian dropped (opacity logit DROPPED_LOGIT, no
-  gradient) with probability distortion["dropout"]; drawn from the PRNG seed distortion["model_seed"]. The
-  noise or the dropout whose maximum in `augmentation` is 0 is left out at trace time (without either, the
-  Gaussians themselves, and `distortion` may be None); at level 0 either is the identity, values and
-  gradients."""
+  gradient) with probability distortion["dropout"]; drawn from the PRNG seed distortion["model_seed"]. First,
+  where distortion["quantize"] is 1, the 8-bit colours and opacities (`quantize_8bit`). A kind whose maximum in
+  `augmentation` is 0 is left out at trace time (without any, the Gaussians themselves, and `distortion` may be
+  None); at level 0 each is the identity, values and gradients."""
   a = augmentation
   if not a.perturbs_model:
     return gaussians
+  if a.quantize_fraction > 0:
+    quantized = quantize_8bit(gaussians)
+    gaussians = jax.tree.map(lambda q, x: jnp.where(distortion["quantize"] > 0, q, x), quantized, gaussians)
   noise_key, drop_key = jax.random.split(jax.random.key(distortion["model_seed"]))
   if a.param_noise_max > 0:
     keys = dict(zip(MODEL_FIELDS, jax.random.split(noise_key, len(MODEL_FIELDS))))
@@ -155,12 +176,16 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   """One step's distortion within `augmentation`'s maxima: blur sigma ~ U[0, blur_max], noise sigma
   ~ U[0, noise_max], a noise seed; of the model (`perturb_gaussians`) a dropout probability ~ U[0, dropout_max],
   a relative parameter noise ~ U[0, param_noise_max] and their seed; brightness ~ U[-brightness_max,
-  brightness_max] and contrast ~ 1 + U[-contrast_max, contrast_max]. Later kinds are drawn after earlier ones,
-  so a run without them sees the distortions it always did."""
+  brightness_max] and contrast ~ 1 + U[-contrast_max, contrast_max]; with quantize_fraction, whether the step
+  quantizes (1 with that probability). Later kinds are drawn after earlier ones, so a run without them sees the
+  distortions it always did."""
   a = augmentation
   image = dict(blur=np.float32(rng.uniform(0.0, a.blur_max)), noise=np.float32(rng.uniform(0.0, a.noise_max)),
                seed=np.uint32(rng.integers(2**32)))
   model = dict(dropout=np.float32(rng.uniform(0.0, a.dropout_max)),
                param_noise=np.float32(rng.uniform(0.0, a.param_noise_max)), model_seed=np.uint32(rng.integers(2**32)))
-  return dict(image, **model, brightness=np.float32(rng.uniform(-a.brightness_max, a.brightness_max)),
-              contrast=np.float32(1.0 + rng.uniform(-a.contrast_max, a.contrast_max)))
+  drawn = dict(image, **model, brightness=np.float32(rng.uniform(-a.brightness_max, a.brightness_max)),
+               contrast=np.float32(1.0 + rng.uniform(-a.contrast_max, a.contrast_max)))
+  if a.quantize_fraction > 0:
+    drawn["quantize"] = np.float32(rng.random() < a.quantize_fraction)
+  return drawn

@@ -240,9 +240,10 @@ def conceal_attacks_section() -> ml_collections.ConfigDict:
   """Training through attacks (beyond the paper, conceal/augment.py): per step the check render is read through a
   distortion drawn up to these maxima (blur sigma and noise sigma ~ U[0, max]; brightness ~ U[-max, max] and
   contrast ~ 1 + U[-max, max], applied first) and rendered from a perturbed student (each Gaussian dropped with a
-  probability ~ U[0, dropout_max], every parameter noised by ~ U[0, param_noise_max] times its spread), so that the
-  hidden image survives them; identity_distorted: L_d^- reads the student's normal render through the same image
-  distortion, so that F stays the identity on distorted views near the key."""
+  probability ~ U[0, dropout_max], every parameter noised by ~ U[0, param_noise_max] times its spread; on a
+  quantize_fraction share of the steps, its base colours and opacities rounded to 8 bits as .spz stores them), so
+  that the hidden image survives them; identity_distorted: L_d^- reads the student's normal render through the
+  same image distortion, so that F stays the identity on distorted views near the key."""
   c = ml_collections.ConfigDict()
   c.blur_max = 0.0
   c.noise_max = 0.0
@@ -250,6 +251,7 @@ def conceal_attacks_section() -> ml_collections.ConfigDict:
   c.contrast_max = 0.0
   c.dropout_max = 0.0
   c.param_noise_max = 0.0
+  c.quantize_fraction = 0.0
   c.identity_distorted = False
   return c
 

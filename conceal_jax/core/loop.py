@@ -82,6 +82,12 @@ class TraceCounter:
     return counted
 
 
+def diverged(stats: dict[str, float]) -> bool:
+  """Whether a window's stats show a diverged run: a NaN, or an infinite value other than a PSNR of +inf (a render
+  identical to its target, as a carrier film run's normal views are to the teacher's)."""
+  return any(np.isnan(v) or (np.isinf(v) and not (k == "psnr" and v > 0)) for k, v in stats.items())
+
+
 def run(name: str, settings: LoopSettings, workdir: str, *, init_state: Callable[[], State],
         restore_template: Callable[[dict], State], step: Callable[[State, int], tuple[State, dict]],
         after_window: Callable[[State, int], dict | None] | None = None,
@@ -126,7 +132,7 @@ def run(name: str, settings: LoopSettings, workdir: str, *, init_state: Callable
       continue
     stats = {k: float(v) for k, v in jax.device_get(stats).items()}  # waits for the window's steps
     windows.append((window_steps, time.perf_counter() - window_start))
-    if not all(np.isfinite(v) for v in stats.values()):
+    if diverged(stats):
       raise FloatingPointError(f"{name} diverged at step {iteration}: {stats}")
     # elapsed_s: step time so far (over resumes, without hooks and checkpoints), for accuracy-vs-time curves
     elapsed = float(sum(s for _, s in windows))
