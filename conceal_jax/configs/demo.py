@@ -13,7 +13,8 @@
 Its concealment is a short recommended recipe: leakage control (32 decoys), the gentle student and the
 narrow decoder at a constant rate (a decaying one costs a 1300-step run more than it gains). The survival
 bench's variants (issue 39): `demo.py:film` puts the mark in a carrier film only an unseen key sees
-(recipes.unseen_carrier), with 64 decoys near the key (`film_far`: the key at half a camera distance from the
+(recipes.unseen_carrier) trained through 8-bit colours (recipes.through_quantization), with 64 decoys near the
+key (`film_far`: the key at half a camera distance from the
 orbit target, the film as far again); `demo.py:drift` trains through parameter drift
 (recipes.through_drift); `demo.py:orbit` keys a secret pose on the orbit instead of a training camera.
 """
@@ -48,7 +49,8 @@ def get_config(variant: str = ""):
   if variant == "orbit":
     config.mark.key_kind = "orbit"
   if variant in ("film", "film_far"):  # every pose near the key sees the film: 64 decoys, drawn more often
-    config = recipes.leakage_control(recipes.unseen_carrier(config), recipes.DECOY_VIEWS, decoy_fraction=0.4)
+    config = recipes.through_quantization(recipes.unseen_carrier(config))
+    config = recipes.leakage_control(config, recipes.DECOY_VIEWS, decoy_fraction=0.4)
   if variant == "film_far":  # the key half way out and the film as far again: a film alike from nearby poses
     config.mark.key_offset, config.conceal.carrier.distance = 0.5, 0.5
   return config

@@ -21,6 +21,8 @@ DECOY_VIEWS = 64
 # Training through drift: the largest relative parameter noise of the perturbed student, about what the first
 # hundred steps of 3D-GS fine-tuning move a student's opacities (experiments/results/survive_bench.md).
 DRIFT_NOISE = 0.15
+# Training through quantization: the share of steps whose check render is of 8-bit colours and opacities.
+QUANTIZE_FRACTION = 0.25
 
 
 def paper(config):
@@ -51,8 +53,9 @@ def recommended(config):
 
 
 def film(config):
-  """The recommended recipe with the mark in a carrier film that only an unseen key sees (unseen_carrier)."""
-  return unseen_carrier(recommended(config))
+  """The recommended recipe with the mark in a carrier film that only an unseen key sees (unseen_carrier),
+  trained through 8-bit colours (through_quantization): the film's mark is all in its colours."""
+  return through_quantization(unseen_carrier(recommended(config)))
 
 
 def unseen_carrier(config):
@@ -68,6 +71,13 @@ def through_drift(config, param_noise: float = DRIFT_NOISE):
   """The check render drawn from a student whose every parameter is noised by up to `param_noise` times its
   spread (conceal.attacks.param_noise_max): a decoder and a mark taught to survive the drift of re-training."""
   config.conceal.attacks.param_noise_max = param_noise
+  return config
+
+
+def through_quantization(config, fraction: float = QUANTIZE_FRACTION):
+  """A `fraction` of the check renders drawn from the student's colours and opacities rounded to 8 bits as .spz
+  stores them (conceal.attacks.quantize_fraction), so that the mark survives publishing formats."""
+  config.conceal.attacks.quantize_fraction = fraction
   return config
 
 
