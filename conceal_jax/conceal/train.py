@@ -26,7 +26,6 @@ from conceal_jax.data import ply
 from conceal_jax.gs import capacity, evaluate, metrics
 from conceal_jax.splat import render as render_lib
 from conceal_jax.splat.gaussians import concatenate
-from conceal_jax.splat.render import render
 
 STUDENT_FILE = "student.ply"
 DECODER_FILE = "decoder.msgpack"
@@ -86,13 +85,17 @@ def initial_decoder(config: ml_collections.ConfigDict, settings: settings_lib.Co
   return unet.load_vgg16_encoder(params) if config.conceal.decoder.vgg_init else params
 
 
+def reveal_fn(settings: settings_lib.ConcealSettings, decoder):
+  """The run's reveal function (reveal.decoder_reveal) with `decoder` (ignored without one)."""
+  return reveal.decoder_reveal(decoder if settings.use_decoder else None, settings.decoder_width,
+                               settings.hidden_size, settings.reading)
+
+
 def curve_record(run: Run, state, eval_views) -> dict:
   """One point of the curves over training: the hidden image's PSNR / SSIM at the check view (and at each
   key with several) and the student's test PSNR on `eval_views` (cameras, targets)."""
-  s = run.plan.settings
-  revealed = [reveal.reveal_renders(state.decoder if s.use_decoder else None, render(state.student, camera,
-                                                                                     run.options).rgb,
-                                    s.decoder_width, s.hidden_size, s.reading) for camera, _ in run.keys]
+  revealed = scoring.reveal_at_keys(state.student, [camera for camera, _ in run.keys], run.options,
+                                    reveal_fn(run.plan.settings, state.decoder))
   record = dict(hidden_psnr=float(metrics.psnr(revealed[0], run.hiddens[0])),
                 hidden_ssim=float(metrics.ssim(revealed[0], run.hiddens[0])),
                 test_psnr=evaluate.views_psnr(state.student, *eval_views, run.options))
@@ -166,8 +169,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
                  pair_capacity=steps.capacity, capacity_reruns=steps.reruns, capacity_shrinks=steps.shrinks,
                  history=result.history)
   fileio.write_json(os.path.join(workdir, SUMMARY_FILE), summary)
-  reveal_fn = reveal.decoder_reveal(state.decoder if s.use_decoder else None, s.decoder_width, s.hidden_size,
-                                    s.reading)
-  scored = scoring.evaluate_concealment(config, workdir, run.scene, run.teacher, state.student, reveal_fn,
-                                        [camera for camera, _ in run.keys], run.hiddens, run.options)
+  scored = scoring.evaluate_concealment(config, workdir, run.scene, run.teacher, state.student,
+                                        reveal_fn(s, state.decoder), [camera for camera, _ in run.keys], run.hiddens,
+                                        run.options)
   return dict(summary, metrics=scored)
