@@ -102,9 +102,11 @@ def test_an_unseen_film_changes_no_normal_view():
 
 
 def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_path):
-  """Concealing into the film trains its base colours and opacities only; 3D-GS fine-tuning of the shared student on
-  its training views then moves the teacher's Gaussians and leaves the film exactly as it was."""
-  config = tiny_config(tiny, iterations=4, key_kind="unseen", **{"carrier.film": True, "carrier.spacing": 4.0})
+  """Concealing into the film (through 8-bit colours, as the film recipe does) trains its base colours and
+  opacities only; 3D-GS fine-tuning of the shared student on its training views then moves the teacher's
+  Gaussians and leaves the film exactly as it was."""
+  config = tiny_config(tiny, iterations=4, key_kind="unseen", **{"carrier.film": True, "carrier.spacing": 4.0,
+                                                                  "attacks.quantize_fraction": 0.5})
   conceal_train.train_and_evaluate(config, str(tmp_path))
   teacher, student = ply.load_ply(str(tiny[1])), ply.load_ply(str(tmp_path / "student.ply"))
   n = teacher.num

@@ -176,8 +176,8 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   """One step's distortion within `augmentation`'s maxima: blur sigma ~ U[0, blur_max], noise sigma
   ~ U[0, noise_max], a noise seed; of the model (`perturb_gaussians`) a dropout probability ~ U[0, dropout_max],
   a relative parameter noise ~ U[0, param_noise_max] and their seed; brightness ~ U[-brightness_max,
-  brightness_max] and contrast ~ 1 + U[-contrast_max, contrast_max]; with quantize_fraction, whether the step
-  quantizes (1 with that probability). Later kinds are drawn after earlier ones, so a run without them sees the
+  brightness_max] and contrast ~ 1 + U[-contrast_max, contrast_max]; whether the step quantizes (1 with
+  probability quantize_fraction). Later kinds are drawn after earlier ones, so a run without them sees the
   distortions it always did."""
   a = augmentation
   image = dict(blur=np.float32(rng.uniform(0.0, a.blur_max)), noise=np.float32(rng.uniform(0.0, a.noise_max)),
@@ -186,6 +186,5 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
                param_noise=np.float32(rng.uniform(0.0, a.param_noise_max)), model_seed=np.uint32(rng.integers(2**32)))
   drawn = dict(image, **model, brightness=np.float32(rng.uniform(-a.brightness_max, a.brightness_max)),
                contrast=np.float32(1.0 + rng.uniform(-a.contrast_max, a.contrast_max)))
-  if a.quantize_fraction > 0:
-    drawn["quantize"] = np.float32(rng.random() < a.quantize_fraction)
+  drawn["quantize"] = np.float32(a.quantize_fraction > 0 and rng.random() < a.quantize_fraction)
   return drawn

@@ -26,7 +26,7 @@ from conceal_jax.splat.render import RenderOptions, render_batch
 # dropout, brightness 0, contrast 1): the distortion of a view that is not distorted
 NO_DISTORTION = dict(blur=np.float32(0.0), noise=np.float32(0.0), seed=np.uint32(0), dropout=np.float32(0.0),
                      param_noise=np.float32(0.0), model_seed=np.uint32(0), brightness=np.float32(0.0),
-                     contrast=np.float32(1.0))
+                     contrast=np.float32(1.0), quantize=np.float32(0.0))
 
 
 @struct.dataclass
@@ -76,7 +76,7 @@ def step_views(data: ConcealData, view, normal_view, key_number, distortion, set
   s = settings
   w = identity_weights(s)
   key = data.keys.at(key_number)
-  distortion = NO_DISTORTION if distortion is None else distortion
+  distortion = dict(NO_DISTORTION, **(distortion or {}))  # the kinds a draw left out at their identity
   f32 = jnp.float32
   released = s.variant == "released"
   normal = View(camera=jax.tree.map(lambda x: x[view], data.cameras),
