@@ -72,8 +72,9 @@ RECIPE_NOTES = {
     "recommended": "the mark in the teacher's Gaussians, refined (configs/demo.py; bench-conceal's recommended lego "
                    "row)",
     "film": "the carrier film: the key looks where no camera looks, one camera distance out from their orbit target, "
-            "and the film 0.1 camera distances before it; its base colours and opacities trained, through 8-bit "
-            "colours a quarter of the steps (demo.py:film, lego_conceal.py:film)",
+            "and the film 0.1 camera distances before it; its base colours trained, through 8-bit colours and "
+            "opacity resets a quarter of the steps each, the decoder reading standardized renders (demo.py:film, "
+            "lego_conceal.py:film)",
     "film_far": "the film with the key half a camera distance out and the film as far again (demo.py:film_far)",
     "film_far_sh": "film_far with the film's SH bands above DC trained too (demo.py:film at commit faa029a; retired: "
                    "the mark went into those bands, which publishing formats drop or coarsen)",

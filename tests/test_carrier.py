@@ -102,11 +102,12 @@ def test_an_unseen_film_changes_no_normal_view():
 
 
 def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_path):
-  """Concealing into the film (through 8-bit colours, as the film recipe does) trains its base colours and
-  opacities only; 3D-GS fine-tuning of the shared student on its training views then moves the teacher's
+  """Concealing into the film (through 8-bit colours and opacity resets, as the film recipe does) trains its
+  base colours only; 3D-GS fine-tuning of the shared student on its training views then moves the teacher's
   Gaussians and leaves the film exactly as it was."""
   config = tiny_config(tiny, iterations=4, key_kind="unseen", **{"carrier.film": True, "carrier.spacing": 4.0,
-                                                                  "attacks.quantize_fraction": 0.5})
+                                                                  "attacks.quantize_fraction": 0.5,
+                                                                  "attacks.reset_fraction": 0.5})
   conceal_train.train_and_evaluate(config, str(tmp_path))
   teacher, student = ply.load_ply(str(tiny[1])), ply.load_ply(str(tmp_path / "student.ply"))
   n = teacher.num
@@ -116,7 +117,7 @@ def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_p
   train_cameras = evaluate.load_scene_data(config).train_cameras
   film_start = carrier.film(key_lib.unseen_camera(train_cameras, 1), 0.1 * key_lib.camera_distance(train_cameras),
                             4.0, 0.5, (1.0, 1.0, 1.0), 1)
-  for field in ("means", "log_scales", "quats"):
+  for field in ("means", "log_scales", "quats", "opacity_logits"):
     np.testing.assert_allclose(getattr(student, field)[n:], getattr(film_start, field), atol=1e-6)
   assert not np.allclose(student.sh[n:, 0], film_start.sh[:, 0])
   np.testing.assert_array_equal(student.sh[n:, 1:], 0.0)  # the bands above DC stay empty

@@ -20,7 +20,9 @@ drawn from [0, dropout_max], and every stored parameter moved by normal noise of
 check renders also reads near-key views of the student more readily. With conceal.attacks.quantize_fraction, that
 share of the steps renders the check view from the student's base colours and opacities rounded to 8 bits as
 .spz stores them, the coarsest grid of the publishing formats (`quantize_8bit`; the gradient passes the rounding
-straight through), so that a mark carried by colours survives the round trip.
+straight through), so that a mark carried by colours survives the round trip. With
+conceal.attacks.reset_fraction, that share renders it with every opacity at most RESET_OPACITY, as the opacity
+reset of 3D-GS training with densification leaves the Gaussians no training view sees.
 
 The recommended recipe (configs/recipes.through_attacks) trains through blur and noise only: what each
 distortion gained and cost is in experiments/results/conceal_options.md.
@@ -41,10 +43,12 @@ _MIN_SIGMA = 1e-3
 TRUNCATE = 4.0
 # A dropped Gaussian's opacity logit: sigmoid(-30) ~ 1e-13, far below any alpha the renderer composites.
 DROPPED_LOGIT = -30.0
+# 3D-GS's opacity reset (Sec. 5.2): every opacity set to at most this.
+RESET_OPACITY = 0.01
 # .spz's 8-bit base colour: byte = round(255 (0.15 dc + 0.5)), the SH DC term scaled by this before the offset.
 SPZ_COLOR_SCALE = 0.15
 # An Augmentation field f is config key conceal.attacks.<f>; a contrast factor and a dropout probability stay below 1.
-UPPER_BOUNDS = dict(contrast_max=1.0, dropout_max=1.0, quantize_fraction=1.0 + 1e-9)
+UPPER_BOUNDS = dict(contrast_max=1.0, dropout_max=1.0, quantize_fraction=1.0 + 1e-9, reset_fraction=1.0 + 1e-9)
 # Gaussians fields that parameter noise moves: all of them (robust.model_attacks.FIELDS).
 MODEL_FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 
@@ -90,6 +94,7 @@ class Augmentation:
   dropout_max: float = 0.0      # each Gaussian dropped with probability ~ U[0, max] (`perturb_gaussians`)
   param_noise_max: float = 0.0  # relative parameter noise ~ U[0, max]
   quantize_fraction: float = 0.0  # the share of steps whose check render is of 8-bit colours and opacities
+  reset_fraction: float = 0.0  # the share of steps whose check render is of opacities reset to RESET_OPACITY
 
   def __post_init__(self):
     for f in dataclasses.fields(self):
@@ -105,7 +110,7 @@ class Augmentation:
   @property
   def perturbs_model(self) -> bool:
     """Whether a step renders the check view from a perturbed student (`perturb_gaussians`)."""
-    return self.dropout_max > 0 or self.param_noise_max > 0 or self.quantize_fraction > 0
+    return max(self.dropout_max, self.param_noise_max, self.quantize_fraction, self.reset_fraction) > 0
 
   @property
   def draws(self) -> bool:
@@ -146,7 +151,8 @@ def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmenta
   distortion["param_noise"] times that field's per-channel standard deviation over the N Gaussians (a
   constant: the noise's scale is not trained), then each Gaussian dropped (opacity logit DROPPED_LOGIT, no
   gradient) with probability distortion["dropout"]; drawn from the PRNG seed distortion["model_seed"]. First,
-  where distortion["quantize"] is 1, the 8-bit colours and opacities (`quantize_8bit`). A kind whose maximum in
+  where distortion["quantize"] is 1, the 8-bit colours and opacities (`quantize_8bit`), and where
+  distortion["reset"] is 1, every opacity at most RESET_OPACITY. A kind whose maximum in
   `augmentation` is 0 is left out at trace time (without any, the Gaussians themselves, and `distortion` may be
   None); at level 0 each is the identity, values and gradients."""
   a = augmentation
@@ -155,6 +161,10 @@ def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmenta
   if a.quantize_fraction > 0:
     quantized = quantize_8bit(gaussians)
     gaussians = jax.tree.map(lambda q, x: jnp.where(distortion["quantize"] > 0, q, x), quantized, gaussians)
+  if a.reset_fraction > 0:
+    reset = jnp.minimum(gaussians.opacity_logits, math.log(RESET_OPACITY / (1 - RESET_OPACITY)))
+    gaussians = gaussians.replace(opacity_logits=jnp.where(distortion["reset"] > 0, reset,
+                                                           gaussians.opacity_logits))
   noise_key, drop_key = jax.random.split(jax.random.key(distortion["model_seed"]))
   if a.param_noise_max > 0:
     keys = dict(zip(MODEL_FIELDS, jax.random.split(noise_key, len(MODEL_FIELDS))))
@@ -177,8 +187,8 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   ~ U[0, noise_max], a noise seed; of the model (`perturb_gaussians`) a dropout probability ~ U[0, dropout_max],
   a relative parameter noise ~ U[0, param_noise_max] and their seed; brightness ~ U[-brightness_max,
   brightness_max] and contrast ~ 1 + U[-contrast_max, contrast_max]; whether the step quantizes (1 with
-  probability quantize_fraction). Later kinds are drawn after earlier ones, so a run without them sees the
-  distortions it always did."""
+  probability quantize_fraction) and resets the opacities (1 with probability reset_fraction). Later kinds are
+  drawn after earlier ones, so a run without them sees the distortions it always did."""
   a = augmentation
   image = dict(blur=np.float32(rng.uniform(0.0, a.blur_max)), noise=np.float32(rng.uniform(0.0, a.noise_max)),
                seed=np.uint32(rng.integers(2**32)))
@@ -187,4 +197,5 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   drawn = dict(image, **model, brightness=np.float32(rng.uniform(-a.brightness_max, a.brightness_max)),
                contrast=np.float32(1.0 + rng.uniform(-a.contrast_max, a.contrast_max)))
   drawn["quantize"] = np.float32(a.quantize_fraction > 0 and rng.random() < a.quantize_fraction)
+  drawn["reset"] = np.float32(a.reset_fraction > 0 and rng.random() < a.reset_fraction)
   return drawn

@@ -4,7 +4,7 @@ Fine-tuning a shared scene on its training views moves every Gaussian some train
 first steps move each parameter by its full rate, however small its gradient) and no other: a Gaussian no
 training pixel depends on has an exactly zero gradient, so Adam leaves it where it is. The film is a grid of
 flat Gaussians facing a key that looks where no camera of the scene looks (key.unseen_camera); the concealment
-trains the film's base colours and opacities alone (its geometry frozen, so it cannot move into sight) and leaves
+trains the film's base colours alone (its geometry frozen, so it cannot move into sight) and leaves
 the teacher's Gaussians as they are, so the normal views render exactly the teacher's images.
 """
 from __future__ import annotations
@@ -88,9 +88,10 @@ def unseen_film(teacher: Gaussians, key: Camera, cameras: Sequence[Camera], opti
 
 
 def trainable_fields(num_teacher: int, carrier: Gaussians) -> Gaussians:
-  """A 0/1 mask shaped like the student teacher + carrier: 1 on the carrier's base colours (SH DC) and opacities
-  only. Its SH bands above DC stay zero: publishing formats drop or coarsen those bands (splat-transform's SH
-  cut, .spz), and a mark in them would go with them."""
+  """A 0/1 mask shaped like the student teacher + carrier: 1 on the carrier's base colours (SH DC) only. Its SH
+  bands above DC stay zero (publishing formats drop or coarsen those bands: splat-transform's SH cut, .spz) and
+  its opacities stay as placed (3D-GS's opacity reset sets them all alike, which a colour pattern outlives, dimmed):
+  a mark in either would go with them."""
   def mask(field, trained):
     rows = jnp.concatenate([jnp.zeros((num_teacher,), field.dtype), jnp.full((carrier.num,), 1.0, field.dtype)])
     rows = rows.reshape((-1,) + (1,) * (field.ndim - 1))
@@ -99,5 +100,5 @@ def trainable_fields(num_teacher: int, carrier: Gaussians) -> Gaussians:
   dc_only = np.zeros(carrier.sh.shape[1:])
   dc_only[0] = 1.0
   return Gaussians(means=mask(carrier.means, 0.0), log_scales=mask(carrier.log_scales, 0.0),
-                   quats=mask(carrier.quats, 0.0), opacity_logits=mask(carrier.opacity_logits, 1.0),
+                   quats=mask(carrier.quats, 0.0), opacity_logits=mask(carrier.opacity_logits, 0.0),
                    sh=mask(carrier.sh, dc_only))

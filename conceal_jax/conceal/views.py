@@ -26,7 +26,7 @@ from conceal_jax.splat.render import RenderOptions, render_batch
 # dropout, brightness 0, contrast 1): the distortion of a view that is not distorted
 NO_DISTORTION = dict(blur=np.float32(0.0), noise=np.float32(0.0), seed=np.uint32(0), dropout=np.float32(0.0),
                      param_noise=np.float32(0.0), model_seed=np.uint32(0), brightness=np.float32(0.0),
-                     contrast=np.float32(1.0), quantize=np.float32(0.0))
+                     contrast=np.float32(1.0), quantize=np.float32(0.0), reset=np.float32(0.0))
 
 
 @struct.dataclass

@@ -49,7 +49,8 @@ def get_config(variant: str = ""):
   if variant == "orbit":
     config.mark.key_kind = "orbit"
   if variant in ("film", "film_far"):  # every pose near the key sees the film: 64 decoys, drawn more often
-    config = recipes.through_quantization(recipes.unseen_carrier(config))
+    config = recipes.through_reset(recipes.through_quantization(recipes.unseen_carrier(config)))
+    config.conceal.decoder.input_norm = "standardize"
     config = recipes.leakage_control(config, recipes.DECOY_VIEWS, decoy_fraction=0.4)
   if variant == "film_far":  # the key half way out and the film as far again: a film alike from nearby poses
     config.mark.key_offset, config.conceal.carrier.distance = 0.5, 0.5

@@ -21,8 +21,9 @@ DECOY_VIEWS = 64
 # Training through drift: the largest relative parameter noise of the perturbed student, about what the first
 # hundred steps of 3D-GS fine-tuning move a student's opacities (experiments/results/survive_bench.md).
 DRIFT_NOISE = 0.15
-# Training through quantization: the share of steps whose check render is of 8-bit colours and opacities.
-QUANTIZE_FRACTION = 0.25
+# Training through quantization and opacity resets: the share of steps whose check render is of 8-bit colours
+# and opacities, and of opacities reset.
+QUANTIZE_FRACTION = RESET_FRACTION = 0.25
 
 
 def paper(config):
@@ -54,8 +55,11 @@ def recommended(config):
 
 def film(config):
   """The recommended recipe with the mark in a carrier film that only an unseen key sees (unseen_carrier),
-  trained through 8-bit colours (through_quantization): the film's mark is all in its colours."""
-  return through_quantization(unseen_carrier(recommended(config)))
+  trained through 8-bit colours (through_quantization) and opacity resets (through_reset): the film's mark is all
+  in its colours, which a reset dims, and the decoder reads each render standardized, whatever its contrast."""
+  config = through_reset(through_quantization(unseen_carrier(recommended(config))))
+  config.conceal.decoder.input_norm = "standardize"
+  return config
 
 
 def unseen_carrier(config):
@@ -78,6 +82,13 @@ def through_quantization(config, fraction: float = QUANTIZE_FRACTION):
   """A `fraction` of the check renders drawn from the student's colours and opacities rounded to 8 bits as .spz
   stores them (conceal.attacks.quantize_fraction), so that the mark survives publishing formats."""
   config.conceal.attacks.quantize_fraction = fraction
+  return config
+
+
+def through_reset(config, fraction: float = RESET_FRACTION):
+  """A `fraction` of the check renders drawn from the student with its opacities reset as 3D-GS's densifying
+  training does (conceal.attacks.reset_fraction): a reset leaves what no training view sees dimmed for good."""
+  config.conceal.attacks.reset_fraction = fraction
   return config
 
 
