@@ -60,14 +60,14 @@ def contributing(scene: Gaussians, extra: Gaussians, cameras: Sequence[Camera], 
   """[F] bool: whether any pixel of any of `cameras` depends on each Gaussian of `extra`, rendered together with
   `scene` (the renderer's own culling, 1/255 skip and early stop decide): the derivative of the image sum with
   respect to its colour is non-zero exactly there (every pixel a splat reaches gains from a brighter splat)."""
-  def image_sum(extra_dc, camera):
+  def image_sum(extra_dc, scene, extra, camera):  # the scenes are arguments: as constants XLA would fold them
     joined = concatenate([scene, extra.replace(sh=extra.sh.at[:, 0].set(extra_dc))])
     return jnp.sum(render(joined, camera, options).rgb)
 
   grad = jax.jit(jax.grad(image_sum))
   seen = np.zeros(extra.num, bool)
   for camera in cameras:
-    seen |= np.asarray(jnp.any(grad(extra.sh[:, 0], camera) != 0, axis=-1))
+    seen |= np.asarray(jnp.any(grad(extra.sh[:, 0], scene, extra, camera) != 0, axis=-1))
   return seen
 
 
