@@ -82,6 +82,8 @@ RECIPE_NOTES = {
              "(demo.py:drift)",
     "orbit": "recommended with the key a secret pose on the training orbit (demo.py:orbit)",
 }
+# The second figure: fine-tuning curves and the survival-against-render-loss frontier at this many steps.
+CURVES_FIGURE, FRONTIER_STEPS = "survive_curves.png", 1000
 CHEAP_ATTACKS = ("none", "transforms", "converter", "finetune", "finetune_densify")
 # the random similarity that moves the student before a round trip (scene_attacks.random_similarity)
 MOVED_MAX_SCALE, MOVED_SEED = 10.0, 7
@@ -121,6 +123,16 @@ def load_scene(name: str, run: pathlib.Path, recipe: str, test_views: int, calib
   summary = json.loads((run / "conceal.json").read_text()) if (run / "conceal.json").is_file() else {}
   return Scene(name, recipe, run, config, jax.tree.map(np.asarray, student), owner, cameras, targets, calibration,
                cache, int(summary.get("num_carrier", 0)))
+
+
+def render_loss(run: pathlib.Path) -> float | None:
+  """What the recipe cost the render: the teacher's test PSNR minus the student's, as the conceal job scored them
+  (its metrics.json; None without)."""
+  try:
+    metrics = json.loads((run / "metrics.json").read_text())
+    return metrics["teacher_vs_ground_truth"]["psnr"] - metrics["student_vs_ground_truth"]["psnr"]
+  except (OSError, ValueError, KeyError):
+    return None
 
 
 def scores_of(scene: Scene, gaussians, similarity: sim.Similarity | None = None) -> dict:
@@ -364,6 +376,45 @@ def plot(rows: list[dict], path: pathlib.Path) -> None:
     ax.grid(axis="y", alpha=0.3)
     ax.legend(fontsize=7, loc="lower left")
   fileio.save_figure(fig, path)
+  plot_curves(rows, path.with_name(CURVES_FIGURE))
+
+
+def plot_curves(rows: list[dict], path: pathlib.Path) -> None:
+  """Left: hidden SSIM against fine-tuning steps, one line per scene, recipe and schedule (dashed: with
+  densification); right: the frontier, hidden SSIM after FRONTIER_STEPS steps of fine-tuning against what the
+  recipe costs the render (the untouched student's test PSNR below its teacher's)."""
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+  fig, (curves, frontier) = plt.subplots(1, 2, figsize=(13, 4.8))
+  groups = list(dict.fromkeys((r["scene"], r["recipe"]) for r in rows))
+  for index, (scene, recipe) in enumerate(groups):
+    mine = [r for r in rows if (r["scene"], r["recipe"]) == (scene, recipe)]
+    untouched = next((r for r in mine if r["attack"] == "none"), None)
+    for attack, style in (("finetune", "-o"), ("finetune_densify", "--s")):
+      points = sorted((r["level"], r["hidden_ssim"]) for r in mine if r["attack"] == attack)
+      if untouched and points:
+        points = [(0.0, untouched["hidden_ssim"])] + points
+      if points:
+        curves.plot([max(x, 10.0) for x, _ in points], [y for _, y in points], style, color=f"C{index}",
+                    label=f"{scene} {recipe}{' (densify)' if attack == 'finetune_densify' else ''}")
+    tuned = next((r for r in mine if r["attack"] == "finetune" and r["level"] == FRONTIER_STEPS), None)
+    if untouched and tuned and untouched.get("render_loss_db") is not None:
+      frontier.plot(untouched["render_loss_db"], tuned["hidden_ssim"], "o", color=f"C{index}")
+      frontier.annotate(f"{scene} {recipe}", (untouched["render_loss_db"], tuned["hidden_ssim"]), fontsize=7)
+  threshold = next((r.get("threshold") for r in rows if r.get("threshold") is not None), None)
+  for ax in (curves, frontier):
+    if threshold is not None:
+      ax.axhline(threshold, color="k", linestyle=":", linewidth=0.8, label="ownership threshold")
+    ax.set_ylim(0, 1.02)
+    ax.set_ylabel("hidden SSIM")
+    ax.grid(alpha=0.3)
+  curves.set_xscale("log")
+  curves.set_xlabel("fine-tuning steps on the training views (untouched at the left edge)")
+  curves.legend(fontsize=7)
+  frontier.set_xlabel("render loss of the recipe, dB (teacher's test PSNR minus the student's)")
+  frontier.set_title(f"hidden SSIM after {FRONTIER_STEPS} fine-tuning steps", fontsize=9)
+  fileio.save_figure(fig, path)
 
 
 def main(argv=None):
@@ -411,7 +462,7 @@ def main(argv=None):
     scene = load_scene(name, run, recipe, args.test_views, calibration, workdir / label)
     missing = lambda attack, level, steps=None: (name, recipe, attack, json.dumps(level), steps) not in done
     if "none" in groups and missing("none", None):
-      save([scene.row("none", None, scores_of(scene, scene.student))])
+      save([scene.row("none", None, scores_of(scene, scene.student), render_loss_db=render_loss(run))])
     if "transforms" in groups:
       save(transform_rows(scene, [(a, l) for a, l in TRANSFORMS if missing(a, l)]))
     if "converter" in groups:
