@@ -282,12 +282,13 @@ SURVIVAL_STEPS = (30, 100, 300, 1000, 3000, 10000)
 def survival_table(survive_bench: dict) -> list[str]:
   """The paper's research question 3 (is the mark retained after re-training?), which it leaves open: hidden SSIM
   at the key after 3D-GS fine-tuning on the training views for each number of steps (bench-survive), per scene and
-  recipe, with the decision (*: decided owned) and the untouched scene's SSIM."""
+  recipe, with the decision (*: decided owned), the untouched scene's SSIM and what the recipe cost the render."""
   rows = survive_bench.get("rows", [])
   lines = ["### Research question 3: is the mark retained after re-training? (hidden SSIM at the key after "
            "fine-tuning on the training views; * decided owned; the paper asks and reports none)", "",
-           "| scene | recipe | attack | untouched | " + " | ".join(f"{n} steps" for n in SURVIVAL_STEPS) + " |",
-           "|---|---|---|---|" + "---|" * len(SURVIVAL_STEPS)]
+           "| scene | recipe | render loss (dB) | attack | untouched | "
+           + " | ".join(f"{n} steps" for n in SURVIVAL_STEPS) + " |",
+           "|---|---|---|---|---|" + "---|" * len(SURVIVAL_STEPS)]
   cell = lambda r: f"{r['hidden_ssim']:.3f}{'*' if r['decided'] else ''}" if r else "-"
   groups = sorted({(r["scene"], r["recipe"]) for r in rows})
   for scene, recipe in groups:
@@ -296,10 +297,12 @@ def survival_table(survive_bench: dict) -> list[str]:
     for attack in ("finetune", "finetune_densify"):
       by_steps = {r["level"]: r for r in mine if r["attack"] == attack}
       if by_steps:
-        lines.append(f"| {scene} | {recipe} | {attack} | {cell(untouched)} | "
+        loss = (untouched or {}).get("render_loss_db")
+        loss = "-" if loss is None else f"{loss:.2f}"
+        lines.append(f"| {scene} | {recipe} | {loss} | {attack} | {cell(untouched)} | "
                      + " | ".join(cell(by_steps.get(n)) for n in SURVIVAL_STEPS) + " |")
   if not groups:
-    lines.append(f"| {NOT_RUN} | | | |" + " |" * len(SURVIVAL_STEPS))
+    lines.append(f"| {NOT_RUN} | | | | |" + " |" * len(SURVIVAL_STEPS))
   return lines + ["", "Every attack of a shared scene (transforms, publishing round trips) is in "
                   "[survive_bench.md](survive_bench.md).", ""]
 
