@@ -95,9 +95,12 @@ def test_bad_options_are_rejected(kwargs):
     RenderOptions(**kwargs)
 
 
-def test_sh_degree_above_the_scene_is_an_error():
-  with pytest.raises(ValueError, match="coefficients"):
-    render(random_gaussians(0, 3, degree=1), make_camera(), RenderOptions(sh_degree=3))
+def test_sh_degree_above_the_scene_renders_at_the_scenes_own():
+  """A scene storing fewer SH bands than render.sh_degree asks for (a degree-1 PLY under a degree-3 config) renders
+  as at its own degree, not an error (issue 41)."""
+  scene = random_gaussians(0, 3, degree=1)
+  np.testing.assert_array_equal(np.asarray(render(scene, make_camera(), RenderOptions(sh_degree=3)).rgb),
+                                np.asarray(render(scene, make_camera(), RenderOptions(sh_degree=1)).rgb))
 
 
 def test_camera_constructors_agree():
