@@ -36,6 +36,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from conceal_jax.gs import densify
+
 
 # Below this a sigma is a point kernel: exp(-1 / (2 * 1e-3^2)) underflows to 0 off the centre.
 _MIN_SIGMA = 1e-3
@@ -162,7 +164,7 @@ def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmenta
     quantized = quantize_8bit(gaussians)
     gaussians = jax.tree.map(lambda q, x: jnp.where(distortion["quantize"] > 0, q, x), quantized, gaussians)
   if a.reset_fraction > 0:
-    reset = jnp.minimum(gaussians.opacity_logits, math.log(RESET_OPACITY / (1 - RESET_OPACITY)))
+    reset = densify.reset_opacity(gaussians.opacity_logits, RESET_OPACITY)
     gaussians = gaussians.replace(opacity_logits=jnp.where(distortion["reset"] > 0, reset,
                                                            gaussians.opacity_logits))
   noise_key, drop_key = jax.random.split(jax.random.key(distortion["model_seed"]))

@@ -9,6 +9,7 @@ the teacher's Gaussians as they are, so the normal views render exactly the teac
 """
 from __future__ import annotations
 
+import functools
 from typing import Sequence
 
 import jax
@@ -60,15 +61,19 @@ def contributing(scene: Gaussians, extra: Gaussians, cameras: Sequence[Camera], 
   """[F] bool: whether any pixel of any of `cameras` depends on each Gaussian of `extra`, rendered together with
   `scene` (the renderer's own culling, 1/255 skip and early stop decide): the derivative of the image sum with
   respect to its colour is non-zero exactly there (every pixel a splat reaches gains from a brighter splat)."""
-  def image_sum(extra_dc, scene, extra, camera):  # the scenes are arguments: as constants XLA would fold them
-    joined = concatenate([scene, extra.replace(sh=extra.sh.at[:, 0].set(extra_dc))])
-    return jnp.sum(render(joined, camera, options).rgb)
-
-  grad = jax.jit(jax.grad(image_sum))
   seen = np.zeros(extra.num, bool)
   for camera in cameras:
-    seen |= np.asarray(jnp.any(grad(extra.sh[:, 0], scene, extra, camera) != 0, axis=-1))
+    seen |= np.asarray(jnp.any(_colour_gradient(extra.sh[:, 0], scene, extra, camera, options) != 0, axis=-1))
   return seen
+
+
+@functools.partial(jax.jit, static_argnames="options")
+@functools.partial(jax.grad)
+def _colour_gradient(extra_dc, scene, extra, camera, options):
+  """d(image sum)/d(extra's base colours) [F, 3] of scene + extra at `camera` (the scenes are arguments, not
+  constants XLA would fold; one trace serves every call of a shape)."""
+  joined = concatenate([scene, extra.replace(sh=extra.sh.at[:, 0].set(extra_dc))])
+  return jnp.sum(render(joined, camera, options).rgb)
 
 
 def unseen_film(teacher: Gaussians, key: Camera, cameras: Sequence[Camera], options: RenderOptions, distance: float,

@@ -14,6 +14,7 @@ import dataclasses
 import math
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from conceal_jax.splat import gaussians as gs
@@ -125,9 +126,11 @@ def densify_and_prune(gaussians: Gaussians, mean_grads: np.ndarray, max_radii: n
   return take(result, ~prune), source[~prune]
 
 
-def reset_opacity(opacity_logits: np.ndarray, ceiling: float = 0.01) -> np.ndarray:
-  """3D-GS opacity reset: opacities become min(opacity, ceiling), as logits."""
-  return np.minimum(opacity_logits, np.log(ceiling / (1.0 - ceiling))).astype(opacity_logits.dtype)
+def reset_opacity(opacity_logits, ceiling: float = 0.01):
+  """3D-GS opacity reset: opacities become min(opacity, ceiling), as logits (numpy in, numpy out; a jax array or
+  tracer in, one out)."""
+  xp = jnp if isinstance(opacity_logits, jax.Array) else np
+  return xp.minimum(opacity_logits, math.log(ceiling / (1.0 - ceiling))).astype(opacity_logits.dtype)
 
 
 def gather_rows(x: np.ndarray, source: np.ndarray, capacity: int) -> np.ndarray:
