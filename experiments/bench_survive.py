@@ -55,11 +55,15 @@ NAME = "survive_bench"
 # (configs/demo.py's variants, lego_conceal.py:film)
 SCENES = {"demo": ("demo", "workdirs/demo/conceal", "recommended"),
           "demo_film": ("demo", "workdirs/survive_runs/demo_film", "film"),
+          "demo_film_reset": ("demo", "workdirs/survive_runs/demo_film_reset", "film_reset"),
+          "demo_film_faint": ("demo", "workdirs/survive_runs/demo_film_faint", "film_faint"),
+          "demo_film_keyed": ("demo", "workdirs/survive_runs/demo_film_keyed", "film_keyed"),
           "demo_film_far": ("demo", "workdirs/survive_runs/demo_film_far", "film_far"),
           "demo_drift": ("demo", "workdirs/survive_runs/demo_drift", "drift"),
           "demo_orbit": ("demo", "workdirs/survive_runs/demo_orbit", "orbit"),
           "lego": ("lego", "workdirs/bench/lego/conceal_ours_robust_clip_dec03_clip_w16", "recommended"),
-          "lego_film": ("lego", "workdirs/survive_runs/lego_film", "film")}
+          "lego_film": ("lego", "workdirs/survive_runs/lego_film", "film"),
+          "lego_film_reset": ("lego", "workdirs/survive_runs/lego_film_reset", "film_reset")}
 TRANSFORMS = ([("rotate", d) for d in (1.0, 5.0, 45.0, 180.0)] + [("translate", f) for f in (0.026, 1.0)]
               + [("scale", f) for f in (0.5, 1.1, 2.0)])
 # attack, level -> converter.round_trip's arguments
@@ -71,11 +75,17 @@ CONVERSIONS = ([("sog", None, dict(fmt="sog")), ("spz", None, dict(fmt="spz")),
 RECIPE_NOTES = {
     "recommended": "the mark in the teacher's Gaussians, refined (configs/demo.py; bench-conceal's recommended lego "
                    "row)",
-    "film": "the carrier film: the key looks where no camera looks, one camera distance out from their orbit target, "
-            "and the film 0.1 camera distances before it; its base colours trained, through 8-bit colours and "
-            "opacity resets a quarter of the steps each, the decoder reading standardized renders (demo.py:film, "
-            "lego_conceal.py:film)",
-    "film_far": "the film with the key half a camera distance out and the film as far again (demo.py:film_far)",
+    "film": "the carrier film (recipes.film): the key looks where no camera looks, one camera distance out from "
+            "their orbit target, and the film 0.1 camera distances before it, 22 grids of splats at opacity 0.01 (the "
+            "opacity reset's ceiling); its base colours trained through 8-bit colours a quarter of the steps, the "
+            "decoder reading standardized renders beside 4 fixed sign channels, decoys within 4 degrees of the key "
+            "(demo.py:film, lego_conceal.py:film)",
+    "film_reset": "the first film: one grid of splats at opacity 0.5, trained through 8-bit colours and opacity "
+                  "resets a quarter of the steps each, a plain decoder reading standardized renders, decoys within "
+                  "1-10 degrees (demo.py:film_reset; lego: cut to 1000 steps)",
+    "film_faint": "film without the sign channels and near decoys (demo.py:film_faint)",
+    "film_keyed": "film_reset with the sign channels and near decoys (demo.py:film_keyed)",
+    "film_far": "film_reset with the key half a camera distance out and the film as far again (demo.py:film_far)",
     "film_far_sh": "film_far with the film's SH bands above DC trained too (demo.py:film at commit faa029a; retired: "
                    "the mark went into those bands, which publishing formats drop or coarsen)",
     "drift": "recommended, the check render drawn from students noised by up to 0.15 of each field's spread "

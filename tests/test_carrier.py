@@ -143,3 +143,23 @@ def test_a_film_needs_an_unseen_key(tiny, tmp_path):
   with pytest.raises(ValueError, match="conceal.carrier.distance and spacing"):
     conceal_train.train_and_evaluate(tiny_config(tiny, key_kind="unseen", **{"carrier.film": True,
                                                                              "carrier.opacity": 1.0}), str(tmp_path))
+
+
+def test_layers_are_grids_shifted_within_a_cell_each_splat_at_its_own_depth():
+  offsets = carrier.layer_offsets(5)
+  np.testing.assert_allclose(offsets[0], [0.5, 0.5])
+  assert np.all((offsets >= 0) & (offsets < 1)) and len(np.unique(offsets.round(6), axis=0)) == 5
+  camera = Camera.from_intrinsics(look_at([0.3, -2.0, 1.0], [0.0, 0.5, 0.2]), 30.0, 34.0, 11.0, 9.0, 24, 20)
+  one = carrier.film(camera, distance=1.7, spacing=4.0, opacity=0.3, color=(0.2, 0.5, 0.9), sh_degree=0)
+  three = carrier.film(camera, distance=1.7, spacing=4.0, opacity=0.01, color=(0.2, 0.5, 0.9), sh_degree=0, layers=3)
+  assert 3 * one.num - 6 <= three.num <= 3 * one.num  # a shifted grid may lose a row or column at the border
+  w2c = np.asarray(camera.world_to_camera, np.float64)
+  depths = (np.asarray(three.means, np.float64) @ w2c[:3, :3].T + w2c[:3, 3])[:, 2]
+  assert len(np.unique(depths.astype(np.float32))) == three.num
+  np.testing.assert_allclose(jax.nn.sigmoid(three.opacity_logits), 0.01, rtol=1e-5)
+  def pixels(means):
+    in_camera = np.asarray(means, np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+    x, y = (in_camera[:, i] / in_camera[:, 2] for i in (0, 1))
+    return np.stack([30.0 * x + 11.0, 34.0 * y + 9.0], 1)
+
+  np.testing.assert_allclose(pixels(three.means[:one.num]), pixels(one.means), atol=1e-3)  # layer 0: the one grid

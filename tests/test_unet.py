@@ -217,3 +217,32 @@ def test_clipped_reading_ignores_values_outside_the_unit_range(small_params):
   assert np.all(np.isfinite(grads)) and np.all(np.asarray(grads)[np.asarray(renders) > 1.0] == 0)
   info = dict(hidden_size=16, **reading.key_fields())
   assert reveal.Reading.from_key(info) == reading and reveal.Reading.from_key({}) == reveal.PAPER_READING
+
+
+def test_pattern_channels_are_fixed_signs_read_beside_the_render():
+  """conceal.decoder.pattern: the params take 3 + P input channels, the pattern is +-1, the same on every call, and
+  the keyed U-Net is the plain one reading [render, pattern]: what a shifted render no longer lines up with."""
+  pattern = unet.sign_pattern(16, 16, 2)
+  assert pattern.shape == (16, 16, 2) and set(np.unique(np.asarray(pattern))) == {-1.0, 1.0}
+  np.testing.assert_array_equal(pattern, unet.sign_pattern(16, 16, 2))
+  assert abs(float(jnp.mean(pattern))) < 0.2
+  params = unet.init_decoder(jax.random.key(3), SMALL, pattern=2)
+  assert params["enc1_1"]["kernel"].shape == (3, 3, 5, SMALL)
+  x = jnp.asarray(np.random.default_rng(0).uniform(0, 1, (2, 16, 16, 3)), jnp.float32)
+  beside = jnp.concatenate([x, jnp.broadcast_to(pattern, (2, 16, 16, 2))], axis=-1)
+  np.testing.assert_allclose(unet.UNet(SMALL, pattern=2).apply({"params": params}, x),
+                             unet.UNet(SMALL).apply({"params": params}, beside), atol=1e-6)
+  standardized = unet.UNet(SMALL, "standardize", 2).apply({"params": params}, x)
+  mean, std = unet.image_statistics(x, "standardize")
+  np.testing.assert_allclose(standardized, unet.unstandardize_images(unet.UNet(SMALL).apply(
+      {"params": params}, unet.with_pattern(unet.standardize_images(x, mean, std), 2)), mean, std), atol=1e-5)
+  assert_finite_tree(jax.grad(lambda p: jnp.sum(unet.UNet(SMALL, pattern=2).apply({"params": p}, x)))(params))
+  with pytest.raises(ValueError, match="pattern"):
+    unet.init_decoder(jax.random.key(3), SMALL, pattern=-1)
+
+
+def test_the_reading_records_its_pattern():
+  from conceal_jax.conceal import reveal
+  reading = reveal.Reading("standardize", clip=True, pattern=4)
+  assert reveal.Reading.from_key(dict(hidden_size=16, **reading.key_fields())) == reading
+  assert reveal.Reading.from_key(dict(decoder_input_norm="center")).pattern == 0

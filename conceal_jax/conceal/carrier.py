@@ -31,14 +31,24 @@ SPREAD = 0.6
 STAGGER = 0.01
 
 
+def layer_offsets(layers: int) -> np.ndarray:
+  """[layers, 2] in [0, 1): where each layer's grid starts within a grid cell, spread evenly over the cell (the
+  R2 low-discrepancy sequence, Roberts 2018), the first at the cell's centre."""
+  plastic = 1.32471795724474602596  # the real root of x^3 = x + 1
+  steps = np.arange(layers)[:, None] / np.array([plastic, plastic**2])
+  return (0.5 + steps) % 1.0
+
+
 def film(camera: Camera, distance: float, spacing: float, opacity: float, color: Sequence[float],
-         sh_degree: int) -> Gaussians:
-  """[F] flat Gaussians `distance` in front of `camera` (each STAGGER-deeper than the last), one every `spacing`
-  pixels of its image (F = ceil(W / spacing) * ceil(H / spacing)), facing it, each of `opacity` and `color` (RGB
-  in [0, 1]) seen from any direction (SH of `sh_degree`, bands above DC zero)."""
-  us = np.arange(0.5 * spacing, camera.width, spacing)
-  vs = np.arange(0.5 * spacing, camera.height, spacing)
-  u, v = (a.ravel() for a in np.meshgrid(us, vs))
+         sh_degree: int, layers: int = 1) -> Gaussians:
+  """[F] flat Gaussians `distance` in front of `camera` (each STAGGER-deeper than the last), `layers` grids of one
+  every `spacing` pixels of its image (F ~ layers * W * H / spacing^2), each grid shifted within a cell
+  (`layer_offsets`), facing it, each of `opacity` and `color` (RGB in [0, 1]) seen from any direction (SH of
+  `sh_degree`, bands above DC zero). Many layers of faint splats make a film as opaque as one layer of dense
+  ones, out of splats each below an opacity ceiling (3D-GS's opacity reset)."""
+  grids = [np.meshgrid(np.arange(du * spacing, camera.width, spacing), np.arange(dv * spacing, camera.height, spacing))
+           for du, dv in layer_offsets(layers)]
+  u, v = (np.concatenate([grid[axis].ravel() for grid in grids]) for axis in (0, 1))
   fx, fy, cx, cy = (float(x) for x in (camera.fx, camera.fy, camera.cx, camera.cy))
   depth = distance * (1.0 + STAGGER * np.arange(len(u)) / len(u))
   in_camera = np.stack([(u - cx) / fx * depth, (v - cy) / fy * depth, depth], -1)
@@ -77,11 +87,11 @@ def _colour_gradient(extra_dc, scene, extra, camera, options):
 
 
 def unseen_film(teacher: Gaussians, key: Camera, cameras: Sequence[Camera], options: RenderOptions, distance: float,
-                spacing: float, opacity: float) -> Gaussians:
+                spacing: float, opacity: float, layers: int = 1) -> Gaussians:
   """The film before `key` (film's arguments; the background's colour) less every splat a pixel of `cameras`
   (the scene's training and test views) depends on, or that the key does not see. Dropping a splat can only
   uncover splats behind it, so the test repeats until nothing seen is left. ValueError if nothing is left."""
-  carrier = film(key, distance, spacing, opacity, options.background, teacher.sh_degree)
+  carrier = film(key, distance, spacing, opacity, options.background, teacher.sh_degree, layers)
   while carrier.num:
     keep = ~contributing(teacher, carrier, cameras, options)
     keep &= contributing(teacher, carrier, [key], options)

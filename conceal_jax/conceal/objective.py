@@ -70,7 +70,9 @@ def decoder_view(rgb: jax.Array, settings: ConcealSettings) -> jax.Array:
 def decoded(decoder, images: jax.Array, settings: ConcealSettings) -> jax.Array:
   """F(images) [..., S, S, 3]; the images themselves without a decoder (the "w/o decoder" ablation)."""
   s = settings
-  return reveal.decode(decoder, s.decoder_width, images, s.reading.input_norm) if s.use_decoder else images
+  if not s.use_decoder:
+    return images
+  return reveal.decode(decoder, s.decoder_width, images, s.reading.input_norm, s.reading.pattern)
 
 
 def pixel_loss(rgb: jax.Array, view: View, settings: ConcealSettings) -> jax.Array:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import os
+from typing import Any
 
 from absl import logging
 import flax.serialization
@@ -43,17 +44,20 @@ class Reading:
   conceal.decoder.input_norm) and `clip` (conceal.decoder.clip_input): the render clipped to [0, 1] first,
   as an image file holds it, so that no hidden signal can live in values outside it (a lego student trained
   without it hid its image in whites above 1, which any saved or attacked image loses:
-  experiments/results/conceal_options.md)."""
+  experiments/results/conceal_options.md); `pattern`: the fixed sign channels the U-Net reads beside the
+  render (unet.UNet, conceal.decoder.pattern)."""
   input_norm: str = "none"
   clip: bool = False
+  pattern: int = 0
 
   @classmethod
   def from_key(cls, info: dict) -> "Reading":
     """The reading a key.json records; keys written before these options: the paper's."""
-    return cls(str(info.get("decoder_input_norm", "none")), bool(info.get("decoder_clip_input", False)))
+    return cls(str(info.get("decoder_input_norm", "none")), bool(info.get("decoder_clip_input", False)),
+               int(info.get("decoder_pattern", 0)))
 
   def key_fields(self) -> dict:
-    return dict(decoder_input_norm=self.input_norm, decoder_clip_input=self.clip)
+    return dict(decoder_input_norm=self.input_norm, decoder_clip_input=self.clip, decoder_pattern=self.pattern)
 
 
 PAPER_READING = Reading()
@@ -66,11 +70,13 @@ def resize_for_decoder(image: jax.Array, size: int, clip: bool = False) -> jax.A
   return jax.image.resize(image, image.shape[:-3] + (size, size, image.shape[-1]), "linear")
 
 
-def decode(decoder_params, base_channels: int, images: jax.Array, input_norm: str = "none") -> jax.Array:
+def decode(decoder_params, base_channels: int, images: jax.Array, input_norm: str = "none",
+           pattern: int = 0) -> jax.Array:
   """F: [..., S, S, C] -> [..., S, S, 3] with the U-Net decoder (C: the input channels its params were made
-  for, 3 for a render); `input_norm`: how the U-Net normalises each image it reads (unet.UNet)."""
+  for, 3 for a render); `input_norm`: how the U-Net normalises each image it reads, `pattern`: the fixed
+  channels it reads beside it (unet.UNet)."""
   batch = images[None] if images.ndim == 3 else images
-  out = unet.UNet(base_channels, input_norm).apply({"params": decoder_params}, batch)
+  out = unet.UNet(base_channels, input_norm, pattern).apply({"params": decoder_params}, batch)
   return out[0] if images.ndim == 3 else out
 
 
@@ -80,7 +86,8 @@ def reveal_renders(decoder_params, renders: jax.Array, base_channels: int, size:
   """[..., H, W, 3] renders -> [..., size, size, 3] revealed images clipped to [0, 1]; decoder_params
   None: the resized render itself (the "without decoder" ablation)."""
   small = resize_for_decoder(renders, size, reading.clip)
-  out = small if decoder_params is None else decode(decoder_params, base_channels, small, reading.input_norm)
+  out = small if decoder_params is None else decode(decoder_params, base_channels, small, reading.input_norm,
+                                                    reading.pattern)
   return jnp.clip(out, 0.0, 1.0)
 
 
@@ -167,11 +174,27 @@ def validate(config: ml_collections.ConfigDict) -> None:
   settings.check_count("reveal.key_number", config.reveal.key_number, minimum=0)
 
 
-def reveal_with_alignment(r: ml_collections.ConfigDict) -> tuple[np.ndarray, dict | None]:
-  """([S, S, 3] image revealed from the scene r.ply at key number r.key_number of the key file r.key (0: its
-  check view, k: its k-th extra key) with the decoder r.decoder (a `reveal` config section), S the key's
-  hidden size; the alignment report or None). With r.owner set, the key is first moved into r.ply's frame
-  (aligned_key against the owner's copy r.owner) and the report is registration_report's."""
+@dataclasses.dataclass(frozen=True)
+class KeyedScene:
+  """A suspect scene with what reveals it (load_keyed_scene): the Gaussians, the key camera and render options
+  (moved into the scene's frame when re-aligned), `reveal_fn` (renders [V, H, W, 3] -> revealed [V, S, S, 3],
+  decoder_reveal's), and the alignment report or None."""
+  gaussians: Gaussians
+  camera: Camera
+  options: RenderOptions
+  reveal_fn: Any
+  alignment: dict | None
+
+  def reveal_at(self, cameras: list[Camera]) -> np.ndarray:
+    """[V, S, S, 3] images revealed from the scene's renders at `cameras` (same intrinsics as the key)."""
+    renders = jnp.stack([render(self.gaussians, camera, self.options).rgb for camera in cameras])
+    return np.asarray(self.reveal_fn(renders))
+
+
+def load_keyed_scene(r: ml_collections.ConfigDict) -> KeyedScene:
+  """The scene r.ply, key number r.key_number of the key file r.key (0: its check view, k: its k-th extra key)
+  and the decoder r.decoder (a `reveal` config section). With r.owner set, the key is first moved into r.ply's
+  frame (aligned_key against the owner's copy r.owner) and the alignment report is registration_report's."""
   camera, info = key_lib.load_key(r.key, r.key_number)
   if info.get("uses_decoder", True) and not r.decoder:
     raise ValueError("reveal.decoder is required: this key was made with a decoder")
@@ -185,9 +208,16 @@ def reveal_with_alignment(r: ml_collections.ConfigDict) -> tuple[np.ndarray, dic
       logging.warning("re-alignment of %s onto %s matched only %.0f%% of its Gaussians (residual %.2g radii): the "
                       "transform found is doubtful", r.ply, r.owner, 100 * registration.matched_fraction,
                       registration.residual)
-  revealed = np.asarray(reveal_image(suspect, camera, options, decoder, int(info.get("decoder_width", 0)),
-                                     int(info["hidden_size"]), Reading.from_key(info)))
-  return revealed, alignment
+  reveal_fn = decoder_reveal(decoder, int(info.get("decoder_width", 0)), int(info["hidden_size"]),
+                             Reading.from_key(info))
+  return KeyedScene(jax.tree.map(jnp.asarray, suspect), camera, options, reveal_fn, alignment)
+
+
+def reveal_with_alignment(r: ml_collections.ConfigDict) -> tuple[np.ndarray, dict | None]:
+  """([S, S, 3] image revealed at the key of load_keyed_scene(r), S the key's hidden size; the alignment report
+  or None)."""
+  scene = load_keyed_scene(r)
+  return scene.reveal_at([scene.camera])[0], scene.alignment
 
 
 def reveal_from_files(r: ml_collections.ConfigDict) -> np.ndarray:

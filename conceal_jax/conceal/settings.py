@@ -58,6 +58,8 @@ class ConcealSettings:
     if self.reading.input_norm not in unet.INPUT_NORMS:
       raise ValueError(f"conceal.decoder.input_norm must be one of {unet.INPUT_NORMS}, got "
                        f"{self.reading.input_norm!r}")
+    if self.reading.pattern < 0:
+      raise ValueError(f"conceal.decoder.pattern must not be negative, got {self.reading.pattern}")
     if self.decoder_width < 1 or self.hidden_size < 8 or self.hidden_size % unet.DOWNSAMPLE:
       raise ValueError("conceal.decoder.width must be positive and mark.hidden_size a multiple of "
                        f"{unet.DOWNSAMPLE} (at least 8)")
@@ -125,10 +127,11 @@ class RunPlan:
 @dataclasses.dataclass(frozen=True)
 class Film:
   """conceal.carrier with film on: the carrier film's distance from the key (in median camera distances from the
-  orbit target, key.camera_distance), grid spacing (pixels of the key's image) and opacity."""
+  orbit target, key.camera_distance), grid spacing (pixels of the key's image), opacity and number of grids."""
   distance: float
   spacing: float
   opacity: float
+  layers: int = 1
 
 
 def key_offset(config: ml_collections.ConfigDict) -> float:
@@ -146,16 +149,16 @@ def film_plan(config: ml_collections.ConfigDict) -> Film | None:
     return None
   if config.mark.key_kind != "unseen":
     raise ValueError(f"conceal.carrier.film needs mark.key_kind='unseen', got {config.mark.key_kind!r}")
-  if not (c.distance > 0 and c.spacing > 0 and 0 < c.opacity < 1):
-    raise ValueError("conceal.carrier.distance and spacing must be positive and opacity in (0, 1), got "
-                     f"{c.distance}, {c.spacing}, {c.opacity}")
-  return Film(float(c.distance), float(c.spacing), float(c.opacity))
+  if not (c.distance > 0 and c.spacing > 0 and 0 < c.opacity < 1 and c.layers >= 1):
+    raise ValueError("conceal.carrier.distance and spacing must be positive, opacity in (0, 1) and layers at least "
+                     f"1, got {c.distance}, {c.spacing}, {c.opacity}, {c.layers}")
+  return Film(float(c.distance), float(c.spacing), float(c.opacity), int(c.layers))
 
 
 def step_settings(config: ml_collections.ConfigDict) -> ConcealSettings:
   """ConcealSettings from conceal.*, conceal.leakage.*, conceal.attacks.* and mark.hidden_size."""
   c = config.conceal
-  reading = reveal.Reading(c.decoder.input_norm, bool(c.decoder.clip_input))
+  reading = reveal.Reading(c.decoder.input_norm, bool(c.decoder.clip_input), int(c.decoder.pattern))
   augmentation = settings_lib.from_section(augment.Augmentation, c.attacks)
   leakage = {k: c.leakage[k] for k in ("identity_on_student", "identity_on_teacher_check", "decoy_fraction")}
   return settings_lib.from_section(ConcealSettings, c, decoder_width=c.decoder.width, reading=reading,

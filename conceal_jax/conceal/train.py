@@ -69,7 +69,7 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
   if plan.film is not None:  # before the first key, unseen from every training and test view
     film = carrier.unseen_film(teacher, keys[0][0], list(scene.train_cameras) + list(scene.test_cameras), options,
                                plan.film.distance * key_lib.camera_distance(scene.train_cameras), plan.film.spacing,
-                               plan.film.opacity)
+                               plan.film.opacity, plan.film.layers)
     start, trainable = concatenate([teacher, film]), carrier.trainable_fields(teacher.num, film)
   data = views_lib.build_data(scene.train_images, teacher, options, list(scene.train_cameras) + decoys,
                               [camera for camera, _ in keys], hiddens, s.hidden_size, s.reading.clip, key_images,
@@ -81,7 +81,8 @@ def initial_decoder(config: ml_collections.ConfigDict, settings: settings_lib.Co
   """A fresh decoder ({} without one), the VGG16 encoder loaded with conceal.decoder.vgg_init."""
   if not settings.use_decoder:
     return {}
-  params = unet.init_decoder(jax.random.key(config.seed), settings.decoder_width, settings.hidden_size)
+  params = unet.init_decoder(jax.random.key(config.seed), settings.decoder_width, settings.hidden_size,
+                             pattern=settings.reading.pattern)
   return unet.load_vgg16_encoder(params) if config.conceal.decoder.vgg_init else params
 
 

@@ -203,6 +203,9 @@ def conceal_decoder_section() -> ml_collections.ConfigDict:
   # beyond the paper: F reads every render clipped to [0, 1], as an image file holds it, so no hidden signal can
   # live in values an attacked or saved image loses
   c.clip_input = False
+  # beyond the paper: F reads this many fixed channels of random signs beside the render, so that it can tell a
+  # render from the same render shifted a few pixels (the key turned a little): 0, the paper's decoder
+  c.pattern = 0
   return c
 
 
@@ -261,14 +264,16 @@ def conceal_attacks_section() -> ml_collections.ConfigDict:
 def conceal_carrier_section() -> ml_collections.ConfigDict:
   """Where the mark lives (beyond the paper, conceal/carrier.py). film off: in the teacher's Gaussians, refined
   (the paper). film on (needs mark.key_kind='unseen'): in a film of flat Gaussians `distance` camera distances
-  before the key (mark.key_offset's unit), one every `spacing` pixels of the key's image, of `opacity`, in the
-  space only the key sees; only the film's colours and opacities train, so the normal views are the teacher's and
-  fine-tuning on them leaves the mark as it is. A near film looks different from any pose moved off the key."""
+  before the key (mark.key_offset's unit), `layers` grids of one splat every `spacing` pixels of the key's image,
+  of `opacity`, in the space only the key sees; only the film's base colours train, so the normal views are the
+  teacher's and fine-tuning on them leaves the mark as it is. Splats at opacity 0.01 or less, as many layers as
+  make the film opaque enough, outlive 3D-GS's opacity reset (it lowers every opacity to at most 0.01)."""
   c = ml_collections.ConfigDict()
   c.film = False
   c.distance = 0.1
   c.spacing = 2.0
   c.opacity = 0.5
+  c.layers = 1
   return c
 
 
@@ -334,8 +339,12 @@ def reveal_section() -> ml_collections.ConfigDict:
 
 
 def verify_section() -> ml_collections.ConfigDict:
-  """Verify mode: the reveal section's ply, decoder, key and hidden image (required here), scored and decided at
-  the threshold chosen from a calibration file of measured clean and marked scores."""
+  """Verify mode: the reveal section's ply, decoder, key and hidden image (required here); the scene is owned when
+  the p-value of the phase correlation of what it reveals with the hidden image is at most alpha
+  (robust.ownership); a calibration file of measured clean and marked SSIM scores adds its threshold's decision."""
   c = ml_collections.ConfigDict()
-  c.calibration = ""  # e.g. experiments/results/ownership_calibration.json (make bench-robust)
+  c.alpha = 1e-6  # the false-positive rate the decision is made at
+  # renders of the scene turned away from the key, among the decoder outputs the null is estimated from
+  c.null_views = 32
+  c.calibration = ""  # optional: e.g. experiments/results/ownership_calibration.json (make bench-robust)
   return c

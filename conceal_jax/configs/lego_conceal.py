@@ -10,10 +10,15 @@ from conceal_jax.configs import lego, recipes
 
 # bench-conceal's curve: every 500 steps, 10 test views
 EVAL_EVERY, EVAL_VIEWS = 500, 10
+# The film's grid spacing in pixels of lego's 200-pixel key image: about two pixels of the decoder's 64.
+FILM_SPACING = 6.0
 
 
 def get_config(recipe: str = "recommended"):
   config = lego.get_config()
   config.mode = "conceal"
   config.conceal.eval_every, config.conceal.eval_views = EVAL_EVERY, EVAL_VIEWS
-  return recipes.apply(config, recipe or "recommended")
+  config = recipes.apply(config, recipe or "recommended")
+  if recipe == "film":
+    config.conceal.carrier.spacing = FILM_SPACING
+  return config

@@ -24,6 +24,13 @@ DRIFT_NOISE = 0.15
 # Training through quantization and opacity resets: the share of steps whose check render is of 8-bit colours
 # and opacities, and of opacities reset.
 QUANTIZE_FRACTION = RESET_FRACTION = 0.25
+# The faint film: each splat at the opacity 3D-GS's reset lowers every opacity to (so the reset leaves it as it is),
+# a grid every FAINT_SPACING pixels of the key's image, FAINT_LAYERS grids: about half the background let through.
+FAINT_OPACITY, FAINT_SPACING, FAINT_LAYERS = 0.01, 4.0, 22
+# The keyed decoder: fixed sign channels it reads beside the render, and decoys close to the key (translation as a
+# fraction of the scene extent, rotation in degrees) where a plain film reveals its image shifted.
+PATTERN_CHANNELS = 4
+NEAR_DECOY_TRANSLATION, NEAR_DECOY_ROTATION_DEG = (0.005, 0.05), (0.5, 4.0)
 
 
 def paper(config):
@@ -54,10 +61,10 @@ def recommended(config):
 
 
 def film(config):
-  """The recommended recipe with the mark in a carrier film that only an unseen key sees (unseen_carrier),
-  trained through 8-bit colours (through_quantization) and opacity resets (through_reset): the film's mark is all
-  in its colours, which a reset dims, and the decoder reads each render standardized, whatever its contrast."""
-  config = through_reset(through_quantization(unseen_carrier(recommended(config))))
+  """The recommended recipe with the mark in a carrier film that only an unseen key sees (unseen_carrier), made of
+  faint layers that 3D-GS's opacity reset leaves as they are (faint_film), trained through 8-bit colours
+  (through_quantization), read by a decoder keyed to a fixed pattern (keyed_decoder) from standardized renders."""
+  config = keyed_decoder(through_quantization(faint_film(unseen_carrier(recommended(config)))))
   config.conceal.decoder.input_norm = "standardize"
   return config
 
@@ -68,6 +75,25 @@ def unseen_carrier(config):
   views render the teacher's images."""
   config.mark.key_kind = "unseen"
   config.conceal.carrier.film = True
+  return config
+
+
+def faint_film(config, spacing: float = FAINT_SPACING):
+  """The carrier film made of FAINT_LAYERS grids of splats at FAINT_OPACITY, one every `spacing` pixels (its
+  opacity comes from many faint layers): 3D-GS's opacity reset, which lowers every opacity to at most FAINT_OPACITY,
+  leaves it as it is, so no training through resets is needed."""
+  c = config.conceal.carrier
+  c.opacity, c.spacing, c.layers = FAINT_OPACITY, spacing, FAINT_LAYERS
+  return config
+
+
+def keyed_decoder(config):
+  """The decoder reads PATTERN_CHANNELS fixed sign channels beside the render (conceal.decoder.pattern) and decoys
+  close to the key teach it the identity there: a render shifted by a few pixels (the key turned a degree or two)
+  no longer lines up with the pattern the mark was written against."""
+  config.conceal.decoder.pattern = PATTERN_CHANNELS
+  lk = config.conceal.leakage
+  lk.decoy_translation, lk.decoy_rotation_deg = NEAR_DECOY_TRANSLATION, NEAR_DECOY_ROTATION_DEG
   return config
 
 
