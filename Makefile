@@ -7,7 +7,7 @@ WORKDIR ?= workdirs/demo
 JOBS ?= 2
 
 .PHONY: venv demo test test-slow bench-render bench-train profile-train bench-conceal profile-conceal bench-baselines \
-        bench-robust bench-survive survive-runs reproduce clean
+        bench-robust bench-survive survive-runs bench-ownership reproduce clean
 
 venv: $(STAMP)
 
@@ -103,6 +103,12 @@ survive-runs: $(STAMP) | $(WORKDIR)/teacher/point_cloud.ply
 	  $(PY) -m conceal_jax.main --config=conceal_jax/configs/lego_conceal.py:film --workdir=$(SURVIVE_RUNS)/lego_film \
 	  --config.mark.teacher=$(LEGO_TEACHER) --config.conceal.iterations=$(LEGO_FILM_STEPS); \
 	  else echo "no lego teacher ($(LEGO_TEACHER)): make bench-train"; fi
+
+# ownership as a statistical test (issue 40): verify's false-positive rate over >= 100k clean trials (the decoders of
+# `make demo` and `make survive-runs` x the clean teachers of `make demo`, $(CLEAN_DEMO) and bench-train's lego, each
+# skipped when missing) against the predicted null, and its true-positive rate under the mild and medium attacks
+bench-ownership: $(STAMP)
+	$(PY) -m experiments.bench_ownership --out=experiments/results $(BENCH_ARGS)
 
 # the paper's tables beside ours (experiments/results/REPRODUCTION.md); REUSE=1 only reads the benchmarks' JSON
 REUSE ?= 0

@@ -3,8 +3,9 @@
   make reproduce            # runs bench-train, bench-conceal, bench-baselines, bench-robust, then this
   make reproduce REUSE=1    # only this: reads the JSON those benchmarks wrote
 
-Ours are read from train_bench.json, conceal_bench.json, baseline_bench.json, robust_bench.json and
-ownership_calibration.json in --results; a row whose benchmark has not produced it yet says so. The paper's numbers
+Ours are read from train_bench.json, conceal_bench.json, baseline_bench.json, robust_bench.json,
+ownership_calibration.json and ownership_bench.json in --results; a row whose benchmark has not produced it yet
+says so. The paper's numbers
 are constants below (ConcealGS, Yang et al. 2025, arXiv:2501.03605, Tables 1-3; its NeRF-Synthetic rows average
 lego, drums, chair and ship, its T&T/DB rows playroom, drjohnson, truck and train; ours are lego and the real
 capture beer).
@@ -276,6 +277,24 @@ def ownership_table(calibration: dict) -> list[str]:
   return lines + [""]
 
 
+def ownership_test_table(ownership_bench: dict) -> list[str]:
+  """verify's decision as a statistical test (bench-ownership's ownership_bench.json): false positives measured over
+  the clean trials at alpha beside the rate the null predicts, and the true-positive rate per marked run."""
+  lines = ["### Ownership as a statistical test: false positives at alpha and true positives under the mild and "
+           "medium attacks (the paper and the 3D-GS watermarking papers report no false-positive rate)", "",
+           "| alpha | clean trials | false positives (predicted) | marked run | true positives |",
+           "|---|---|---|---|---|"]
+  if not ownership_bench:
+    return lines + [f"| {NOT_RUN} | | | | |", ""]
+  alpha, trials = ownership_bench["alpha"], ownership_bench["clean_trials"]
+  fp = f"{ownership_bench['false_positives']} ({alpha * trials:.2g})"
+  tpr = ownership_bench["tpr_at_alpha"] or {NOT_RUN: None}
+  for k, (run, rate) in enumerate(tpr.items()):
+    head = f"| {alpha:g} | {trials} | {fp} " if k == 0 else "| | | "
+    lines.append(head + f"| {run} | {'-' if rate is None else f'{100 * rate:.1f}%'} |")
+  return lines + ["", "The clean trials' p-values against the null: [ownership_bench.png](ownership_bench.png).", ""]
+
+
 SURVIVAL_STEPS = (30, 100, 300, 1000, 3000, 10000)
 
 
@@ -419,6 +438,7 @@ def report(results: pathlib.Path, workdir: pathlib.Path) -> str:
   lines += [f"![The recipes beside StegaNeRF, lego]({plot})", ""] if plot else []
   lines += robustness_table(robust_bench)
   lines += ownership_table(load(results, "ownership_calibration.json"))
+  lines += ownership_test_table(load(results, "ownership_bench.json"))
   lines += survival_table(load(results, "survive_bench.json"))
   lines += ["### Figures", ""]
   for scene in ("lego", "beer"):

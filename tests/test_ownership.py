@@ -1,4 +1,5 @@
-"""The ownership test: threshold choice from measured scores, and the verify job end to end."""
+"""The ownership test: the verify job end to end (decision at alpha, its evidence, bad input), its batched decisions,
+and the optional calibration threshold chosen from measured scores."""
 from __future__ import annotations
 
 import json
@@ -9,7 +10,7 @@ import pytest
 
 from conceal_jax import RenderOptions
 from conceal_jax import main as main_lib
-from conceal_jax.conceal import key as key_lib, reveal, unet
+from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, reveal, unet
 from conceal_jax.configs import default
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
@@ -54,36 +55,95 @@ def test_bad_calibration_names_the_file(tmp_path):
     ownership.choose_threshold([], [0.5])
 
 
-def test_verify_decides_with_the_calibrated_threshold(tmp_path):
-  """A scene whose revealed image is the reference scores SSIM 1 (owned); another image does not."""
+def write_scene(tmp_path, uses_decoder: bool):
+  """A random scene, a key at a 32x32 camera (hidden size 16) and, with a decoder, a random one; returns what the
+  key reveals from the scene, saved as mine.png."""
   g = jax.tree.map(np.asarray, random_gaussians(2, 300, degree=1, spread=0.5, log_scale=(-2.5, -1.8)))
   ply.save_ply(tmp_path / "scene.ply", g)
   camera = make_camera(32, 32)
   options = RenderOptions(background=(1.0, 1.0, 1.0))
-  decoder = unet.init_decoder(jax.random.key(0), 4, 16)
-  reveal.save_decoder(str(tmp_path / "decoder.msgpack"), decoder)
-  key_lib.save_key(str(tmp_path / "key.json"), camera, dict(hidden_size=16, uses_decoder=True, decoder_width=4,
+  decoder = unet.init_decoder(jax.random.key(0), 4, 16) if uses_decoder else None
+  if uses_decoder:
+    reveal.save_decoder(str(tmp_path / "decoder.msgpack"), decoder)
+  key_lib.save_key(str(tmp_path / "key.json"), camera, dict(hidden_size=16, uses_decoder=uses_decoder,
+                                                           decoder_width=4,
                                                            render_options=dict(background=[1.0, 1.0, 1.0])))
   revealed = np.asarray(reveal.reveal_image(jax.tree.map(jax.numpy.asarray, g), camera, options, decoder, 4, 16))
   fileio.write_image(tmp_path / "mine.png", revealed)
-  (tmp_path / "cal.json").write_text(json.dumps(dict(clean=[0.1, 0.2, 0.3], marked=[0.9, 0.95])))
   config = default.get_config()
   config.mode = "verify"
   config.reveal.ply, config.reveal.key = str(tmp_path / "scene.ply"), str(tmp_path / "key.json")
-  config.reveal.decoder, config.verify.calibration = str(tmp_path / "decoder.msgpack"), str(tmp_path / "cal.json")
+  config.reveal.decoder = str(tmp_path / "decoder.msgpack") if uses_decoder else ""
   config.reveal.hidden = str(tmp_path / "mine.png")
+  config.verify.null_views = 8
+  return config
+
+
+def test_verify_decides_at_alpha_with_the_evidence(tmp_path):
+  """The key's own view as the hidden image (no decoder): owned with a tiny p-value; another picture is not;
+  the images are kept and a calibration file adds its threshold's decision."""
+  config = write_scene(tmp_path, uses_decoder=False)
   result = main_lib.run(config, str(tmp_path / "out"))
-  assert result["owned"] and result["score"] > 0.98 and result["calibration"]["threshold"] == pytest.approx(0.6)
+  assert result["owned"] and result["log10_p"] < -6 and result["p_value"] <= config.verify.alpha
+  assert result["log10_p"] == max(result["log10_p_model"], result["log10_p_null_fit"])
+  assert result["null"]["sources"] == {"unrelated_images": 8 * (len(hidden_lib.SAMPLE_NAMES)), "turned_views": 8}
+  assert result["null"]["count"] == 8 * len(hidden_lib.SAMPLE_NAMES) + 8
+  assert "random-phase" in result["null"]["rests_on"]
+  assert result["ssim"] > 0.95 and "calibration" not in result
   saved = json.loads((tmp_path / "out" / "verify.json").read_text())
-  assert saved["owned"] and saved["calibration"]["false_positive_rate"] == 0.0
+  assert saved["owned"] and saved["z"] == pytest.approx(result["z"])
+  for name in ("revealed.png", "hidden.png"):
+    assert (tmp_path / "out" / name).is_file()
+  with np.load(tmp_path / "out" / "null_revealed.npz") as nulls:
+    assert nulls["turned_views"].shape == (8, 16, 16, 3)
   config.reveal.hidden = "astronaut"
-  assert not main_lib.run(config, str(tmp_path / "other"))["owned"]
+  (tmp_path / "cal.json").write_text(json.dumps(dict(clean=[0.1, 0.2, 0.3], marked=[0.9, 0.95])))
+  config.verify.calibration = str(tmp_path / "cal.json")
+  other = main_lib.run(config, str(tmp_path / "other"))
+  assert not other["owned"] and other["log10_p"] > -3
+  assert other["calibration"]["threshold"] == pytest.approx(0.6) and not other["calibration"]["owned"]
 
 
-def test_verify_requires_a_calibration(tmp_path):
+@pytest.mark.slow
+def test_verify_with_a_decoder_reveals_through_it(tmp_path):
+  """A random decoder outputs much the same image whatever it reads: its own output scores high under the
+  random-phase model, and the null estimated from its outputs on unrelated inputs keeps it from deciding."""
+  config = write_scene(tmp_path, uses_decoder=True)
+  result = main_lib.run(config, str(tmp_path / "out"))
+  assert result["log10_p_model"] < -6
+  assert result["null"]["mean"] > 3 and result["log10_p_null_fit"] > result["log10_p_model"]
+  assert result["owned"] == (result["log10_p"] <= -6)
+
+
+def test_decisions_are_batched_over_revealed_and_hidden_images():
+  rng = np.random.default_rng(0)
+  hidden = np.stack([hidden_lib.load_hidden_image(name, 32) for name in ("astronaut", "camera")])
+  revealed = np.clip(hidden + rng.normal(0, 0.1, hidden.shape), 0, 1)
+  nulls = np.stack([hidden_lib.load_hidden_image(name, 32) for name in hidden_lib.SAMPLE_NAMES
+                    if name not in ("astronaut", "camera")])
+  d = ownership.decisions(revealed, hidden, nulls, 1e-6)
+  assert d["z"].shape == d["log10_p"].shape == d["owned"].shape == (2, 2) and d["null_z"].shape == (len(nulls), 2)
+  assert d["owned"][0, 0] and d["owned"][1, 1] and not d["owned"][0, 1] and not d["owned"][1, 0]
+  single = ownership.ownership_test(revealed[0], hidden[0], nulls, 1e-6)
+  assert single["z"] == pytest.approx(d["z"][0, 0]) and single["log10_p"] == pytest.approx(d["log10_p"][0, 0])
+
+
+@pytest.mark.parametrize("alpha", [0.0, 1.0, -1e-6, True])
+def test_verify_refuses_a_bad_alpha(tmp_path, alpha):
   config = default.get_config()
   config.mode = "verify"
   config.reveal.ply = config.reveal.key = config.reveal.hidden = "x"
-  with pytest.raises(ValueError, match="verify.calibration is required"):
+  with config.unlocked():
+    config.verify.alpha = alpha
+  with pytest.raises(ValueError, match="verify.alpha"):
+    main_lib.run(config, str(tmp_path / "out"))
+  assert not (tmp_path / "out").exists()
+
+
+def test_verify_requires_a_hidden_image(tmp_path):
+  config = default.get_config()
+  config.mode = "verify"
+  config.reveal.ply = config.reveal.key = "x"
+  with pytest.raises(ValueError, match="reveal.hidden is required"):
     main_lib.run(config, str(tmp_path / "out"))
   assert not (tmp_path / "out").exists()

@@ -71,14 +71,19 @@ def scene_scores(gaussians: Gaussians, owner: Owner, test_cameras: Sequence[Came
               **owner.check_scores(gaussians))
 
 
+def attacked_check_renders(gaussians: Gaussians, owner: Owner,
+                           levels: Sequence[tuple] = image_attacks.LEVELS) -> np.ndarray:
+  """[1 + len(levels), H, W, 3]: the check render, then it under each (attack, level, severity) of `levels`."""
+  check = np.asarray(render(gaussians, owner.check_camera, owner.options).rgb)
+  return np.stack([check] + [image_attacks.attack(check, name, level) for name, level, _ in levels])
+
+
 def image_attack_rows(gaussians: Gaussians, owner: Owner,
                       levels: Sequence[tuple] = image_attacks.LEVELS) -> tuple[dict, list[dict]]:
   """Hidden PSNR / SSIM when the check render is attacked before decoding, per (attack, level).
 
   Returns (the unattacked scores, one row per level with `ssim_drop` relative to unattacked)."""
-  check = np.asarray(render(gaussians, owner.check_camera, owner.options).rgb)
-  attacked = np.stack([check] + [image_attacks.attack(check, name, level) for name, level, _ in levels])
-  scores = owner.scores(owner.reveal_renders(attacked))
+  scores = owner.scores(owner.reveal_renders(attacked_check_renders(gaussians, owner, levels)))
   base = dict(hidden_psnr=float(scores["psnr"][0]), hidden_ssim=float(scores["ssim"][0]))
   rows = [dict(attack=name, level=level, severity=severity, hidden_psnr=float(scores["psnr"][i + 1]),
                hidden_ssim=float(scores["ssim"][i + 1]), ssim_drop=base["hidden_ssim"] - float(scores["ssim"][i + 1]))
@@ -101,15 +106,18 @@ def model_attack_rows(gaussians: Gaussians, owner: Owner, test_cameras: Sequence
                       levels: Sequence[tuple] = model_attacks.LEVELS) -> list[dict]:
   """Render PSNR on the test views and hidden PSNR / SSIM of the attacked scene, per (attack, level);
   the first row ("none") is the scene as shared."""
+  return [dict(attack=name, level=level, severity=severity, num_gaussians=count,
+               **scene_scores(padded, owner, test_cameras, test_images))
+          for name, level, severity, count, padded in attacked_scenes(gaussians, levels)]
+
+
+def attacked_scenes(gaussians: Gaussians, levels: Sequence[tuple] = model_attacks.LEVELS):
+  """Yields (attack, level, severity, Gaussians left, the attacked scene padded to `gaussians`' size: pad_like)
+  for the scene as shared ("none") and then each of `levels`."""
   num = int(np.asarray(gaussians.means).shape[0])
-  rows = []
   for name, level, severity in [("none", None, "none")] + list(levels):
     attacked = gaussians if name == "none" else model_attacks.attack(gaussians, name, level)
-    padded = pad_like(attacked, num, gaussians.sh_degree)
-    rows.append(dict(attack=name, level=level, severity=severity,
-                     num_gaussians=int(np.asarray(attacked.means).shape[0]),
-                     **scene_scores(padded, owner, test_cameras, test_images)))
-  return rows
+    yield name, level, severity, int(np.asarray(attacked.means).shape[0]), pad_like(attacked, num, gaussians.sh_degree)
 
 
 def pose_tolerance_rows(gaussians: Gaussians, owner: Owner, extent: float,

@@ -1,0 +1,257 @@
+"""Ownership as a statistical test (issue 40): the false-positive rate of verify's decision measured over clean
+trials, the clean statistics against the null the test predicts, and the true-positive rate under attacks.
+
+  make bench-ownership
+  make bench-ownership BENCH_ARGS="--poses=10"      # fewer clean renders per scene
+
+Decoders: every finished conceal run of --runs (its decoder, key and hidden image I; missing runs are skipped
+with a note). Clean scenes: the teachers of --clean (train workdirs never marked: other seeds, other scenes). A
+clean trial pairs what a decoder reveals from a clean scene (at the decoder's key, at --poses orbit poses and at
+the scene's test views) with a hidden image the scene was not marked with: the decoder's own I, circular shifts
+of I, and crops of the scikit-image pictures, turned and flipped. Each trial is decided as verify decides
+(robust.ownership.ownership_test at --alpha): the larger of the random-phase p-value and the p-value under the
+null estimated from the decoder's outputs on the unrelated pictures and on the clean scene turned away from
+the decoder's key. Marked trials: the student of each --marked run under every mild and medium attack of the
+robustness harness (image attacks on the check render, model attacks on the scene), each with the null verify
+would estimate from that attacked scene.
+
+Writes ownership_bench.json (clean_trials, false_positives, alpha, tpr_at_alpha per marked run, the rows behind
+them) and ownership_bench.png (the clean trials' p-values against the uniform, log scale; their z against N(0, 1);
+the marked trials' z against the threshold) to --out.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import pathlib
+
+import jax
+import jax.numpy as jnp
+import ml_collections
+import numpy as np
+from scipy import stats
+
+from conceal_jax.conceal import hidden as hidden_lib, key as key_lib
+from conceal_jax.configs import default
+from conceal_jax.core import fileio
+from conceal_jax.data import ply
+from conceal_jax.gs import evaluate, metrics
+from conceal_jax.robust import image_attacks, model_attacks, ownership, phase_statistic, robustness
+from experiments import bench_robust
+
+DEFAULT_RUNS = ("workdirs/demo/conceal,workdirs/survive_runs/demo_film,workdirs/survive_runs/demo_film_far_sh,"
+                "workdirs/survive_runs/demo_drift,workdirs/survive_runs/demo_orbit,workdirs/survive_runs/lego_film,"
+                "workdirs/bench/lego/conceal_ours_robust_clip_dec03_clip_w16")
+DEFAULT_MARKED = ("workdirs/demo/conceal,workdirs/survive_runs/lego_film,"
+                  "workdirs/bench/lego/conceal_ours_robust_clip_dec03_clip_w16")
+DEFAULT_CLEAN = "workdirs/demo/teacher,workdirs/demo_seed1/teacher,workdirs/bench/lego/teacher"
+MARKED_SEVERITIES = bench_robust.MARKED_SEVERITIES
+SHIFTS = 16  # circular shifts of each decoder's I among the hidden images of its clean trials
+CROPS = 16  # crops of each scikit-image picture among them
+
+
+def saved_config(workdir: pathlib.Path) -> ml_collections.ConfigDict:
+  """The config a run saved, over today's defaults (keys added since take the values that leave it as it was)."""
+  config = default.get_config()
+  config.update(json.loads((workdir / "config.json").read_text()))
+  return config
+
+
+def clean_hidden_images(hidden: np.ndarray, seed: int = 0) -> tuple[np.ndarray, list[str]]:
+  """[1 + SHIFTS + CROPS * n, S, S, 3] hidden images no clean scene was marked with, and their names: I itself,
+  its circular shifts (each by at least S/8 in some direction) and crops (40 to 75% of the side, at random
+  places, turned and flipped, resized to S) of the scikit-image pictures other than I."""
+  rng = np.random.default_rng(seed)
+  size = hidden.shape[0]
+  images, names = [hidden], ["I"]
+  for k in range(SHIFTS):
+    shift = rng.integers(size // 8, size - size // 8, 2)
+    images.append(np.roll(hidden, tuple(shift), (0, 1)))
+    names.append(f"I shifted {tuple(int(s) for s in shift)}")
+  for name in hidden_lib.SAMPLE_NAMES:
+    picture = hidden_lib.load_hidden_image(name, 4 * size)
+    if np.abs(hidden_lib.resize_square(picture, size) - hidden).mean() < 1.0 / 255:
+      continue
+    for k in range(CROPS):
+      side = int(rng.uniform(0.4, 0.75) * picture.shape[0])
+      y, x = rng.integers(0, picture.shape[0] - side + 1, 2)
+      crop = np.rot90(picture[y:y + side, x:x + side][:, ::-1] if k % 2 else picture[y:y + side, x:x + side], k // 2)
+      images.append(hidden_lib.resize_square(np.ascontiguousarray(crop), size))
+      names.append(f"{name} crop {k}")
+  return np.stack(images).astype(np.float32), names
+
+
+def clean_scene(workdir: pathlib.Path, poses: int, test_views: int) -> dict:
+  """A clean teacher: its Gaussians and the cameras its trials render (orbit poses, test views)."""
+  config = saved_config(workdir)
+  scene = evaluate.load_scene_data(config)
+  cameras = [key_lib.orbit_camera(scene.train_cameras, 5000 + seed) for seed in range(poses)]
+  cameras += list(evaluate.held_out_views(scene, test_views)[0])
+  return dict(name=str(workdir), gaussians=jax.tree.map(jnp.asarray, ply.load_ply(str(workdir / "point_cloud.ply"))),
+              cameras=cameras)
+
+
+def clean_trials(run: pathlib.Path, scenes: list[dict], alpha: float, null_views: int) -> dict:
+  """Every clean trial of one decoder: each clean scene at the decoder's key and at the scene's own cameras, against
+  clean_hidden_images; returns the z, model p-values and decisions flattened, and the own-I trials apart."""
+  _, _, owner = bench_robust.load_run(run)
+  hidden, names = clean_hidden_images(owner.hidden)
+  z, log_model, owned, own = [], [], [], []
+  for scene in scenes:
+    # the key may be another scene's (another image size): rendered apart from the scene's own cameras
+    revealed = np.concatenate([np.asarray(owner.reveal_renders(evaluate.render_images(scene["gaussians"], cameras,
+                                                                                      owner.options)))
+                               for cameras in ([owner.check_camera], scene["cameras"])])
+    nulls = ownership.null_reveals(scene["gaussians"], owner.check_camera, owner.options, owner.reveal_renders,
+                                   null_views, owner.hidden)
+    result = ownership.decisions(revealed, hidden, np.concatenate(list(nulls.values())), alpha)
+    z.append(result["z"].ravel())
+    log_model.append(result["log10_p_model"].ravel())
+    owned.append(result["owned"].ravel())
+    own += [dict(scene=scene["name"], view="key" if v == 0 else f"view {v}", z=float(result["z"][v, 0]),
+                 log10_p=float(result["log10_p"][v, 0]), owned=bool(result["owned"][v, 0]))
+            for v in range(revealed.shape[0])]
+    print(f"{run} x {scene['name']}: {result['z'].size} trials, {int(result['owned'].sum())} decided owned, "
+          f"max z {result['z'].max():.2f} (own I: {result['z'][:, 0].max():.2f})", flush=True)
+  return dict(z=np.concatenate(z), log10_p_model=np.concatenate(log_model), owned=np.concatenate(owned), own=own,
+              hidden_names=names)
+
+
+def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict]:
+  """The student of `run` under each mild and medium attack (image attacks on its check render, model attacks on
+  the scene), decided as verify decides; one row per attack level."""
+  _, student, owner = bench_robust.load_run(run)
+  student = jax.tree.map(jnp.asarray, student)
+  hidden = owner.hidden
+  rows = []
+
+  def add(kind, name, level, severity, revealed, nulls):
+    result = ownership.decisions(revealed[None], hidden[None], np.concatenate(list(nulls.values())), alpha)
+    rows.append(dict(kind=kind, attack=name, level=level, severity=severity, z=float(result["z"][0, 0]),
+                     log10_p=float(result["log10_p"][0, 0]), owned=bool(result["owned"][0, 0]),
+                     ssim=float(metrics.ssim(revealed, hidden))))
+
+  levels = [level for level in image_attacks.LEVELS if level[2] in MARKED_SEVERITIES]
+  revealed = np.asarray(owner.reveal_renders(robustness.attacked_check_renders(student, owner, levels)))
+  nulls = ownership.null_reveals(student, owner.check_camera, owner.options, owner.reveal_renders, null_views, hidden)
+  add("none", "none", None, "none", revealed[0], nulls)
+  for (name, level, severity), image in zip(levels, revealed[1:]):
+    add("image", name, level, severity, image, nulls)
+  levels = [level for level in model_attacks.LEVELS if level[2] in MARKED_SEVERITIES]
+  for name, level, severity, _, scene in robustness.attacked_scenes(student, levels):
+    if name == "none":
+      continue
+    check = owner.reveal_renders(evaluate.render_images(scene, [owner.check_camera], owner.options))
+    nulls = ownership.null_reveals(scene, owner.check_camera, owner.options, owner.reveal_renders, null_views, hidden)
+    add("model", name, level, severity, np.asarray(check)[0], nulls)
+  print(f"{run}: {sum(r['owned'] for r in rows[1:])} of {len(rows) - 1} attacked trials decided owned, lowest z "
+        f"{min(r['z'] for r in rows[1:]):.2f}", flush=True)
+  return rows
+
+
+def tail_counts(log10_p: np.ndarray) -> list[dict]:
+  """Clean trials with a model p-value at most 10^-k against the count the null predicts, k = 1 .. 6."""
+  return [dict(p_at_most=10.0 ** -k, observed=int(np.sum(log10_p <= -k)), predicted=float(log10_p.size * 10.0 ** -k))
+          for k in range(1, 7)]
+
+
+def plot(clean_log_p: np.ndarray, clean_z: np.ndarray, own_z: np.ndarray, marked: dict, alpha: float,
+         path: pathlib.Path):
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+  fig, (qq, hist, bars) = plt.subplots(1, 3, figsize=(17, 5))
+  n = clean_log_p.size
+  observed = np.sort(-clean_log_p)
+  ranks = np.arange(n, 0, -1)  # the largest -log10 p has rank 1
+  expected = -np.log10(ranks / (n + 1))
+  band = -np.log10(stats.beta.ppf([[0.025], [0.975]], ranks, n - ranks + 1))
+  qq.fill_between(expected, band[1], band[0], color="0.85", label="95% band of the null's order statistics")
+  qq.plot(expected, observed, ".", ms=2, label=f"{n} clean trials")
+  qq.plot([0, expected.max()], [0, expected.max()], "k--", lw=1, label="predicted null (uniform p)")
+  qq.axhline(-np.log10(alpha), color="r", lw=1, label=f"alpha = {alpha:g}")
+  qq.set_xlabel("predicted -log10 p (uniform order statistics)")
+  qq.set_ylabel("observed -log10 p (random-phase model)")
+  qq.set_title("clean trials against the predicted null")
+  qq.legend(fontsize=7)
+  bins = np.linspace(min(-6.0, clean_z.min()), max(6.0, clean_z.max()), 121)
+  hist.hist(clean_z, bins=bins, density=True, log=True, alpha=0.6, label="clean trials, every hidden image")
+  hist.hist(own_z, bins=bins, density=True, log=True, alpha=0.6, label="clean trials, the decoder's own I")
+  grid = np.linspace(bins[0], bins[-1], 400)
+  hist.plot(grid, stats.norm.pdf(grid), "k", lw=1, label="N(0, 1)")
+  hist.axvline(stats.norm.isf(alpha), color="r", lw=1, label=f"z at alpha = {alpha:g}")
+  hist.set_ylim(0.1 / clean_z.size, 1)
+  hist.set_xlabel("z")
+  hist.legend(fontsize=7)
+  hist.set_title("clean z")
+  for i, (run, rows) in enumerate(marked.items()):
+    rows = [r for r in rows if r["kind"] != "none"]
+    bars.plot([r["z"] for r in rows], [i + 0.3 * (k / max(len(rows) - 1, 1) - 0.5) for k in range(len(rows))],
+              "o", ms=3, label=run)
+  bars.axvline(stats.norm.isf(alpha), color="r", lw=1, label=f"z at alpha = {alpha:g} (model)")
+  bars.set_yticks(range(len(marked)), [pathlib.Path(r).name for r in marked], fontsize=7)
+  bars.set_xscale("symlog")
+  bars.set_xlabel("z of the attacked student (mild and medium attacks)")
+  bars.legend(fontsize=7)
+  bars.set_title("marked trials")
+  fileio.save_figure(fig, path)
+
+
+def main():
+  parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+  parser.add_argument("--out", default="experiments/results")
+  parser.add_argument("--runs", default=DEFAULT_RUNS, help="comma-separated conceal workdirs: the decoders")
+  parser.add_argument("--marked", default=DEFAULT_MARKED,
+                      help="comma-separated conceal workdirs attacked for the true-positive rate")
+  parser.add_argument("--clean", default=DEFAULT_CLEAN, help="comma-separated teacher workdirs never marked")
+  parser.add_argument("--poses", type=int, default=25, help="orbit poses rendered per clean scene")
+  parser.add_argument("--test-views", type=int, default=10, help="test views rendered per clean scene")
+  parser.add_argument("--alpha", type=float, default=default.get_config().verify.alpha)
+  parser.add_argument("--null-views", type=int, default=default.get_config().verify.null_views)
+  args = parser.parse_args()
+  if not 0 < args.alpha < 1:
+    raise SystemExit(f"--alpha must be strictly between 0 and 1, got {args.alpha}")
+
+  def present(paths: str, files: tuple[str, ...]) -> list[pathlib.Path]:
+    found = []
+    for path in (pathlib.Path(p) for p in paths.split(",") if p):
+      if all((path / f).is_file() for f in files):
+        found.append(path)
+      else:
+        print(f"skipping {path}: no {' / '.join(files)} there")
+    return found
+
+  run_files = ("student.ply", "decoder.msgpack", "key.json", "config.json")
+  runs, marked = present(args.runs, run_files), present(args.marked, run_files)
+  teachers = present(args.clean, ("point_cloud.ply", "config.json"))
+  scenes = [clean_scene(path, args.poses, args.test_views) for path in teachers]
+  if not runs or not scenes:
+    raise SystemExit("bench-ownership needs at least one conceal run and one clean teacher")
+  per_run = {str(run): clean_trials(run, scenes, args.alpha, args.null_views) for run in runs}
+  z = np.concatenate([t["z"] for t in per_run.values()])
+  log_model = np.concatenate([t["log10_p_model"] for t in per_run.values()])
+  owned = np.concatenate([t["owned"] for t in per_run.values()])
+  own_z = np.array([o["z"] for t in per_run.values() for o in t["own"]])
+  marked_rows = {str(run): marked_trials(run, args.alpha, args.null_views) for run in marked}
+  tpr = {run: float(np.mean([r["owned"] for r in rows if r["kind"] != "none"])) for run, rows in marked_rows.items()}
+  result = dict(
+      device=str(jax.devices()[0]), alpha=args.alpha, clean_trials=int(z.size), false_positives=int(owned.sum()),
+      false_positives_model=int(np.sum(log_model <= np.log10(args.alpha))),
+      predicted_false_positive_rate=args.alpha, z_threshold_model=float(stats.norm.isf(args.alpha)),
+      tpr_at_alpha=tpr, decoders=[str(r) for r in runs], clean_scenes=[s["name"] for s in scenes],
+      hidden_images_per_decoder=len(next(iter(per_run.values()))["hidden_names"]),
+      clean_z=dict(mean=float(z.mean()), sd=float(z.std()), max=float(z.max()), kurtosis=float(stats.kurtosis(z))),
+      tail_counts=tail_counts(log_model),
+      own_hidden=dict(trials=int(own_z.size), mean_z=float(own_z.mean()), sd_z=float(own_z.std()),
+                      max_z=float(own_z.max()), decided_owned=int(sum(o["owned"] for t in per_run.values()
+                                                                       for o in t["own"])),
+                      rows={run: t["own"] for run, t in per_run.items()}),
+      marked=marked_rows)
+  out = pathlib.Path(args.out)
+  fileio.write_json(out / "ownership_bench.json", result)
+  plot(log_model, z, own_z, marked_rows, args.alpha, out / "ownership_bench.png")
+  print(json.dumps({k: v for k, v in result.items() if k not in ("marked", "own_hidden")}, indent=1))
+
+
+if __name__ == "__main__":
+  main()
