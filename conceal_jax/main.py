@@ -19,6 +19,7 @@ from conceal_jax.baselines import baseline
 from conceal_jax.conceal import reveal, settings as conceal_settings, train as conceal_train
 from conceal_jax.core import parallel, workdir as workdir_lib
 from conceal_jax.gs import evaluate, render_views, train
+from conceal_jax.report import summary
 from conceal_jax.robust import ownership
 
 # mode -> (validate, job): validate checks every value the job reads before anything is written.
@@ -59,10 +60,12 @@ def main(argv):
   # JAX logs each accelerator platform it looks for and does not find ("Unable to initialize backend 'tpu'")
   logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)
   try:
-    run(FLAGS.config, FLAGS.workdir)
+    closing = summary.after_job(FLAGS.config, FLAGS.workdir, run(FLAGS.config, FLAGS.workdir))
   except (ValueError, OSError) as error:  # bad input: one clear line, no traceback
     print(f"conceal_jax: error: {error}", file=sys.stderr)
     sys.exit(1)
+  if closing:
+    print(closing)
 
 
 if __name__ == "__main__":
