@@ -6,8 +6,8 @@ STAMP := $(VENV)/.installed
 WORKDIR ?= workdirs/demo
 JOBS ?= 2
 
-.PHONY: venv demo test test-slow bench-render bench-train profile-train bench-conceal profile-conceal bench-baselines \
-        bench-robust bench-survive survive-runs bench-ownership reproduce clean
+.PHONY: venv demo own-scene chromium test test-slow bench-render bench-train profile-train bench-conceal profile-conceal \
+        bench-baselines bench-robust bench-survive survive-runs bench-ownership reproduce clean
 
 venv: $(STAMP)
 
@@ -35,6 +35,42 @@ demo: $(STAMP)
 	$(MAIN) --workdir=$(WORKDIR)/reveal --config.mode=reveal --config.reveal.ply=$(WORKDIR)/conceal/student.ply $(KEYS)
 	$(MAIN) --workdir=$(WORKDIR)/reveal_clean --config.mode=reveal --config.reveal.ply=$(WORKDIR)/teacher/point_cloud.ply $(KEYS)
 	$(PY) -m experiments.demo_summary $(WORKDIR)
+
+# your own scene: SCENE=<a folder the loaders read (Blender, COLMAP, transforms.json, LLFF) or demo>, TEACHER=<its
+# trained .ply> to skip training one. Trains a teacher (OWN_TRAIN_STEPS steps), conceals HIDDEN with the recommended
+# recipe (configs/conceal.py), reveals it from the student and verifies ownership (at verify.alpha; CALIBRATION=<a file
+# of measured scores> adds its threshold's decision as evidence), each job in its own
+# folder of workdirs/own_scene/<scene folder's name> (or WORKDIR=...); ARGS: --config overrides for every job, e.g.
+# ARGS=--config.data.images=images_4. Each job resumes when run again. Open verify/report.html.
+SCENE ?=
+TEACHER ?=
+HIDDEN ?= astronaut
+OWN_TRAIN_STEPS ?= 10000
+CURVE_EVERY ?= 500
+CALIBRATION ?=
+ARGS ?=
+OWN_DIR = $(if $(filter-out file,$(origin WORKDIR)),$(WORKDIR),workdirs/own_scene/$(notdir $(abspath $(SCENE))))
+OWN_TEACHER = $(or $(TEACHER),$(OWN_DIR)/teacher/point_cloud.ply)
+OWN_MAIN = $(PY) -m conceal_jax.main --config=conceal_jax/configs/conceal.py --config.data.path=$(SCENE) $(ARGS)
+OWN_KEYS = --config.reveal.ply=$(OWN_DIR)/conceal/student.ply --config.reveal.key=$(OWN_DIR)/conceal/key.json \
+           --config.reveal.decoder=$(OWN_DIR)/conceal/decoder.msgpack --config.reveal.hidden=$(HIDDEN)
+own-scene: $(STAMP)
+	@test -n "$(SCENE)" || { echo "make own-scene: SCENE=<scene folder> is required" >&2; exit 2; }
+	@test -z "$(TEACHER)" || test -f "$(TEACHER)" || \
+	  { echo "make own-scene: TEACHER=$(TEACHER): no such file" >&2; exit 2; }
+	test -n "$(TEACHER)" || $(OWN_MAIN) --workdir=$(OWN_DIR)/teacher --config.mode=train \
+	  --config.train.iterations=$(OWN_TRAIN_STEPS)
+	$(OWN_MAIN) --workdir=$(OWN_DIR)/conceal --config.mark.teacher=$(OWN_TEACHER) --config.mark.hidden=$(HIDDEN) \
+	  --config.conceal.eval_every=$(CURVE_EVERY)
+	$(OWN_MAIN) --workdir=$(OWN_DIR)/reveal --config.mode=reveal $(OWN_KEYS)
+	$(OWN_MAIN) --workdir=$(OWN_DIR)/verify --config.mode=verify $(OWN_KEYS) \
+	  $(if $(CALIBRATION),--config.verify.calibration=$(CALIBRATION))
+	@echo "own-scene: open $(OWN_DIR)/verify/report.html (the concealment alone: $(OWN_DIR)/conceal/report.html)"
+
+# headless Chromium (Debian's package), which the report test opens report.html in; the test skips without it
+chromium:
+	command -v chromium >/dev/null || { apt-get update && DEBIAN_FRONTEND=noninteractive apt-get install -y \
+	  --no-install-recommends chromium; }
 
 test: $(STAMP)
 	$(PY) -m pytest -n $(JOBS) -q
