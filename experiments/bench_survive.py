@@ -56,7 +56,7 @@ NAME = "survive_bench"
 SCENES = {"demo": ("demo", "workdirs/demo/conceal", "recommended"),
           "demo_film": ("demo", "workdirs/survive_runs/demo_film", "film"),
           "demo_film_reset": ("demo", "workdirs/survive_runs/demo_film_reset", "film_reset"),
-          "demo_film_faint": ("demo", "workdirs/survive_runs/demo_film_faint", "film_faint"),
+          "demo_film_faint_keyed": ("demo", "workdirs/survive_runs/demo_film_faint_keyed", "film_faint_keyed"),
           "demo_film_keyed": ("demo", "workdirs/survive_runs/demo_film_keyed", "film_keyed"),
           "demo_film_far": ("demo", "workdirs/survive_runs/demo_film_far", "film_far"),
           "demo_drift": ("demo", "workdirs/survive_runs/demo_drift", "drift"),
@@ -78,12 +78,13 @@ RECIPE_NOTES = {
     "film": "the carrier film (recipes.film): the key looks where no camera looks, one camera distance out from "
             "their orbit target, and the film 0.1 camera distances before it, 22 grids of splats at opacity 0.01 (the "
             "opacity reset's ceiling); its base colours trained through 8-bit colours a quarter of the steps, the "
-            "decoder reading standardized renders beside 4 fixed sign channels, decoys within 4 degrees of the key "
-            "(demo.py:film, lego_conceal.py:film)",
+            "decoder reading standardized renders, 64 decoys within 1-10 degrees of the key (demo.py:film, "
+            "lego_conceal.py:film)",
     "film_reset": "the first film: one grid of splats at opacity 0.5, trained through 8-bit colours and opacity "
                   "resets a quarter of the steps each, a plain decoder reading standardized renders, decoys within "
                   "1-10 degrees (demo.py:film_reset; lego: cut to 1000 steps)",
-    "film_faint": "film without the sign channels and near decoys (demo.py:film_faint)",
+    "film_faint_keyed": "film with the decoder reading 4 fixed sign channels beside the render and decoys within "
+                        "0.5-4 degrees (demo.py:film_faint_keyed)",
     "film_keyed": "film_reset with the sign channels and near decoys (demo.py:film_keyed)",
     "film_far": "film_reset with the key half a camera distance out and the film as far again (demo.py:film_far)",
     "film_far_sh": "film_far with the film's SH bands above DC trained too (demo.py:film at commit faa029a; retired: "

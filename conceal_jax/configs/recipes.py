@@ -63,8 +63,8 @@ def recommended(config):
 def film(config):
   """The recommended recipe with the mark in a carrier film that only an unseen key sees (unseen_carrier), made of
   faint layers that 3D-GS's opacity reset leaves as they are (faint_film), trained through 8-bit colours
-  (through_quantization), read by a decoder keyed to a fixed pattern (keyed_decoder) from standardized renders."""
-  config = keyed_decoder(through_quantization(faint_film(unseen_carrier(recommended(config)))))
+  (through_quantization), read by the decoder from standardized renders."""
+  config = through_quantization(faint_film(unseen_carrier(recommended(config))))
   config.conceal.decoder.input_norm = "standardize"
   return config
 
