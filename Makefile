@@ -52,6 +52,7 @@ ARGS ?=
 OWN_DIR = $(if $(filter-out file,$(origin WORKDIR)),$(WORKDIR),workdirs/own_scene/$(notdir $(abspath $(SCENE))))
 OWN_TEACHER = $(or $(TEACHER),$(OWN_DIR)/teacher/point_cloud.ply)
 OWN_MAIN = $(PY) -m conceal_jax.main --config=conceal_jax/configs/conceal.py --config.data.path=$(SCENE) $(ARGS)
+OWN_CALIBRATION = $(if $(CALIBRATION),--config.verify.calibration=$(CALIBRATION))
 OWN_KEYS = --config.reveal.ply=$(OWN_DIR)/conceal/student.ply --config.reveal.key=$(OWN_DIR)/conceal/key.json \
            --config.reveal.decoder=$(OWN_DIR)/conceal/decoder.msgpack --config.reveal.hidden=$(HIDDEN)
 own-scene: $(STAMP)
@@ -63,8 +64,7 @@ own-scene: $(STAMP)
 	$(OWN_MAIN) --workdir=$(OWN_DIR)/conceal --config.mark.teacher=$(OWN_TEACHER) --config.mark.hidden=$(HIDDEN) \
 	  --config.conceal.eval_every=$(CURVE_EVERY)
 	$(OWN_MAIN) --workdir=$(OWN_DIR)/reveal --config.mode=reveal $(OWN_KEYS)
-	$(OWN_MAIN) --workdir=$(OWN_DIR)/verify --config.mode=verify $(OWN_KEYS) \
-	  $(if $(CALIBRATION),--config.verify.calibration=$(CALIBRATION))
+	$(OWN_MAIN) --workdir=$(OWN_DIR)/verify --config.mode=verify $(OWN_KEYS) $(OWN_CALIBRATION)
 	@echo "own-scene: open $(OWN_DIR)/verify/report.html (the concealment alone: $(OWN_DIR)/conceal/report.html)"
 
 # headless Chromium (Debian's package), which the report test opens report.html in; the test skips without it

@@ -89,6 +89,8 @@ def test_a_line_chart_draws_its_finite_points():
   assert len(xy) == 3 and np.all(np.diff(xy[:, 0]) > 0)
   assert xy[1, 1] < xy[2, 1] < xy[0, 1]  # SVG's y grows downwards: 3.0 highest, 1.0 lowest
   assert "(last: 2)" in chart and "<circle" in page.line_chart([5], [0.5], "one")
+  labels = re.findall(r'text-anchor="end">([^<]*)<', page.line_chart([1, 2, 3], [21.351, 21.352, 21.3535], "close"))
+  assert labels == ["21.351", "21.352", "21.353"]  # the decimals a narrow range needs
   assert page.line_chart([1, 2], [float("inf"), float("nan")], "none") == ""
 
 
@@ -183,6 +185,8 @@ def test_the_reports_open_in_chromium_without_errors_and_show_their_images(conce
                                                        for decoded, width, _ in opened["images"]), opened["images"]
     assert opened["marks"] == len(run_report.CURVES)
     assert opened["links"] == ([run_report.VIEWER_FILE] if converter.available() else [])
+  if converter.available():  # the page the report links to opens cleanly too
+    assert chromium.open_page(tmp_path / run_report.VIEWER_FILE)["errors"] == []
 
 
 def test_the_train_and_reveal_summaries_name_their_files_and_figures(tmp_path):

@@ -86,13 +86,13 @@ def flat_items(tree: dict, prefix: str = "") -> list[tuple[str, object]]:
   return items
 
 
-def _ticks(low: float, high: float) -> list[float]:
-  """About five round tick values covering [low, high]."""
-  span = high - low
-  step = 10 ** math.floor(math.log10(span / 4)) if span > 0 else 1.0
-  step *= next(m for m in (1, 2, 5, 10) if span / (step * m) <= 5) if span > 0 else 1
+def _ticks(low: float, high: float) -> list[str]:
+  """About five round tick values in [low, high] (high > low), as labels with the decimals their spacing needs."""
+  unit = 10 ** math.floor(math.log10((high - low) / 4))
+  step = unit * next(m for m in (1, 2, 5, 10) if (high - low) / (unit * m) <= 5)
+  decimals = max(0, -math.floor(math.log10(step)))
   first = math.ceil(low / step) * step
-  return [first + k * step for k in range(int((high - first) / step + 1e-9) + 1)]
+  return [f"{first + k * step:.{decimals}f}" for k in range(int((high - first) / step + 1e-9) + 1)]
 
 
 def line_chart(xs: Sequence[float], ys: Sequence[float], title: str, x_label: str = "step", width: int = 420,
@@ -112,14 +112,16 @@ def line_chart(xs: Sequence[float], ys: Sequence[float], title: str, x_label: st
   sy = lambda y: height - bottom - (y - y_low) / (y_high - y_low) * (height - top - bottom)
   parts = [f'<svg class="chart" width="{width}" height="{height}" '
            f'viewBox="0 0 {width} {height}" role="img" aria-label="{escape(title)}">',
-           f'<text x="{left}" y="16" font-size="13">{escape(title)} (last: {points[-1][1]:.4g})</text>',
+           f'<text x="8" y="16" font-size="13">{escape(title)} (last: {points[-1][1]:.4g})</text>',
            f'<line x1="{left}" y1="{height - bottom}" x2="{width - right}" y2="{height - bottom}" stroke="#888"/>',
            f'<line x1="{left}" y1="{top}" x2="{left}" y2="{height - bottom}" stroke="#888"/>']
-  for y in _ticks(y_low, y_high):
-    parts.append(f'<text x="{left - 4}" y="{sy(y) + 4:.1f}" font-size="10" text-anchor="end">{y:.4g}</text>')
-    parts.append(f'<line x1="{left}" y1="{sy(y):.1f}" x2="{width - right}" y2="{sy(y):.1f}" stroke="#eee"/>')
-  for x in _ticks(x_low, x_high):
-    parts.append(f'<text x="{sx(x):.1f}" y="{height - bottom + 14}" font-size="10" text-anchor="middle">{x:g}</text>')
+  for label in _ticks(y_low, y_high):
+    y = sy(float(label))
+    parts.append(f'<text x="{left - 4}" y="{y + 4:.1f}" font-size="10" text-anchor="end">{label}</text>')
+    parts.append(f'<line x1="{left}" y1="{y:.1f}" x2="{width - right}" y2="{y:.1f}" stroke="#eee"/>')
+  for label in _ticks(x_low, x_high):
+    parts.append(f'<text x="{sx(float(label)):.1f}" y="{height - bottom + 14}" font-size="10" '
+                 f'text-anchor="middle">{label}</text>')
   parts.append(f'<text x="{(left + width - right) / 2}" y="{height - 6}" font-size="11" '
                f'text-anchor="middle">{escape(x_label)}</text>')
   if len(points) == 1:

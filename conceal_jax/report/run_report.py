@@ -30,8 +30,8 @@ VIEWER_FILE = "viewer.html"
 # (series of conceal.json's history, chart title): the curves over training, those the run recorded
 CURVES = (("hidden_psnr", "hidden image PSNR at the key (dB)"), ("hidden_ssim", "hidden image SSIM at the key"),
           ("test_psnr", "student test PSNR (dB)"), ("loss", "training loss"),
-          ("plus", "L_d+: the key's reveal to the hidden image"), ("minus", "L_d-: the decoder off the key"),
-          ("psnr", "student normal view to the teacher's render (dB)"))
+          ("plus", "L_d+, the reveal at the key"), ("minus", "L_d-, the decoder off the key"),
+          ("psnr", "normal view, student to teacher (dB)"))
 
 
 def read_json(path: str) -> dict | None:
