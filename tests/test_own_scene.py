@@ -7,16 +7,47 @@ import shutil
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from conceal_jax.data import demo_scene
+from tests import test_datasets, test_llff
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 # a tiny run: 20 teacher steps from 500 random points, 10 concealment steps of a width-4 decoder at 16x16
-TINY_ARGS = ("--config.init.num_random_points=500 --config.mark.hidden_size=16 --config.conceal.decoder.width=4 "
+TINY_ARGS = ("--config.init.kind=random --config.init.num_random_points=500 --config.mark.hidden_size=16 "
+             "--config.conceal.decoder.width=4 "
              "--config.conceal.iterations=10 --config.conceal.log_every=5 --config.eval.max_views=1 "
              "--config.train.progress_bar=False --config.conceal.progress_bar=False")
 needs_make = pytest.mark.skipif(shutil.which("make") is None, reason="make not installed")
+WIDTH, HEIGHT = 32, 24  # each format's images
+
+
+def write_scene(layout: str, root):
+  """A small scene of 10 views in `layout` (the writers of test_datasets and test_llff): 'blender' (the demo
+  scene, 32x32), 'colmap' (a text model, OPENCV lens), 'transforms' (a distorted lens) or 'llff' (as LLFF scenes
+  are shared: poses_bounds.npy, images_8/ only, a partial COLMAP model of cameras without images)."""
+  if layout == "blender":
+    return demo_scene.generate_demo_scene(root, num_train=8, num_test=2, size=32)
+  names = [f"view_{i:02d}.png" for i in range(10)]
+  k1, k2, p1, p2 = test_datasets.COEFFICIENTS
+  if layout == "colmap":
+    return test_datasets._write_colmap_text(root, f"OPENCV {WIDTH} {HEIGHT} 30 31 15.5 11.5 {k1} {k2} {p1} {p2}",
+                                            names, (WIDTH, HEIGHT))
+  images = {f"images/{name}": test_datasets._gradient(HEIGHT, WIDTH, seed=i) for i, name in enumerate(names)}
+  if layout == "transforms":
+    meta = dict(fl_x=30.0, fl_y=31.0, cx=15.5, cy=11.5, w=WIDTH, h=HEIGHT, k1=k1, k2=k2, p1=p1, p2=p2)
+    return test_datasets._write_transforms(root, meta, test_datasets._frames(list(images)), images)
+  # LLFF: the rows describe the full-resolution images (8x), of which images_8/ holds the only copies
+  rows = np.stack([test_llff._llff_row(i) for i in range(len(names))])
+  rows[:, [4, 9, 14]] = [HEIGHT * 8, WIDTH * 8, 8 * 30.0]
+  root.mkdir(parents=True)
+  np.save(root / "poses_bounds.npy", rows)
+  for i, name in enumerate(names):
+    test_datasets._write_png(root / "images_8" / name, test_datasets._gradient(HEIGHT, WIDTH, seed=i))
+  (root / "sparse").mkdir()
+  (root / "sparse" / "cameras.txt").write_text(f"1 PINHOLE {WIDTH * 8} {HEIGHT * 8} 240 240 128 96\n")
+  return root
 
 
 def make_own_scene(*variables: str, dry_run: bool = False) -> subprocess.CompletedProcess:
@@ -47,14 +78,16 @@ def test_own_scene_with_a_teacher_conceals_it_and_trains_none(tmp_path):
 
 @needs_make
 @pytest.mark.slow  # four jobs, each its own process and compilation
-def test_own_scene_trains_conceals_reveals_and_verifies(tmp_path):
-  scene = demo_scene.generate_demo_scene(tmp_path / "scene", num_train=6, num_test=2, size=32)
+@pytest.mark.parametrize("layout", ["blender", "colmap", "transforms", "llff"])
+def test_own_scene_trains_conceals_reveals_and_verifies(tmp_path, layout):
+  scene = write_scene(layout, tmp_path / "scene")
   work = tmp_path / "work"
+  images = " --config.data.images=images_8" if layout == "llff" else ""
   result = make_own_scene(f"SCENE={scene}", f"WORKDIR={work}", "OWN_TRAIN_STEPS=20", "CURVE_EVERY=5",
-                          f"ARGS={TINY_ARGS}")
+                          f"ARGS={TINY_ARGS}{images}")
   assert result.returncode == 0, result.stderr[-3000:]
   output = result.stdout + result.stderr
-  assert "Unable to initialize backend" not in output
+  assert "Unable to initialize backend" not in output and f"loading as {layout}" in output
   for line in ("trained 20 steps in", "concealed in 10 steps", f"revealed from {work}/conceal/student.ply: PSNR",
                f"{work}/conceal/student.ply: ", "  evidence: ", f"open {work}/verify/report.html"):
     assert line in result.stdout, line
