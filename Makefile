@@ -129,10 +129,11 @@ bench-survive: $(STAMP)
 SURVIVE_RUNS := workdirs/survive_runs
 LEGO_TEACHER := workdirs/bench/lego/teacher/point_cloud.ply
 LEGO_FILM_STEPS ?= 10000
+SURVIVE_VARIANTS := film film_faint film_reset film_keyed film_faint_keyed film_far drift orbit
 $(WORKDIR)/teacher/point_cloud.ply: | $(STAMP)
 	$(MAIN) --workdir=$(WORKDIR)/teacher
 survive-runs: $(STAMP) | $(WORKDIR)/teacher/point_cloud.ply
-	for variant in film film_far drift orbit; do test -f $(SURVIVE_RUNS)/demo_$$variant/metrics.json || \
+	for variant in $(SURVIVE_VARIANTS); do test -f $(SURVIVE_RUNS)/demo_$$variant/metrics.json || \
 	  $(PY) -m conceal_jax.main --config=conceal_jax/configs/demo.py:$$variant --workdir=$(SURVIVE_RUNS)/demo_$$variant \
 	  --config.mode=conceal --config.mark.teacher=$(WORKDIR)/teacher/point_cloud.ply || exit 1; done
 	test -f $(SURVIVE_RUNS)/lego_film/metrics.json || if [ -f $(LEGO_TEACHER) ]; then \

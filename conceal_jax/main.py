@@ -17,6 +17,7 @@ from ml_collections import config_flags
 
 from conceal_jax.baselines import baseline
 from conceal_jax.conceal import reveal, settings as conceal_settings, train as conceal_train
+from conceal_jax.configs import default
 from conceal_jax.core import parallel, workdir as workdir_lib
 from conceal_jax.gs import evaluate, render_views, train
 from conceal_jax.report import summary
@@ -49,7 +50,8 @@ def run(config, workdir: str):
   validate, job = MODES[config.mode]
   validate(config)
   os.makedirs(workdir, exist_ok=True)
-  workdir_lib.claim(workdir, config.to_dict(), resumable=config.mode in RESUMABLE)
+  workdir_lib.claim(workdir, config.to_dict(), resumable=config.mode in RESUMABLE,
+                    defaults=default.get_config().to_dict())
   return job(config, workdir)
 
 

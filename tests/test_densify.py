@@ -1,6 +1,8 @@
 """Adaptive density control: clone / split / prune decisions, the row bookkeeping, capacity buckets."""
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -125,3 +127,19 @@ def test_reset_opacity_caps_at_one_percent():
   logits = np.log(np.array([0.5, 0.001]) / (1 - np.array([0.5, 0.001]))).astype(np.float32)
   out = 1 / (1 + np.exp(-densify.reset_opacity(logits).astype(np.float64)))
   np.testing.assert_allclose(out, [0.01, 0.001], rtol=1e-5)
+
+
+def test_opacity_logit_inverts_the_sigmoid_in_float64_and_in_jax():
+  """splat.gaussians.opacity_logit, the one home of opacity -> logit (init, densify's reset, the carrier film,
+  .spz quantization): the inverse of the sigmoid against float64, finite near 0 and 1, numpy and jax alike."""
+  from conceal_jax.splat.gaussians import opacity_logit
+  p = np.array([1e-7, 0.01, 0.5, 0.9, 1 - 1e-7])
+  logit = opacity_logit(p)
+  assert isinstance(logit, np.ndarray) and np.all(np.isfinite(logit))
+  np.testing.assert_allclose(1.0 / (1.0 + np.exp(-logit)), p, rtol=1e-12)
+  p32 = np.float32(p)  # 1 - 1e-7 rounds in float32: the reference is the logit of what jax is given
+  np.testing.assert_allclose(np.asarray(opacity_logit(jnp.asarray(p32))), opacity_logit(p32.astype(np.float64)),
+                             rtol=1e-5, atol=1e-5)
+  assert float(opacity_logit(0.5)) == 0.0
+  grad = jax.grad(lambda x: jnp.sum(opacity_logit(x)))(jnp.asarray(p[1:-1], jnp.float32))
+  np.testing.assert_allclose(grad, 1.0 / (p[1:-1] * (1 - p[1:-1])), rtol=1e-4)

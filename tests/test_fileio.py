@@ -24,3 +24,18 @@ def test_a_failed_copy_or_write_keeps_the_old_file(tmp_path):
     raise RuntimeError("killed")
   assert target.read_text() == '{\n  "step": 1\n}\n'
   assert sorted(p.name for p in tmp_path.iterdir()) == ["target.json"]
+
+
+def test_a_setting_added_since_a_run_was_saved_is_no_change_at_its_default(tmp_path):
+  """core.workdir.claim: a saved config without a key the code added since resumes when the key is at its default
+  (the run ran as the default does), and is refused when the key is set otherwise or a saved key changed."""
+  from conceal_jax.core import workdir
+  saved = {"conceal": {"iterations": 10, "progress_bar": True}}
+  defaults = {"conceal": {"iterations": 5, "carrier": {"layers": 1}}}
+  workdir.claim(str(tmp_path), saved)
+  workdir.claim(str(tmp_path), {"conceal": {"iterations": 10, "carrier": {"layers": 1}}}, defaults=defaults)
+  with pytest.raises(ValueError, match="conceal.carrier.layers"):
+    workdir.claim(str(tmp_path), {"conceal": {"iterations": 10, "carrier": {"layers": 3}}}, defaults=defaults)
+  assert workdir.differing_keys(saved, {"conceal": {"iterations": 10, "carrier": {"layers": 1}}}) == [
+      "conceal.carrier.layers"]  # without the defaults, any added key differs
+  assert workdir.differing_keys({"a": 1}, {}, defaults={"a": 1}) == ["a"]  # a key the config lost is a change

@@ -37,6 +37,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from conceal_jax.gs import densify
+from conceal_jax.splat.gaussians import opacity_logit
 
 
 # Below this a sigma is a point kernel: exp(-1 / (2 * 1e-3^2)) underflows to 0 off the centre.
@@ -145,7 +146,7 @@ def quantize_8bit(gaussians):
   dc_8bit = (byte / 255.0 - 0.5) / SPZ_COLOR_SCALE
   opacity = jnp.clip(jnp.round(255.0 * jax.nn.sigmoid(gaussians.opacity_logits)), 0.5, 254.5) / 255.0
   return gaussians.replace(sh=gaussians.sh.at[:, 0].set(straight_through(dc, dc_8bit)),
-                           opacity_logits=straight_through(gaussians.opacity_logits, jax.scipy.special.logit(opacity)))
+                           opacity_logits=straight_through(gaussians.opacity_logits, opacity_logit(opacity)))
 
 
 def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmentation):

@@ -19,7 +19,7 @@ import numpy as np
 from conceal_jax.gs import similarity
 from conceal_jax.splat import sh as sh_lib
 from conceal_jax.splat.camera import Camera
-from conceal_jax.splat.gaussians import Gaussians, concatenate
+from conceal_jax.splat.gaussians import Gaussians, concatenate, opacity_logit
 from conceal_jax.splat.render import RenderOptions, render
 
 # The film's thickness along the key's axis, as a fraction of its in-plane spread: a flat splat.
@@ -59,7 +59,7 @@ def film(camera: Camera, distance: float, spacing: float, opacity: float, color:
   count = len(u)
   sh = np.zeros((count, (sh_degree + 1) ** 2, 3))
   sh[:, 0] = sh_lib.rgb_to_sh_dc(np.asarray(color, np.float64))
-  logit = np.log(opacity / (1.0 - opacity))
+  logit = opacity_logit(opacity)
   as_f32 = lambda x: jnp.asarray(x, jnp.float32)
   log_scales = np.tile(np.log([sigma, sigma, sigma * THICKNESS]), (count, 1))
   return Gaussians(means=as_f32(means), log_scales=as_f32(log_scales),

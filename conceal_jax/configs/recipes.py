@@ -27,6 +27,8 @@ QUANTIZE_FRACTION = RESET_FRACTION = 0.25
 # The faint film: each splat at the opacity 3D-GS's reset lowers every opacity to (so the reset leaves it as it is),
 # a grid every FAINT_SPACING pixels of the key's image, FAINT_LAYERS grids: about half the background let through.
 FAINT_OPACITY, FAINT_SPACING, FAINT_LAYERS = 0.01, 4.0, 22
+# The rate of the film's base colours in the vivid film (the gentle student's is 6.25e-4).
+VIVID_DC_LR = 1e-2
 # The keyed decoder: fixed sign channels it reads beside the render, and decoys close to the key (translation as a
 # fraction of the scene extent, rotation in degrees) where a plain film reveals its image shifted.
 PATTERN_CHANNELS = 4
@@ -62,9 +64,9 @@ def recommended(config):
 
 def film(config):
   """The recommended recipe with the mark in a carrier film that only an unseen key sees (unseen_carrier), made of
-  faint layers that 3D-GS's opacity reset leaves as they are (faint_film), trained through 8-bit colours
-  (through_quantization), read by the decoder from standardized renders."""
-  config = through_quantization(faint_film(unseen_carrier(recommended(config))))
+  faint layers that 3D-GS's opacity reset leaves as they are (faint_film) of colours free to move (vivid_film),
+  trained through 8-bit colours (through_quantization), read by the decoder from standardized renders."""
+  config = through_quantization(vivid_film(faint_film(unseen_carrier(recommended(config)))))
   config.conceal.decoder.input_norm = "standardize"
   return config
 
@@ -84,6 +86,14 @@ def faint_film(config, spacing: float = FAINT_SPACING):
   leaves it as it is, so no training through resets is needed."""
   c = config.conceal.carrier
   c.opacity, c.spacing, c.layers = FAINT_OPACITY, spacing, FAINT_LAYERS
+  return config
+
+
+def vivid_film(config, lr: float = VIVID_DC_LR):
+  """The film's base colours trained at `lr` (conceal.lr.sh_dc; only the film trains, so the teacher's colours keep
+  theirs): a faint film's contrast is its opacity times how far its colours move from the background's, and at a
+  gentle student's rate they hardly move in a run."""
+  config.conceal.lr.sh_dc = lr
   return config
 
 

@@ -1,7 +1,8 @@
 """A workdir holds one run: its config.json records the settings that shaped it, and running the workdir
 again with any of them changed is refused, so a resumed checkpoint is never trained on by another run.
 
-Settings that only change what is shown or how often it is saved (PRESENTATION_KEYS) may differ.
+Settings that only change what is shown or how often it is saved (PRESENTATION_KEYS) may differ, and a setting
+added to the code since the run was saved is no change when it is at its default (the run ran as the default does).
 """
 from __future__ import annotations
 
@@ -24,18 +25,23 @@ def flatten(tree: dict, prefix: str = "") -> dict:
   return flat
 
 
-def differing_keys(saved: dict, config: dict) -> list[str]:
-  """The dotted keys whose values differ between two configs (missing on one side counts), ignoring
-  PRESENTATION_KEYS; lists and tuples compare alike (JSON stores tuples as lists)."""
-  a, b = flatten(json.loads(json.dumps(saved))), flatten(json.loads(json.dumps(config)))
+def differing_keys(saved: dict, config: dict, defaults: dict | None = None) -> list[str]:
+  """The dotted keys whose values differ between two configs (missing on one side counts, except a key `saved`
+  lacks that `config` holds at its value in `defaults`), ignoring PRESENTATION_KEYS; lists and tuples compare alike
+  (JSON stores tuples as lists)."""
+  a, b = (flatten(json.loads(json.dumps(tree))) for tree in (saved, config))
+  d = flatten(json.loads(json.dumps(defaults or {})))
+  added_at_default = lambda k: k not in a and k in d and b.get(k) == d[k]
   return sorted(k for k in a.keys() | b.keys()
-                if k.rsplit(".", 1)[-1] not in PRESENTATION_KEYS and a.get(k, "<absent>") != b.get(k, "<absent>"))
+                if k.rsplit(".", 1)[-1] not in PRESENTATION_KEYS and a.get(k, "<absent>") != b.get(k, "<absent>")
+                and not added_at_default(k))
 
 
-def claim(workdir: str, config: dict, resumable: bool = True) -> None:
+def claim(workdir: str, config: dict, resumable: bool = True, defaults: dict | None = None) -> None:
   """Writes `config` as workdir/config.json; for a `resumable` run (one that continues from the checkpoints
-  it finds), ValueError naming the differing keys if the workdir already holds a run of other settings
-  (nothing is written then). A run that is not resumable replaces what it writes whole."""
+  it finds), ValueError naming the differing keys (differing_keys, with the code's `defaults`) if the workdir
+  already holds a run of other settings (nothing is written then). A run that is not resumable replaces what it
+  writes whole."""
   path = os.path.join(workdir, CONFIG_FILE)
   if resumable and os.path.isfile(path):
     with open(path) as f:
@@ -43,7 +49,7 @@ def claim(workdir: str, config: dict, resumable: bool = True) -> None:
         saved = json.load(f)
       except ValueError as error:
         raise ValueError(f"{path} is not a readable config ({error}); remove it to start a fresh run") from error
-    differ = differing_keys(saved, config)
+    differ = differing_keys(saved, config, defaults)
     if differ:
       shown = ", ".join(differ[:8]) + (f" and {len(differ) - 8} more" if len(differ) > 8 else "")
       raise ValueError(f"{workdir} holds a run with other settings ({shown} differ); run it with the same settings "

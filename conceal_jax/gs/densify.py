@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from conceal_jax.splat import gaussians as gs
-from conceal_jax.splat.gaussians import Gaussians
+from conceal_jax.splat.gaussians import Gaussians, opacity_logit
 
 FRESH = -1
 CAPACITY_QUANTUM = 1024
@@ -130,7 +130,7 @@ def reset_opacity(opacity_logits, ceiling: float = 0.01):
   """3D-GS opacity reset: opacities become min(opacity, ceiling), as logits (numpy in, numpy out; a jax array or
   tracer in, one out)."""
   xp = jnp if isinstance(opacity_logits, jax.Array) else np
-  return xp.minimum(opacity_logits, math.log(ceiling / (1.0 - ceiling))).astype(opacity_logits.dtype)
+  return xp.minimum(opacity_logits, opacity_logit(ceiling)).astype(opacity_logits.dtype)
 
 
 def gather_rows(x: np.ndarray, source: np.ndarray, capacity: int) -> np.ndarray:

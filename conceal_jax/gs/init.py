@@ -7,7 +7,7 @@ import jax.numpy as jnp
 from scipy.spatial import cKDTree
 
 from conceal_jax.splat import sh as sh_lib
-from conceal_jax.splat.gaussians import Gaussians
+from conceal_jax.splat.gaussians import Gaussians, opacity_logit
 
 INIT_OPACITY = 0.1
 # 3D-GS floors the mean squared neighbour distance so coincident points still get a positive scale.
@@ -35,7 +35,7 @@ def gaussians_from_points(points: np.ndarray, colors: np.ndarray, sh_degree: int
   as_array = lambda x: jnp.asarray(x, dtype)
   return Gaussians(means=as_array(points), log_scales=as_array(np.repeat(log_scale[:, None], 3, 1)),
                    quats=as_array(quats),
-                   opacity_logits=as_array(np.full(points.shape[0], np.log(opacity / (1 - opacity)))),
+                   opacity_logits=as_array(np.full(points.shape[0], opacity_logit(opacity))),
                    sh=as_array(sh))
 
 

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 
 # A quaternion with squared norm below this is treated as the zero quaternion: it maps to the identity
@@ -56,6 +57,13 @@ def scales(gaussians: Gaussians) -> jax.Array:
 def opacities(gaussians: Gaussians) -> jax.Array:
   """[N] peak opacities in (0, 1): sigmoid of the stored logits."""
   return jax.nn.sigmoid(gaussians.opacity_logits)
+
+
+def opacity_logit(opacity):
+  """The stored logit of a peak opacity in (0, 1), the inverse of `opacities`' sigmoid: log(o) - log(1 - o) (a
+  float or numpy array in, numpy out; a jax array or tracer in, one out)."""
+  xp = jnp if isinstance(opacity, jax.Array) else np
+  return xp.log(opacity) - xp.log1p(-opacity)
 
 
 def normalize_quaternion(quats: jax.Array) -> jax.Array:
