@@ -55,6 +55,7 @@ NAME = "survive_bench"
 # (configs/demo.py's variants, lego_conceal.py:film)
 SCENES = {"demo": ("demo", "workdirs/demo/conceal", "recommended"),
           "demo_film": ("demo", "workdirs/survive_runs/demo_film", "film"),
+          "demo_film_faint": ("demo", "workdirs/survive_runs/demo_film_faint", "film_faint"),
           "demo_film_reset": ("demo", "workdirs/survive_runs/demo_film_reset", "film_reset"),
           "demo_film_faint_keyed": ("demo", "workdirs/survive_runs/demo_film_faint_keyed", "film_faint_keyed"),
           "demo_film_keyed": ("demo", "workdirs/survive_runs/demo_film_keyed", "film_keyed"),
@@ -77,13 +78,14 @@ RECIPE_NOTES = {
                    "row)",
     "film": "the carrier film (recipes.film): the key looks where no camera looks, one camera distance out from "
             "their orbit target, and the film 0.1 camera distances before it, 22 grids of splats at opacity 0.01 (the "
-            "opacity reset's ceiling); its base colours trained through 8-bit colours a quarter of the steps, the "
-            "decoder reading standardized renders, 64 decoys within 1-10 degrees of the key (demo.py:film, "
+            "opacity reset's ceiling); its base colours trained at rate 1e-2 through 8-bit colours a quarter of the "
+            "steps, the decoder reading standardized renders, 64 decoys within 1-10 degrees of the key (demo.py:film, "
             "lego_conceal.py:film)",
+    "film_faint": "film with its colours at the gentle student's rate, 6.25e-4 (demo.py:film_faint)",
     "film_reset": "the first film: one grid of splats at opacity 0.5, trained through 8-bit colours and opacity "
                   "resets a quarter of the steps each, a plain decoder reading standardized renders, decoys within "
                   "1-10 degrees (demo.py:film_reset; lego: cut to 1000 steps)",
-    "film_faint_keyed": "film with the decoder reading 4 fixed sign channels beside the render and decoys within "
+    "film_faint_keyed": "film_faint with the decoder reading 4 fixed sign channels beside the render and decoys within "
                         "0.5-4 degrees (demo.py:film_faint_keyed)",
     "film_keyed": "film_reset with the sign channels and near decoys (demo.py:film_keyed)",
     "film_far": "film_reset with the key half a camera distance out and the film as far again (demo.py:film_far)",
@@ -175,7 +177,7 @@ def aligned(scene: Scene, suspect, applied: sim.Similarity | None = None) -> dic
   registration = scores["registration"]
   registration.update(registration_errors(registration, applied or sim.Similarity.identity(),
                                           registration["owner_radius"]))
-  return dict(hidden_psnr=scores["hidden_psnr"], hidden_ssim=scores["hidden_ssim"],
+  return dict(hidden_psnr=scores["hidden_psnr"], hidden_ssim=scores["hidden_ssim"], hidden_z=scores["hidden_z"],
               decided=ownership.decide(scores["hidden_ssim"], scene.calibration), registration=registration)
 
 
@@ -193,7 +195,7 @@ def transform_rows(scene: Scene, todo) -> list[dict]:
     moved, applied = scene_attacks.attack(jax.tree.map(jnp.asarray, scene.student), attack, level)
     moved = cached_ply(scene.cache / f"{attack}_{level:g}" / "scene.ply", lambda: moved)
     plain = scores_of(scene, moved, applied)
-    unaligned = dict(hidden_psnr=plain.pop("hidden_psnr"), hidden_ssim=plain.pop("hidden_ssim"))
+    unaligned = {name: plain.pop(name) for name in ("hidden_psnr", "hidden_ssim", "hidden_z")}
     unaligned["decided"] = ownership.decide(unaligned["hidden_ssim"], scene.calibration)
     realigned = aligned(scene, moved, applied)
     registration = realigned.pop("registration")
@@ -340,19 +342,22 @@ def table(rows: list[dict]) -> str:
            "that of the moved variant. decided: SSIM at or above the threshold chosen from the calibration file "
            "(robust/ownership.py; make bench-robust's, measured on other runs' decoders). Fine-tuning: the run's "
            "own training recipe continued on its training views; finetune_densify densifies from that recipe's "
-           "densify.start, so its shorter rows equal finetune's.", "", "Recipes:", "",
+           "densify.start, so its shorter rows equal finetune's. z: the ownership test's statistic of the revealed "
+           "image against I (robust/phase_statistic.py; N(0, 1) where the scene does not carry I, 4.75 is the "
+           "one-sided 1e-6 level; rows measured before it have none).", "", "Recipes:", "",
            *[f"- {name}: {note}" for name, note in RECIPE_NOTES.items()
              if any(r["recipe"] == name for r in rows)], "",
-           "| scene | recipe | attack | level | render PSNR | hidden PSNR | hidden SSIM | decided | unaligned SSIM "
+           "| scene | recipe | attack | level | render PSNR | hidden PSNR | hidden SSIM | z | decided | unaligned SSIM "
            "| aligned SSIM | moved SSIM | registration |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|"]
-  cell = lambda x: "" if x is None else f"{x:.3f}"
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+  cell = lambda x, digits=3: "" if x is None else f"{x:.{digits}f}"
   for r in rows:
     registration = r.get("registration") or (r.get("moved") or {}).get("registration")
     reg = "" if registration is None else (f"{registration['rotation_error_deg']:.1e} deg, "
                                            f"{registration['residual']:.1e}")
     lines.append(f"| {r['scene']} | {r['recipe']} | {r['attack']} | {level_label(r)} | {r['render_psnr']:.2f} "
-                 f"| {r['hidden_psnr']:.2f} | {r['hidden_ssim']:.3f} | {'yes' if r['decided'] else 'no'} "
+                 f"| {r['hidden_psnr']:.2f} | {r['hidden_ssim']:.3f} "
+                 f"| {cell(r.get('hidden_z'), 1)} | {'yes' if r['decided'] else 'no'} "
                  f"| {cell((r.get('unaligned') or {}).get('hidden_ssim'))} "
                  f"| {cell((r.get('aligned') or {}).get('hidden_ssim'))} "
                  f"| {cell((r.get('moved') or {}).get('hidden_ssim'))} | {reg} |")

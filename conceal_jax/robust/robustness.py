@@ -15,7 +15,7 @@ import numpy as np
 
 from conceal_jax.conceal import reveal, scoring
 from conceal_jax.gs import evaluate, train
-from conceal_jax.robust import image_attacks, model_attacks
+from conceal_jax.robust import image_attacks, model_attacks, phase_statistic
 from conceal_jax.splat import gaussians as gaussians_lib
 from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.gaussians import Gaussians
@@ -49,12 +49,16 @@ class Owner:
 
   def check_scores(self, gaussians: Gaussians, camera: Camera | None = None,
                    options: RenderOptions | None = None) -> dict[str, float]:
-    """hidden_psnr and hidden_ssim of what `gaussians` reveal at the key (or at `camera` with `options`: the
+    """hidden_psnr, hidden_ssim and hidden_z (the ownership test's statistic, phase_statistic.z_scores: N(0, 1)
+    where the scene does not carry I) of what `gaussians` reveal at the key (or at `camera` with `options`: the
     key moved into a transformed scene's frame, reveal.moved_key)."""
     camera = self.check_camera if camera is None else camera
     options = self.options if options is None else options
-    scores = self.scores(self.reveal_renders(render(gaussians, camera, options).rgb[None]))
-    return dict(hidden_psnr=float(scores["psnr"][0]), hidden_ssim=float(scores["ssim"][0]))
+    revealed = np.asarray(self.reveal_renders(render(gaussians, camera, options).rgb[None]))
+    scores = self.scores(revealed)
+    z = phase_statistic.z_scores(phase_statistic.whitened_spectra(revealed),
+                                 phase_statistic.whitened_spectra(np.asarray(self.hidden)[None]))
+    return dict(hidden_psnr=float(scores["psnr"][0]), hidden_ssim=float(scores["ssim"][0]), hidden_z=float(z[0, 0]))
 
   def aligned_scores(self, marked: Gaussians, suspect: Gaussians) -> dict:
     """What `suspect` reveals at the key after re-alignment against the owner's copy `marked` (the scene the
