@@ -81,7 +81,8 @@ RECIPE_NOTES = {
             "opacity reset's ceiling); its base colours trained at rate 1e-2 through 8-bit colours a quarter of the "
             "steps, the decoder reading standardized renders, 64 decoys within 1-10 degrees of the key (demo.py:film, "
             "lego_conceal.py:film)",
-    "film_faint": "film with its colours at the gentle student's rate, 6.25e-4 (demo.py:film_faint)",
+    "film_faint": "film with its colours at the gentle student's rate, 6.25e-4 (demo.py:film_faint; concealed on an "
+                  "H200, attacked on the CPU)",
     "film_reset": "the first film: one grid of splats at opacity 0.5, trained through 8-bit colours and opacity "
                   "resets a quarter of the steps each, a plain decoder reading standardized renders, decoys within "
                   "1-10 degrees (demo.py:film_reset; lego: cut to 1000 steps)",
