@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from conceal_jax.conceal import augment, train as conceal_train
+from conceal_jax.gs import densify
 from conceal_jax.robust import image_attacks
 from conceal_jax.splat.gaussians import Gaussians
 from conceal_jax.conceal.augment import Augmentation
@@ -166,14 +167,14 @@ def test_bad_distortion_maxima_are_named(tiny, tmp_path):  # noqa: F811
 
 
 def test_an_opacity_reset_caps_every_opacity_where_drawn():
-  """reset 1: every opacity at most RESET_OPACITY (3D-GS's reset), the lower ones and the other fields as they
+  """reset 1: every opacity at most densify.RESET_CEILING (3D-GS's reset), the lower ones and the other fields as they
   were; reset 0: the Gaussians themselves."""
   g = _random_gaussians(500, seed=5)
   a = augment.Augmentation(reset_fraction=0.5)
   drawn = dict(augment.draw(np.random.default_rng(0), a), reset=np.float32(1.0))
   reset = augment.perturb_gaussians(g, drawn, a)
   opacity, before = (np.asarray(jax.nn.sigmoid(x.opacity_logits), np.float64) for x in (reset, g))
-  np.testing.assert_allclose(opacity, np.minimum(before, augment.RESET_OPACITY), rtol=1e-5)
+  np.testing.assert_allclose(opacity, np.minimum(before, densify.RESET_CEILING), rtol=1e-5)
   np.testing.assert_array_equal(np.asarray(reset.sh), np.asarray(g.sh))
   drawn["reset"] = np.float32(0.0)
   for x, y in zip(jax.tree.leaves(augment.perturb_gaussians(g, drawn, a)), jax.tree.leaves(g)):

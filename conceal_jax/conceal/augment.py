@@ -21,8 +21,8 @@ check renders also reads near-key views of the student more readily. With concea
 share of the steps renders the check view from the student's base colours and opacities rounded to 8 bits as
 .spz stores them, the coarsest grid of the publishing formats (`quantize_8bit`; the gradient passes the rounding
 straight through), so that a mark carried by colours survives the round trip. With
-conceal.attacks.reset_fraction, that share renders it with every opacity at most RESET_OPACITY, as the opacity
-reset of 3D-GS training with densification leaves the Gaussians no training view sees.
+conceal.attacks.reset_fraction, that share renders it with every opacity at most densify.RESET_CEILING, as the
+opacity reset of 3D-GS training with densification leaves the Gaussians no training view sees.
 
 The recommended recipe (configs/recipes.through_attacks) trains through blur and noise only: what each
 distortion gained and cost is in experiments/results/conceal_options.md.
@@ -46,8 +46,6 @@ _MIN_SIGMA = 1e-3
 TRUNCATE = 4.0
 # A dropped Gaussian's opacity logit: sigmoid(-30) ~ 1e-13, far below any alpha the renderer composites.
 DROPPED_LOGIT = -30.0
-# 3D-GS's opacity reset (Sec. 5.2): every opacity set to at most this.
-RESET_OPACITY = 0.01
 # .spz's 8-bit base colour: byte = round(255 (0.15 dc + 0.5)), the SH DC term scaled by this before the offset.
 SPZ_COLOR_SCALE = 0.15
 # An Augmentation field f is config key conceal.attacks.<f>; a contrast factor and a dropout probability stay below 1.
@@ -97,7 +95,7 @@ class Augmentation:
   dropout_max: float = 0.0      # each Gaussian dropped with probability ~ U[0, max] (`perturb_gaussians`)
   param_noise_max: float = 0.0  # relative parameter noise ~ U[0, max]
   quantize_fraction: float = 0.0  # the share of steps whose check render is of 8-bit colours and opacities
-  reset_fraction: float = 0.0  # the share of steps whose check render is of opacities reset to RESET_OPACITY
+  reset_fraction: float = 0.0  # the share of steps whose check render is of opacities reset to densify.RESET_CEILING
 
   def __post_init__(self):
     for f in dataclasses.fields(self):
@@ -155,7 +153,7 @@ def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmenta
   constant: the noise's scale is not trained), then each Gaussian dropped (opacity logit DROPPED_LOGIT, no
   gradient) with probability distortion["dropout"]; drawn from the PRNG seed distortion["model_seed"]. First,
   where distortion["quantize"] is 1, the 8-bit colours and opacities (`quantize_8bit`), and where
-  distortion["reset"] is 1, every opacity at most RESET_OPACITY. A kind whose maximum in
+  distortion["reset"] is 1, every opacity at most densify.RESET_CEILING. A kind whose maximum in
   `augmentation` is 0 is left out at trace time (without any, the Gaussians themselves, and `distortion` may be
   None); at level 0 each is the identity, values and gradients."""
   a = augmentation
@@ -165,7 +163,7 @@ def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmenta
     quantized = quantize_8bit(gaussians)
     gaussians = jax.tree.map(lambda q, x: jnp.where(distortion["quantize"] > 0, q, x), quantized, gaussians)
   if a.reset_fraction > 0:
-    reset = densify.reset_opacity(gaussians.opacity_logits, RESET_OPACITY)
+    reset = densify.reset_opacity(gaussians.opacity_logits)
     gaussians = gaussians.replace(opacity_logits=jnp.where(distortion["reset"] > 0, reset,
                                                            gaussians.opacity_logits))
   noise_key, drop_key = jax.random.split(jax.random.key(distortion["model_seed"]))

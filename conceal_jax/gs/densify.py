@@ -126,7 +126,11 @@ def densify_and_prune(gaussians: Gaussians, mean_grads: np.ndarray, max_radii: n
   return take(result, ~prune), source[~prune]
 
 
-def reset_opacity(opacity_logits, ceiling: float = 0.01):
+# 3D-GS's opacity reset (Sec. 5.2): every opacity lowered to at most this.
+RESET_CEILING = 0.01
+
+
+def reset_opacity(opacity_logits, ceiling: float = RESET_CEILING):
   """3D-GS opacity reset: opacities become min(opacity, ceiling), as logits (numpy in, numpy out; a jax array or
   tracer in, one out)."""
   xp = jnp if isinstance(opacity_logits, jax.Array) else np
