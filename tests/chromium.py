@@ -93,7 +93,8 @@ def open_page(path: str | os.PathLike, timeout_s: float = 60.0) -> dict:
   to_read, to_write = (_above_4(fd) for fd in (to_read, to_write))
   flags = ["--headless", "--no-sandbox", "--disable-gpu", "--remote-debugging-pipe", "--no-first-run",
            "--proxy-server=127.0.0.1:9", "--proxy-bypass-list=<-loopback>"]
-  with tempfile.TemporaryDirectory(prefix="chromium_profile_") as profile:
+  # chromium's helper processes can still write to the profile after the browser exits: its removal may not fail
+  with tempfile.TemporaryDirectory(prefix="chromium_profile_", ignore_cleanup_errors=True) as profile:
     process = subprocess.Popen(["bash", "-c", f'exec "$0" "$@" 3<&{to_read} 4>&{to_write}', EXECUTABLE, *flags,
                                 f"--user-data-dir={profile}"], pass_fds=(to_read, to_write),
                                stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
