@@ -72,7 +72,7 @@ def decoded(decoder, images: jax.Array, settings: ConcealSettings) -> jax.Array:
   s = settings
   if not s.use_decoder:
     return images
-  return reveal.decode(decoder, s.decoder_width, images, s.reading.input_norm, s.reading.pattern)
+  return reveal.decode(decoder, s.decoder_width, images, s.reading)
 
 
 def pixel_loss(rgb: jax.Array, view: View, settings: ConcealSettings) -> jax.Array:

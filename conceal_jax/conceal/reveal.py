@@ -45,19 +45,22 @@ class Reading:
   as an image file holds it, so that no hidden signal can live in values outside it (a lego student trained
   without it hid its image in whites above 1, which any saved or attacked image loses:
   experiments/results/conceal_options.md); `pattern`: the fixed sign channels the U-Net reads beside the
-  render (unet.UNet, conceal.decoder.pattern)."""
+  render (unet.UNet, conceal.decoder.pattern); `modulation`: the scale of the sign field the U-Net reads the
+  render through (unet.UNet, conceal.decoder.modulation; 0: none)."""
   input_norm: str = "none"
   clip: bool = False
   pattern: int = 0
+  modulation: float = 0.0
 
   @classmethod
   def from_key(cls, info: dict) -> "Reading":
     """The reading a key.json records; keys written before these options: the paper's."""
     return cls(str(info.get("decoder_input_norm", "none")), bool(info.get("decoder_clip_input", False)),
-               int(info.get("decoder_pattern", 0)))
+               int(info.get("decoder_pattern", 0)), float(info.get("decoder_modulation", 0.0)))
 
   def key_fields(self) -> dict:
-    return dict(decoder_input_norm=self.input_norm, decoder_clip_input=self.clip, decoder_pattern=self.pattern)
+    return dict(decoder_input_norm=self.input_norm, decoder_clip_input=self.clip, decoder_pattern=self.pattern,
+                decoder_modulation=self.modulation)
 
 
 PAPER_READING = Reading()
@@ -70,13 +73,13 @@ def resize_for_decoder(image: jax.Array, size: int, clip: bool = False) -> jax.A
   return jax.image.resize(image, image.shape[:-3] + (size, size, image.shape[-1]), "linear")
 
 
-def decode(decoder_params, base_channels: int, images: jax.Array, input_norm: str = "none",
-           pattern: int = 0) -> jax.Array:
+def decode(decoder_params, base_channels: int, images: jax.Array, reading: Reading = PAPER_READING) -> jax.Array:
   """F: [..., S, S, C] -> [..., S, S, 3] with the U-Net decoder (C: the input channels its params were made
-  for, 3 for a render); `input_norm`: how the U-Net normalises each image it reads, `pattern`: the fixed
-  channels it reads beside it (unet.UNet)."""
+  for, 3 for a render), reading the images as `reading` says (its input_norm, pattern and modulation; its clip
+  is resize_for_decoder's)."""
   batch = images[None] if images.ndim == 3 else images
-  out = unet.UNet(base_channels, input_norm, pattern).apply({"params": decoder_params}, batch)
+  model = unet.UNet(base_channels, reading.input_norm, reading.pattern, reading.modulation)
+  out = model.apply({"params": decoder_params}, batch)
   return out[0] if images.ndim == 3 else out
 
 
@@ -86,8 +89,7 @@ def reveal_renders(decoder_params, renders: jax.Array, base_channels: int, size:
   """[..., H, W, 3] renders -> [..., size, size, 3] revealed images clipped to [0, 1]; decoder_params
   None: the resized render itself (the "without decoder" ablation)."""
   small = resize_for_decoder(renders, size, reading.clip)
-  out = small if decoder_params is None else decode(decoder_params, base_channels, small, reading.input_norm,
-                                                    reading.pattern)
+  out = small if decoder_params is None else decode(decoder_params, base_channels, small, reading)
   return jnp.clip(out, 0.0, 1.0)
 
 

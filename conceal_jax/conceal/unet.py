@@ -24,6 +24,11 @@ the same on every machine) to what the U-Net reads. Convolutions are blind to wh
 plain U-Net reveals the hidden image from a render shifted by a few pixels (the key turned by a degree or two) about
 as well as from the render itself; against a fixed pattern the image is not alike shifted, and the decoder can learn
 to reveal only what lines up with it (a spread-spectrum key in the image plane).
+
+`modulation` (beyond the paper, conceal.decoder.modulation) makes that key explicit: F(x) = x + U(x * p), with p a
+fixed field of signs in blobs of about `modulation` pixels (`modulation_field`). The U-Net sees the render only
+through p, so a mark it reveals must be written modulated by p, and a render shifted by more than a blob multiplies
+the mark by a field it no longer lines up with: noise, not the image. The identity on normal views is U = 0.
 """
 from __future__ import annotations
 
@@ -52,6 +57,8 @@ def stage_channels(base_channels: int) -> tuple[int, ...]:
 INPUT_NORMS = ("none", "center", "standardize")
 # The PRNG seed of the fixed sign pattern (`sign_pattern`): part of the decoder, like its architecture.
 PATTERN_SEED = 20250107
+# The seed of the modulation field's noise (`modulation_field`): part of the decoder, like its architecture.
+MODULATION_SEED = 20261126
 # The smallest standard deviation an image is divided by: a flat image is not blown up into noise, and the
 # gradient of the square root stays finite.
 STD_FLOOR = 1e-2
@@ -92,6 +99,19 @@ def with_pattern(images: jax.Array, channels: int) -> jax.Array:
   return jnp.concatenate([images, pattern.astype(images.dtype)], axis=-1)
 
 
+def modulation_field(height: int, width: int, scale: float) -> np.ndarray:
+  """[height, width, 1] float32 fixed signs (+1 / -1) in blobs of about `scale` pixels: the sign of white noise
+  (MODULATION_SEED) blurred by a Gaussian of standard deviation `scale`, circularly (FFT). Computed on the host in
+  float64, so that every machine reads the same field: a key trained on one device reveals on another."""
+  if not scale > 0:
+    raise ValueError(f"the modulation field needs a positive scale, got {scale}")
+  noise = np.random.default_rng(MODULATION_SEED).standard_normal((height, width))
+  fy, fx = np.fft.fftfreq(height)[:, None], np.fft.fftfreq(width)[None, :]
+  transfer = np.exp(-2.0 * (np.pi * scale)**2 * (fx**2 + fy**2))  # the Gaussian's Fourier transform
+  smooth = np.real(np.fft.ifft2(np.fft.fft2(noise) * transfer))
+  return np.where(smooth >= 0.0, 1.0, -1.0).astype(np.float32)[..., None]
+
+
 def _conv_relu(x: jax.Array, features: int, name: str) -> jax.Array:
   # He init: every such conv feeds a ReLU, and the default LeCun init halves the signal each layer.
   conv = nn.Conv(features, (3, 3), padding="SAME", kernel_init=nn.initializers.he_normal(), name=name)
@@ -105,11 +125,13 @@ class UNet(nn.Module):
   Modules: enc{stage}_{conv} (VGG16 conv{stage}_{conv}), up{stage} (transposed conv to that stage's
   resolution), dec{stage}_1, dec{stage}_2, out (the 1x1 conv). `input_norm` (one of INPUT_NORMS, see the
   module doc) adds no parameters, so the same params file serves any; the key records the one it was
-  trained with, and the number of `pattern` channels (module doc) its params were made for.
+  trained with, the number of `pattern` channels (module doc) its params were made for, and the scale of the
+  `modulation` field (module doc; 0: none), which adds no parameters either.
   """
   base_channels: int = PAPER_WIDTH
   input_norm: str = "none"
   pattern: int = 0
+  modulation: float = 0.0
 
   @nn.compact
   def __call__(self, images: jax.Array) -> jax.Array:
@@ -119,13 +141,23 @@ class UNet(nn.Module):
       raise ValueError(f"UNet needs H and W divisible by {DOWNSAMPLE}, got {images.shape[1:3]}")
     if self.input_norm not in INPUT_NORMS:
       raise ValueError(f"input_norm must be one of {INPUT_NORMS}, got {self.input_norm!r}")
+    if self.modulation < 0 or (self.modulation and self.pattern):
+      raise ValueError(f"a UNet reads a non-negative modulation or pattern channels, not both: got modulation "
+                       f"{self.modulation} and pattern {self.pattern}")
     if self.input_norm == "none":
-      return _encode_decode(with_pattern(images, self.pattern), self.base_channels)
+      return self._read(images)
     # The statistics are constants of the image: through them the student could reach I by brightening or
     # scaling the whole check render, a global change that every normal view pays for.
     mean, std = jax.lax.stop_gradient(image_statistics(images, self.input_norm))
-    decoded = _encode_decode(with_pattern(standardize_images(images, mean, std), self.pattern), self.base_channels)
-    return unstandardize_images(decoded, mean, std)
+    return unstandardize_images(self._read(standardize_images(images, mean, std)), mean, std)
+
+  def _read(self, images: jax.Array) -> jax.Array:
+    """The U-Net on images [B, H, W, C] as they are normalised: beside the pattern channels, or through the
+    modulation field as a residual (module doc)."""
+    if not self.modulation:
+      return _encode_decode(with_pattern(images, self.pattern), self.base_channels)
+    field = jnp.asarray(modulation_field(images.shape[1], images.shape[2], self.modulation), images.dtype)
+    return images + _encode_decode(images * field, self.base_channels)
 
 
 def _encode_decode(images: jax.Array, base_channels: int) -> jax.Array:

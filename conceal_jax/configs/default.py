@@ -125,6 +125,9 @@ def train_section() -> ml_collections.ConfigDict:
   c.log_every = 10
   c.eval_every = 0        # quick test PSNR every this many steps; 0: only at the end
   c.eval_views = 4
+  # views rendered per step, the update their gradients' mean; a mesh of devices (--host_devices, GPUs,
+  # processes) splits them. 1: 3D-GS's one view per step
+  c.views_per_step = 1
   c.checkpoint_every = 1000  # 0: no checkpoints
   c.snapshots = ()        # steps after which point_cloud_<step>.ply is also written
   c.progress_bar = True
@@ -206,6 +209,9 @@ def conceal_decoder_section() -> ml_collections.ConfigDict:
   # beyond the paper: F reads this many fixed channels of random signs beside the render, so that it can tell a
   # render from the same render shifted a few pixels (the key turned a little): 0, the paper's decoder
   c.pattern = 0
+  # beyond the paper: F(x) = x + U(x * p), p fixed signs in blobs of about this many decoder pixels, so that the
+  # mark must line up with p and a render shifted by a blob reveals noise: 0, the paper's decoder
+  c.modulation = 0.0
   return c
 
 

@@ -33,6 +33,8 @@ VIVID_DC_LR = 1e-2
 # fraction of the scene extent, rotation in degrees) where a plain film reveals its image shifted.
 PATTERN_CHANNELS = 4
 NEAR_DECOY_TRANSLATION, NEAR_DECOY_ROTATION_DEG = (0.005, 0.05), (0.5, 4.0)
+# The modulated decoder: the size of the blobs of its sign field, in decoder pixels (about the film's splats there).
+MODULATION_SCALE = 1.0
 
 
 def paper(config):
@@ -104,6 +106,14 @@ def keyed_decoder(config):
   config.conceal.decoder.pattern = PATTERN_CHANNELS
   lk = config.conceal.leakage
   lk.decoy_translation, lk.decoy_rotation_deg = NEAR_DECOY_TRANSLATION, NEAR_DECOY_ROTATION_DEG
+  return config
+
+
+def modulated_decoder(config, scale: float = MODULATION_SCALE):
+  """The decoder reads the render through a fixed field of signs in blobs of `scale` decoder pixels, as a residual
+  (conceal.decoder.modulation, unet.UNet): the mark is written modulated by the field, and the key turned a degree
+  or two shifts it off the field, so the decoder reads noise there instead of a shifted image."""
+  config.conceal.decoder.modulation = scale
   return config
 
 
