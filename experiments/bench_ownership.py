@@ -9,11 +9,16 @@ with a note). Clean scenes: the teachers of --clean (train workdirs never marked
 clean trial pairs what a decoder reveals from a clean scene (at the decoder's key, at --poses orbit poses and at
 the scene's test views) with a hidden image the scene was not marked with: the decoder's own I, circular shifts
 of I, and crops of the scikit-image pictures, turned and flipped. Each trial is decided as verify decides
-(robust.ownership.ownership_test at --alpha): the larger of the random-phase p-value and the p-value under the
-null estimated from the decoder's outputs on the unrelated pictures and on the clean scene turned away from
-the decoder's key. Marked trials: the student of each --marked run under every mild and medium attack of the
-robustness harness (image attacks on the check render, model attacks on the scene), each with the null verify
-would estimate from that attacked scene.
+(robust.ownership.decisions at --alpha, with the decoder's outputs on the unrelated pictures and on the clean scene
+turned away from the decoder's key as its null), the empirical p-value computed where the model's is at most
+RESOLVE (below it, the decision's p-value is exact; above, the model's stands in, a lower bound). Trials of one
+(decoder, scene) pair share the decoder and the renders, and every demo decoder passes much of the render through:
+they are not independent, and the JSON counts the pairs and the false positives per pair. Marked trials: the
+student of each --marked run under every mild and medium attack of the robustness harness (image attacks on the
+check render, model attacks on the scene), each with the null verify would draw from that attacked scene.
+
+Each (decoder, scene) pair's trials are kept in --cache (an .npz per pair, keyed by the settings), so a run
+stopped part way resumes where it was.
 
 Writes ownership_bench.json (clean_trials, false_positives, alpha, tpr_at_alpha per marked run, the rows behind
 them) and ownership_bench.png (the clean trials' p-values against the uniform, log scale; their z against N(0, 1);
@@ -22,6 +27,7 @@ the marked trials' z against the threshold) to --out.
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import pathlib
 
@@ -36,7 +42,7 @@ from conceal_jax.configs import default
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, metrics
-from conceal_jax.robust import image_attacks, model_attacks, ownership, phase_statistic, robustness
+from conceal_jax.robust import image_attacks, model_attacks, ownership, robustness
 from experiments import bench_robust
 
 DEFAULT_RUNS = ("workdirs/demo/conceal,workdirs/survive_runs/demo_film,workdirs/survive_runs/demo_film_far_sh,"
@@ -48,6 +54,8 @@ DEFAULT_CLEAN = "workdirs/demo/teacher,workdirs/demo_seed1/teacher,workdirs/benc
 MARKED_SEVERITIES = bench_robust.MARKED_SEVERITIES
 SHIFTS = 16  # circular shifts of each decoder's I among the hidden images of its clean trials
 CROPS = 16  # crops of each scikit-image picture among them
+RESOLVE = 1e-3  # clean trials get the empirical p-value where the model's is at most this (ownership.decisions)
+TOP = 20  # the clean trials of highest z kept in the JSON, with what they were
 
 
 def saved_config(workdir: pathlib.Path) -> ml_collections.ConfigDict:
@@ -91,30 +99,67 @@ def clean_scene(workdir: pathlib.Path, poses: int, test_views: int) -> dict:
               cameras=cameras)
 
 
-def clean_trials(run: pathlib.Path, scenes: list[dict], alpha: float, null_views: int) -> dict:
+def pair_trials(owner, hidden: np.ndarray, scene: dict, alpha: float, null_views: int) -> dict:
+  """The clean trials of one decoder (owner) on one clean scene: revealed at the decoder's key and at the scene's
+  cameras [V], against the hidden images [J] (ownership.decisions, resolved at RESOLVE): z, log10_p_model,
+  log10_p (the decision's), owned, each [V, J]."""
+  # the key may be another scene's (another image size): rendered apart from the scene's own cameras
+  revealed = np.concatenate([np.asarray(owner.reveal_renders(evaluate.render_images(scene["gaussians"], cameras,
+                                                                                    owner.options)))
+                             for cameras in ([owner.check_camera], scene["cameras"])])
+  nulls = ownership.null_reveals(scene["gaussians"], owner.check_camera, owner.options, owner.reveal_renders,
+                                 null_views, owner.hidden)
+  result = ownership.decisions(revealed, hidden, np.concatenate(list(nulls.values())), alpha, resolve=RESOLVE)
+  return {name: result[name] for name in ("z", "log10_p_model", "log10_p", "owned")}
+
+
+def cached_pair_trials(cache: pathlib.Path, run: pathlib.Path, owner, hidden: np.ndarray, scene: dict, alpha: float,
+                       null_views: int, settings: str) -> dict:
+  """pair_trials, read from `cache` when this pair was run with the same settings, else run and saved there."""
+  tag = hashlib.sha1(f"{run.resolve()}|{scene['name']}|{settings}".encode()).hexdigest()[:16]
+  path = cache / f"{run.name}_{pathlib.Path(scene['name']).parent.name}_{tag}.npz"
+  if path.is_file():
+    with np.load(path) as saved:
+      return {name: saved[name] for name in saved.files}
+  result = pair_trials(owner, hidden, scene, alpha, null_views)
+  cache.mkdir(parents=True, exist_ok=True)
+  with fileio.atomic_path(str(path)) as tmp:
+    with open(tmp, "wb") as f:
+      np.savez_compressed(f, **result)
+  return result
+
+
+def clean_trials(run: pathlib.Path, scenes: list[dict], alpha: float, null_views: int, cache: pathlib.Path,
+                 settings: str) -> dict:
   """Every clean trial of one decoder: each clean scene at the decoder's key and at the scene's own cameras, against
-  clean_hidden_images; returns the z, model p-values and decisions flattened, and the own-I trials apart."""
+  clean_hidden_images; returns the z and p-values flattened, per scene its count and false positives, the trials
+  of highest z, and the own-I trials apart."""
   _, _, owner = bench_robust.load_run(run)
   hidden, names = clean_hidden_images(owner.hidden)
-  z, log_model, owned, own = [], [], [], []
+  z, log_model, log_p, owned, own, pairs, top = [], [], [], [], [], [], []
   for scene in scenes:
-    # the key may be another scene's (another image size): rendered apart from the scene's own cameras
-    revealed = np.concatenate([np.asarray(owner.reveal_renders(evaluate.render_images(scene["gaussians"], cameras,
-                                                                                      owner.options)))
-                               for cameras in ([owner.check_camera], scene["cameras"])])
-    nulls = ownership.null_reveals(scene["gaussians"], owner.check_camera, owner.options, owner.reveal_renders,
-                                   null_views, owner.hidden)
-    result = ownership.decisions(revealed, hidden, np.concatenate(list(nulls.values())), alpha)
+    result = cached_pair_trials(cache, run, owner, hidden, scene, alpha, null_views, settings)
     z.append(result["z"].ravel())
     log_model.append(result["log10_p_model"].ravel())
+    log_p.append(result["log10_p"].ravel())
     owned.append(result["owned"].ravel())
-    own += [dict(scene=scene["name"], view="key" if v == 0 else f"view {v}", z=float(result["z"][v, 0]),
-                 log10_p=float(result["log10_p"][v, 0]), owned=bool(result["owned"][v, 0]))
-            for v in range(revealed.shape[0])]
+
+    def row(v, j):
+      return dict(scene=scene["name"], view="key" if v == 0 else f"view {v}", hidden=names[j],
+                  z=float(result["z"][v, j]), log10_p_model=float(result["log10_p_model"][v, j]),
+                  log10_p=float(result["log10_p"][v, j]), owned=bool(result["owned"][v, j]))
+
+    own += [row(v, 0) for v in range(result["z"].shape[0])]
+    order = np.argsort(result["z"], axis=None)[::-1][:TOP]
+    top += [dict(row(*np.unravel_index(i, result["z"].shape)), decoder=str(run)) for i in order]
+    pairs.append(dict(decoder=str(run), scene=scene["name"], trials=int(result["z"].size),
+                      false_positives=int(result["owned"].sum()),
+                      false_positives_model=int(np.sum(result["log10_p_model"] <= np.log10(alpha))),
+                      max_z=float(result["z"].max())))
     print(f"{run} x {scene['name']}: {result['z'].size} trials, {int(result['owned'].sum())} decided owned, "
           f"max z {result['z'].max():.2f} (own I: {result['z'][:, 0].max():.2f})", flush=True)
-  return dict(z=np.concatenate(z), log10_p_model=np.concatenate(log_model), owned=np.concatenate(owned), own=own,
-              hidden_names=names)
+  return dict(z=np.concatenate(z), log10_p_model=np.concatenate(log_model), log10_p=np.concatenate(log_p),
+              owned=np.concatenate(owned), own=own, pairs=pairs, top=top, hidden_names=names)
 
 
 def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict]:
@@ -128,7 +173,8 @@ def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict
   def add(kind, name, level, severity, revealed, nulls):
     result = ownership.decisions(revealed[None], hidden[None], np.concatenate(list(nulls.values())), alpha)
     rows.append(dict(kind=kind, attack=name, level=level, severity=severity, z=float(result["z"][0, 0]),
-                     log10_p=float(result["log10_p"][0, 0]), owned=bool(result["owned"][0, 0]),
+                     log10_p=float(result["log10_p"][0, 0]), log10_p_model=float(result["log10_p_model"][0, 0]),
+                     log10_p_null=float(result["log10_p_null"][0, 0]), owned=bool(result["owned"][0, 0]),
                      ssim=float(metrics.ssim(revealed, hidden))))
 
   levels = [level for level in image_attacks.LEVELS if level[2] in MARKED_SEVERITIES]
@@ -150,28 +196,29 @@ def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict
 
 
 def tail_counts(log10_p: np.ndarray) -> list[dict]:
-  """Clean trials with a model p-value at most 10^-k against the count the null predicts, k = 1 .. 6."""
+  """Clean trials with a p-value at most 10^-k against the count the null predicts, k = 1 .. 6."""
   return [dict(p_at_most=10.0 ** -k, observed=int(np.sum(log10_p <= -k)), predicted=float(log10_p.size * 10.0 ** -k))
           for k in range(1, 7)]
 
 
-def plot(clean_log_p: np.ndarray, clean_z: np.ndarray, own_z: np.ndarray, marked: dict, alpha: float,
-         path: pathlib.Path):
+def plot(clean_log_model: np.ndarray, clean_log_p: np.ndarray, clean_z: np.ndarray, own_z: np.ndarray, marked: dict,
+         alpha: float, path: pathlib.Path):
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
   fig, (qq, hist, bars) = plt.subplots(1, 3, figsize=(17, 5))
   n = clean_log_p.size
-  observed = np.sort(-clean_log_p)
   ranks = np.arange(n, 0, -1)  # the largest -log10 p has rank 1
   expected = -np.log10(ranks / (n + 1))
   band = -np.log10(stats.beta.ppf([[0.025], [0.975]], ranks, n - ranks + 1))
   qq.fill_between(expected, band[1], band[0], color="0.85", label="95% band of the null's order statistics")
-  qq.plot(expected, observed, ".", ms=2, label=f"{n} clean trials")
+  qq.plot(expected, np.sort(-clean_log_model), ".", ms=2, label=f"{n} clean trials, random-phase model's p")
+  qq.plot(expected, np.sort(-clean_log_p), ".", ms=2,
+          label=f"the decision's p (exact below {RESOLVE:g}; above, the model's)")
   qq.plot([0, expected.max()], [0, expected.max()], "k--", lw=1, label="predicted null (uniform p)")
   qq.axhline(-np.log10(alpha), color="r", lw=1, label=f"alpha = {alpha:g}")
   qq.set_xlabel("predicted -log10 p (uniform order statistics)")
-  qq.set_ylabel("observed -log10 p (random-phase model)")
+  qq.set_ylabel("observed -log10 p")
   qq.set_title("clean trials against the predicted null")
   qq.legend(fontsize=7)
   bins = np.linspace(min(-6.0, clean_z.min()), max(6.0, clean_z.max()), 121)
@@ -191,7 +238,7 @@ def plot(clean_log_p: np.ndarray, clean_z: np.ndarray, own_z: np.ndarray, marked
   bars.axvline(stats.norm.isf(alpha), color="r", lw=1, label=f"z at alpha = {alpha:g} (model)")
   bars.set_yticks(range(len(marked)), [pathlib.Path(r).name for r in marked], fontsize=7)
   bars.set_xscale("symlog")
-  bars.set_xlabel("z of the attacked student (mild and medium attacks)")
+  bars.set_xlabel("z of the attacked student (mild and medium attacks; decided on the p-value, not z)")
   bars.legend(fontsize=7)
   bars.set_title("marked trials")
   fileio.save_figure(fig, path)
@@ -208,6 +255,8 @@ def main():
   parser.add_argument("--test-views", type=int, default=10, help="test views rendered per clean scene")
   parser.add_argument("--alpha", type=float, default=default.get_config().verify.alpha)
   parser.add_argument("--null-views", type=int, default=default.get_config().verify.null_views)
+  parser.add_argument("--cache", default="workdirs/bench/ownership_cache",
+                      help="where each (decoder, scene) pair's trials are kept, to resume")
   args = parser.parse_args()
   if not 0 < args.alpha < 1:
     raise SystemExit(f"--alpha must be strictly between 0 and 1, got {args.alpha}")
@@ -227,11 +276,17 @@ def main():
   scenes = [clean_scene(path, args.poses, args.test_views) for path in teachers]
   if not runs or not scenes:
     raise SystemExit("bench-ownership needs at least one conceal run and one clean teacher")
-  per_run = {str(run): clean_trials(run, scenes, args.alpha, args.null_views) for run in runs}
+  settings = (f"poses={args.poses} test_views={args.test_views} alpha={args.alpha} null_views={args.null_views} "
+              f"resolve={RESOLVE} shifts={SHIFTS} crops={CROPS}")
+  per_run = {str(run): clean_trials(run, scenes, args.alpha, args.null_views, pathlib.Path(args.cache), settings)
+             for run in runs}
   z = np.concatenate([t["z"] for t in per_run.values()])
   log_model = np.concatenate([t["log10_p_model"] for t in per_run.values()])
+  log_p = np.concatenate([t["log10_p"] for t in per_run.values()])
   owned = np.concatenate([t["owned"] for t in per_run.values()])
   own_z = np.array([o["z"] for t in per_run.values() for o in t["own"]])
+  pairs = [pair for t in per_run.values() for pair in t["pairs"]]
+  top = sorted((row for t in per_run.values() for row in t["top"]), key=lambda row: -row["z"])[:TOP]
   marked_rows = {str(run): marked_trials(run, args.alpha, args.null_views) for run in marked}
   tpr = {run: float(np.mean([r["owned"] for r in rows if r["kind"] != "none"])) for run, rows in marked_rows.items()}
   result = dict(
@@ -239,9 +294,15 @@ def main():
       false_positives_model=int(np.sum(log_model <= np.log10(args.alpha))),
       predicted_false_positive_rate=args.alpha, z_threshold_model=float(stats.norm.isf(args.alpha)),
       tpr_at_alpha=tpr, decoders=[str(r) for r in runs], clean_scenes=[s["name"] for s in scenes],
+      independent_pairs=dict(
+          decoder_scene_pairs=len(pairs), decoders=len(runs), clean_scenes=len(scenes),
+          note="trials of one (decoder, scene) pair share the decoder, the renders and the null; the demo teachers "
+               "of seeds 0 and 1 are one scene trained twice and render alike, and every demo decoder passes much "
+               "of the render through, so one coincidence of a view and a hidden image recurs across decoders"),
+      pairs=pairs, resolve=RESOLVE, settings=settings,
       hidden_images_per_decoder=len(next(iter(per_run.values()))["hidden_names"]),
       clean_z=dict(mean=float(z.mean()), sd=float(z.std()), max=float(z.max()), kurtosis=float(stats.kurtosis(z))),
-      tail_counts=tail_counts(log_model),
+      tail_counts_model=tail_counts(log_model), tail_counts=tail_counts(log_p), top_clean_trials=top,
       own_hidden=dict(trials=int(own_z.size), mean_z=float(own_z.mean()), sd_z=float(own_z.std()),
                       max_z=float(own_z.max()), decided_owned=int(sum(o["owned"] for t in per_run.values()
                                                                        for o in t["own"])),
@@ -249,8 +310,9 @@ def main():
       marked=marked_rows)
   out = pathlib.Path(args.out)
   fileio.write_json(out / "ownership_bench.json", result)
-  plot(log_model, z, own_z, marked_rows, args.alpha, out / "ownership_bench.png")
-  print(json.dumps({k: v for k, v in result.items() if k not in ("marked", "own_hidden")}, indent=1))
+  plot(log_model, log_p, z, own_z, marked_rows, args.alpha, out / "ownership_bench.png")
+  print(json.dumps({k: v for k, v in result.items() if k not in ("marked", "own_hidden", "pairs", "top_clean_trials")},
+                   indent=1))
 
 
 if __name__ == "__main__":

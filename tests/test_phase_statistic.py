@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from scipy import special, stats
+from scipy import stats
 
 from conceal_jax.robust import phase_statistic as ps
 
@@ -85,8 +85,10 @@ def test_constant_and_grey_images_are_finite():
 def test_bad_images_are_refused():
   with pytest.raises(ValueError, match="at least 4x4"):
     ps.whitened_spectra(np.zeros((16, 3)))
-  with pytest.raises(ValueError, match="at least 3 finite"):
-    ps.log_p_predictive(5.0, [0.1, np.nan, 0.2])
+  with pytest.raises(ValueError, match="finite draws"):
+    ps.log_p_empirical(5.0, [0.1, np.nan, 0.2])
+  with pytest.raises(ValueError, match="square"):
+    ps.dihedral(np.zeros((4, 5, 3)))
 
 
 def test_z_follows_n01_under_the_random_phase_null():
@@ -114,22 +116,42 @@ def test_model_log_p_far_in_the_tail_matches_the_mills_series(z):
   assert ps.log_p_model(z) == pytest.approx(series, rel=1e-12)
 
 
-@pytest.mark.parametrize("z", [-2.0, 0.3, 3.0, 6.0, 15.0])
-def test_predictive_log_p_matches_scipys_student_t(z):
-  null = np.random.default_rng(5).normal(0.2, 1.1, 40)
-  k = null.size
-  t = (z - null.mean()) / (null.std(ddof=1) * np.sqrt(1 + 1 / k))
-  assert ps.log_p_predictive(z, null) == pytest.approx(stats.t.logsf(t, k - 1), rel=1e-9)
+def test_z_surfaces_are_z_at_every_circular_shift():
+  """Each surface value against z_scores of the whitened image rolled in the image domain and transformed back."""
+  rng = np.random.default_rng(5)
+  a = ps.whitened_spectra(np.stack([smooth_image(rng, 8) for _ in range(3)]))
+  b = ps.whitened_spectra(np.stack([smooth_image(rng, 8) for _ in range(2)]))
+  surfaces = ps.z_surfaces(a, b)
+  assert surfaces.shape == (3, 2, 8, 8)
+  for j in range(2):
+    image = np.real(np.fft.ifft2(b[j]))
+    for dy in range(8):
+      for dx in range(8):
+        shifted = np.fft.fft2(np.roll(image, (dy, dx), (0, 1)))[None]
+        np.testing.assert_allclose(surfaces[:, j, dy, dx], ps.z_scores(a, shifted)[:, 0], rtol=1e-9, atol=1e-9)
+  np.testing.assert_allclose(surfaces[:, :, 0, 0], ps.z_scores(a, b), rtol=1e-12, atol=1e-12)
+  # Parseval: over the shifts z^2 averages to 1 for unit-modulus spectra
+  np.testing.assert_allclose((surfaces ** 2).mean((-2, -1)), 1.0, rtol=1e-9)
 
 
-@pytest.mark.parametrize("t", [1e3, 1e8, 1e40])
-def test_predictive_log_p_far_in_the_tail_matches_the_student_t_asymptote(t):
-  """Past betainc's underflow: log P(T >= t) -> log(c nu^((nu-1)/2)) - nu log t, c the t density's constant."""
-  null = np.array([-1.0, 0.0, 1.0, 0.5, -0.5])  # mean 0, sd sqrt(0.625)
-  k = null.size
-  nu = k - 1.0
-  z = t * null.std(ddof=1) * np.sqrt(1 + 1 / k)
-  log_c = special.gammaln((nu + 1) / 2) - special.gammaln(nu / 2) - 0.5 * np.log(nu * np.pi)
-  asymptote = log_c + (nu - 1) / 2 * np.log(nu) - nu * np.log(t)
-  got = float(ps.log_p_predictive(z, null))
-  assert np.isfinite(got) and got == pytest.approx(asymptote, rel=1e-6)
+def test_dihedral_gives_the_eight_turns_and_mirrors():
+  image = np.arange(3 * 3 * 2, dtype=float).reshape(3, 3, 2)
+  turned = ps.dihedral(image)
+  assert turned.shape == (8, 3, 3, 2)
+  np.testing.assert_array_equal(turned[0], image)
+  np.testing.assert_array_equal(turned[1], np.rot90(image))
+  np.testing.assert_array_equal(turned[4], image[:, ::-1])
+  assert len({t.tobytes() for t in turned}) == 8
+  np.testing.assert_array_equal(ps.dihedral(np.stack([image, -image]))[:, 1], -turned)
+
+
+def test_empirical_log_p_counts_the_draws_reaching_z():
+  null = np.random.default_rng(6).normal(size=999)
+  for z in (-5.0, 0.0, 1.5, float(np.sort(null)[-3]), 10.0):
+    expected = (1 + sum(1 for x in null if x >= z)) / (1 + len(null))
+    assert np.exp(ps.log_p_empirical(z, null)) == pytest.approx(expected, rel=1e-12)
+  assert np.exp(ps.log_p_empirical(10.0, null)) == pytest.approx(1e-3)
+  # valid: a draw exchangeable with the null is at most alpha with probability at most alpha
+  rng = np.random.default_rng(7)
+  p = np.exp([ps.log_p_empirical(rng.normal(), rng.normal(size=99)) for _ in range(2000)])
+  assert np.mean(p <= 0.05) <= 0.05 + 3 * np.sqrt(0.05 * 0.95 / 2000)

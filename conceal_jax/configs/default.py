@@ -350,7 +350,8 @@ def verify_section() -> ml_collections.ConfigDict:
   (robust.ownership); a calibration file of measured clean and marked SSIM scores adds its threshold's decision."""
   c = ml_collections.ConfigDict()
   c.alpha = 1e-6  # the false-positive rate the decision is made at
-  # renders of the scene turned away from the key, among the decoder outputs the null is estimated from
+  # renders of the scene turned away from the key, among the decoder outputs the null is drawn from (at least: more
+  # where a small hidden image would leave too few draws for a p-value at most alpha, robust.ownership)
   c.null_views = 32
   c.calibration = ""  # optional: e.g. experiments/results/ownership_calibration.json (make bench-robust)
   return c

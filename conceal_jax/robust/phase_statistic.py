@@ -9,9 +9,12 @@ deviation under the null "the phases of R are independent of I's" (the random-ph
 coefficient products Re(A_f conj(B_f)) independent over the half spectrum, their sum has variance
 sum_f |A_f|^2 |B_f|^2 whatever the spectra (Bartlett's variance of a cross-correlation, 1935, with circular
 autocovariances), so z is a sum of about M independent terms of unit total variance, M the number of
-frequencies both images carry (effective_samples), and tends to N(0, 1) (log_p_model). The null estimated
-from a decoder's own outputs on unmarked inputs enters through log_p_predictive (Student's t predictive
-distribution of a new draw from a normal sample).
+frequencies both images carry (effective_samples), and tends to N(0, 1) (log_p_model). That model misses the
+tail where both images hold long edges: whitened, an edge is a line of pixels of one sign, and two such lines
+that happen to lie along each other add up to a large z however unrelated the pictures. z_surfaces gives z at
+every circular shift of one image against the other (the whole phase-correlation surface, by one inverse FFT),
+from which a null with the images' own edges in it is drawn; log_p_empirical is the Monte-Carlo p-value of a
+statistic against such draws.
 
 Everything here is float64 numpy; spectra are [..., H, W] complex, images [..., H, W, C] in [0, 1].
 """
@@ -93,22 +96,36 @@ def log_p_model(z) -> np.ndarray:
   return special.log_ndtr(-np.asarray(z, np.float64))
 
 
-def log_p_predictive(z, null_z) -> np.ndarray:
-  """Natural log of the one-sided p-value of z under the null estimated from K >= 3 scores `null_z` of
-  unmarked inputs: a new draw from the normal sample's population is (z - mean) / (sd sqrt(1 + 1/K)) ~ t with
-  K - 1 degrees of freedom (the prediction interval of a normal sample; e.g. Geisser, Predictive Inference,
-  1993, sec. 2.1). Far in the tail, where the regularised incomplete beta function underflows, its leading
-  term x^a / (a B(a, 1/2)) (x = nu / (nu + t^2), a = nu / 2) replaces it (relative error O(x))."""
-  null_z = np.asarray(null_z, np.float64).ravel()
-  if null_z.size < 3 or not np.all(np.isfinite(null_z)):
-    raise ValueError(f"the estimated null needs at least 3 finite scores, got {null_z.size}")
-  k = null_z.size
-  spread = max(float(np.std(null_z, ddof=1)), 1e-12)
-  t = (np.asarray(z, np.float64) - null_z.mean()) / (spread * np.sqrt(1.0 + 1.0 / k))
-  nu = k - 1.0
-  x = nu / (nu + t * t)
-  half = 0.5 * special.betainc(nu / 2, 0.5, x)  # P(T >= |t|)
-  with np.errstate(divide="ignore"):
-    tail = np.where(half > 0, np.log(np.maximum(half, 1e-320)),
-                    np.log(0.5) + nu / 2 * np.log(x) - np.log(nu / 2) - special.betaln(nu / 2, 0.5))
-  return np.where(t >= 0, tail, np.log1p(-np.exp(tail)))
+def dihedral(images: np.ndarray) -> np.ndarray:
+  """[..., S, S, C] square images -> [8, ..., S, S, C]: their quarter turns (0 to 3) and those of their mirror
+  images (left-right flipped), the identity first."""
+  images = np.asarray(images)
+  if images.ndim < 3 or images.shape[-3] != images.shape[-2]:
+    raise ValueError(f"dihedral takes square images [..., S, S, C], got {images.shape}")
+  return np.stack([np.rot90(images[..., ::-1, :] if flip else images, turns, axes=(-3, -2))
+                   for flip in (False, True) for turns in range(4)])
+
+
+def z_surfaces(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+  """[A, H, W], [B, H, W] whitened spectra -> [A, B, H, W]: z_scores of a against b's image circularly shifted by
+  (dy, dx), for every shift. A shift turns b's coefficients, not their moduli, so the deviation stays and the
+  numerator is H W times the inverse FFT of a conj(b) (the phase-correlation surface; both spectra are of real
+  images, so the real inverse FFT of the half spectrum, one b at a time to bound memory)."""
+  fa, fb = _flat(a), _flat(b)
+  h, w = np.shape(a)[-2:]
+  variance = (np.abs(fa) ** 2) @ (np.abs(fb) ** 2).T
+  scale = np.where(variance > 0, (h * w) / np.sqrt(np.where(variance > 0, variance, 1.0)), 0.0)
+  half = fa.reshape(-1, h, w)[..., :w // 2 + 1]
+  return np.stack([np.fft.irfft2(half * np.conj(row.reshape(h, w)[:, :w // 2 + 1]), s=(h, w))
+                   * scale[:, j, None, None] for j, row in enumerate(fb)], 1)
+
+
+def log_p_empirical(z, null) -> np.ndarray:
+  """Natural log of the Monte-Carlo p-value (1 + #{null >= z}) / (1 + n) of each z against n null draws (Davison &
+  Hinkley, Bootstrap Methods, 1997, eq. 4.11): where z and the draws are exchangeable under the null, P(p <= a)
+  <= a at any n; the smallest it can give is 1 / (1 + n)."""
+  null = np.sort(np.asarray(null, np.float64).ravel())
+  if null.size == 0 or not np.all(np.isfinite(null)):
+    raise ValueError(f"the empirical null needs finite draws, got {null.size}")
+  reach = null.size - np.searchsorted(null, np.asarray(z, np.float64), side="left")
+  return np.log1p(reach) - np.log1p(null.size)

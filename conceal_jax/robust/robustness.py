@@ -49,8 +49,9 @@ class Owner:
 
   def check_scores(self, gaussians: Gaussians, camera: Camera | None = None,
                    options: RenderOptions | None = None) -> dict[str, float]:
-    """hidden_psnr, hidden_ssim and hidden_z (the ownership test's statistic, phase_statistic.z_scores: N(0, 1)
-    where the scene does not carry I) of what `gaussians` reveal at the key (or at `camera` with `options`: the
+    """hidden_psnr, hidden_ssim and hidden_z (phase_statistic.z_scores of the revealed image itself, not less the
+    decoder's mean output as the ownership test takes it: no null outputs are rendered here) of what `gaussians`
+    reveal at the key (or at `camera` with `options`: the
     key moved into a transformed scene's frame, reveal.moved_key)."""
     camera = self.check_camera if camera is None else camera
     options = self.options if options is None else options
