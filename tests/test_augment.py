@@ -144,9 +144,30 @@ def test_quantize_8bit_matches_the_spz_bytes_and_passes_gradients_through():
   drawn = dict(augment.draw(np.random.default_rng(0), a), quantize=np.float32(0.0))
   for x, y in zip(jax.tree.leaves(augment.perturb_gaussians(g, drawn, a)), jax.tree.leaves(g)):
     np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
-  drawn["quantize"] = np.float32(1.0)
+  drawn.update(quantize=np.float32(1.0), rounding=np.float32(0.5))
   for x, y in zip(jax.tree.leaves(augment.perturb_gaussians(g, drawn, a)), jax.tree.leaves(q)):
     np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_quantize_8bit_rounds_where_it_is_told_as_the_formats_do():
+  """Rounding 0 takes each value to the 8-bit step below (.sog's faint opacities come back a step lower than
+  .spz's), 0.5 to the nearest; an opacity of 0.01 (2.55 steps) lands on 2/255 and 3/255; each step draws its
+  rounding point from [0, 1) when it quantizes, and a run without quantization draws none."""
+  g = _random_gaussians(500, seed=4)
+  logits = np.asarray(g.opacity_logits, np.float64)
+  down = np.clip(np.floor(255 / (1 + np.exp(-logits))), 0.5, 254.5) / 255
+  np.testing.assert_allclose(np.asarray(jax.nn.sigmoid(augment.quantize_8bit(g, 0.0).opacity_logits)), down,
+                             atol=1e-6)
+  faint = g.replace(opacity_logits=jnp.full_like(g.opacity_logits, float(np.log(0.01 / 0.99))))
+  opacity = lambda rounding: np.unique(np.asarray(jax.nn.sigmoid(
+      augment.quantize_8bit(faint, rounding).opacity_logits)))
+  np.testing.assert_allclose(opacity(0.0), [2 / 255], rtol=1e-5)
+  np.testing.assert_allclose(opacity(0.5), [3 / 255], rtol=1e-5)
+  a = augment.Augmentation(quantize_fraction=0.5)
+  points = np.array([augment.draw(np.random.default_rng(i), a)["rounding"] for i in range(400)])
+  assert points.min() >= 0.0 and points.max() < 1.0 and abs(points.mean() - 0.5) < 0.05
+  plain = [augment.draw(np.random.default_rng(i), augment.Augmentation(blur_max=1.0)) for i in range(3)]
+  assert all(d["rounding"] == 0.5 for d in plain)
 
 
 @pytest.mark.slow

@@ -18,9 +18,11 @@ check render is made from a perturbed student (`perturb_gaussians`): each Gaussi
 drawn from [0, dropout_max], and every stored parameter moved by normal noise of a relative level drawn from
 [0, param_noise_max], the relative noise of model_attacks.parameter_noise. A decoder taught to read perturbed
 check renders also reads near-key views of the student more readily. With conceal.attacks.quantize_fraction, that
-share of the steps renders the check view from the student's base colours and opacities rounded to 8 bits as
-.spz stores them, the coarsest grid of the publishing formats (`quantize_8bit`; the gradient passes the rounding
-straight through), so that a mark carried by colours survives the round trip. With
+share of the steps renders the check view from the student's base colours and opacities on 8-bit grids as .spz
+stores them, the coarsest grid of the publishing formats (`quantize_8bit`; the gradient passes the rounding
+straight through), so that a mark carried by colours survives the round trip. Each such step rounds at a point
+drawn anew (to the nearest value as .spz and .compressed.ply do, down as .sog does, or between): a film of faint
+splats, all of one opacity, comes back from each format at another 8-bit step, and its image changes with it. With
 conceal.attacks.reset_fraction, that share renders it with every opacity at most densify.RESET_CEILING, as the
 opacity reset of 3D-GS training with densification leaves the Gaussians no training view sees.
 
@@ -135,14 +137,15 @@ def distort(image: jax.Array, distortion: dict | None, augmentation: Augmentatio
   return image
 
 
-def quantize_8bit(gaussians):
+def quantize_8bit(gaussians, rounding=0.5):
   """Gaussians with their base colours (SH DC) and opacities on .spz's 8-bit grids (SPZ_COLOR_SCALE; opacity in
-  steps of 1/255), the rounding passed straight through by the gradient."""
+  steps of 1/255), each value taken to the step below value + `rounding` steps (0.5: the nearest, as .spz; 0: the
+  one below; traced), the rounding passed straight through by the gradient."""
   straight_through = lambda x, rounded: x + jax.lax.stop_gradient(rounded - x)
   dc = gaussians.sh[:, 0]
-  byte = jnp.clip(jnp.round(255.0 * (SPZ_COLOR_SCALE * dc + 0.5)), 0.0, 255.0)
+  byte = jnp.clip(jnp.floor(255.0 * (SPZ_COLOR_SCALE * dc + 0.5) + rounding), 0.0, 255.0)
   dc_8bit = (byte / 255.0 - 0.5) / SPZ_COLOR_SCALE
-  opacity = jnp.clip(jnp.round(255.0 * jax.nn.sigmoid(gaussians.opacity_logits)), 0.5, 254.5) / 255.0
+  opacity = jnp.clip(jnp.floor(255.0 * jax.nn.sigmoid(gaussians.opacity_logits) + rounding), 0.5, 254.5) / 255.0
   return gaussians.replace(sh=gaussians.sh.at[:, 0].set(straight_through(dc, dc_8bit)),
                            opacity_logits=straight_through(gaussians.opacity_logits, opacity_logit(opacity)))
 
@@ -152,7 +155,8 @@ def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmenta
   distortion["param_noise"] times that field's per-channel standard deviation over the N Gaussians (a
   constant: the noise's scale is not trained), then each Gaussian dropped (opacity logit DROPPED_LOGIT, no
   gradient) with probability distortion["dropout"]; drawn from the PRNG seed distortion["model_seed"]. First,
-  where distortion["quantize"] is 1, the 8-bit colours and opacities (`quantize_8bit`), and where
+  where distortion["quantize"] is 1, the 8-bit colours and opacities (`quantize_8bit`, rounding at
+  distortion["rounding"]), and where
   distortion["reset"] is 1, every opacity at most densify.RESET_CEILING. A kind whose maximum in
   `augmentation` is 0 is left out at trace time (without any, the Gaussians themselves, and `distortion` may be
   None); at level 0 each is the identity, values and gradients."""
@@ -160,7 +164,7 @@ def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmenta
   if not a.perturbs_model:
     return gaussians
   if a.quantize_fraction > 0:
-    quantized = quantize_8bit(gaussians)
+    quantized = quantize_8bit(gaussians, distortion["rounding"])
     gaussians = jax.tree.map(lambda q, x: jnp.where(distortion["quantize"] > 0, q, x), quantized, gaussians)
   if a.reset_fraction > 0:
     reset = densify.reset_opacity(gaussians.opacity_logits)
@@ -188,8 +192,9 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   ~ U[0, noise_max], a noise seed; of the model (`perturb_gaussians`) a dropout probability ~ U[0, dropout_max],
   a relative parameter noise ~ U[0, param_noise_max] and their seed; brightness ~ U[-brightness_max,
   brightness_max] and contrast ~ 1 + U[-contrast_max, contrast_max]; whether the step quantizes (1 with
-  probability quantize_fraction) and resets the opacities (1 with probability reset_fraction). Later kinds are
-  drawn after earlier ones, so a run without them sees the distortions it always did."""
+  probability quantize_fraction) and resets the opacities (1 with probability reset_fraction); with
+  quantize_fraction, the point its grids round at ~ U[0, 1) (`quantize_8bit`). Later kinds are drawn after
+  earlier ones, so a run without them sees the distortions it always did."""
   a = augmentation
   image = dict(blur=np.float32(rng.uniform(0.0, a.blur_max)), noise=np.float32(rng.uniform(0.0, a.noise_max)),
                seed=np.uint32(rng.integers(2**32)))
@@ -199,4 +204,5 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
                contrast=np.float32(1.0 + rng.uniform(-a.contrast_max, a.contrast_max)))
   drawn["quantize"] = np.float32(a.quantize_fraction > 0 and rng.random() < a.quantize_fraction)
   drawn["reset"] = np.float32(a.reset_fraction > 0 and rng.random() < a.reset_fraction)
+  drawn["rounding"] = np.float32(rng.random() if a.quantize_fraction > 0 else 0.5)
   return drawn
