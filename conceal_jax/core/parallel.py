@@ -8,6 +8,7 @@ values are the same either way, to float summation order.
 XLA's CPU backend runs one computation's loops on one thread, so a 2-core host is worth splitting into two
 XLA devices for a step that renders two views. That split is the process's choice, made before JAX starts
 (`host_devices_flag`, set by `python -m conceal_jax.main --host_devices`), never by importing the library.
+
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from typing import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.flatten_util import ravel_pytree
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
@@ -31,21 +33,49 @@ def host_devices_flag(count: int) -> None:
     os.environ["XLA_FLAGS"] = f"{flags} {HOST_DEVICES_FLAG}={count}".strip()
 
 
+def check_batch(batch_size: int) -> None:
+  """ValueError unless `batch_size` views can be shared by the processes of the run (a multiple of their count:
+  each process takes the same number of views)."""
+  processes = jax.process_count()
+  if batch_size < 1 or batch_size % processes:
+    raise ValueError(f"a step's {batch_size} views cannot be shared by {processes} processes: the views per step "
+                     f"must be a multiple of the number of processes")
+
+
 def batch_mesh(batch_size: int) -> Mesh | None:
-  """A mesh over the largest number of local devices that divides `batch_size` (None where that is one)."""
-  devices = jax.local_devices()
-  count = max(n for n in range(1, min(len(devices), batch_size) + 1) if batch_size % n == 0)
-  return Mesh(devices[:count], (BATCH_AXIS,)) if count > 1 else None
+  """A mesh over the largest number of devices that divides `batch_size`, the same number from every process
+  (None where that is one device). One process: its local devices; several: the first devices of each, so that
+  every process holds part of the mesh (check_batch's condition)."""
+  check_batch(batch_size)
+  processes = jax.process_count()
+  per_process = max(n for n in range(1, min(jax.local_device_count(), batch_size // processes) + 1)
+                    if batch_size % (n * processes) == 0)
+  if per_process * processes == 1:
+    return None
+  devices = [device for p in range(processes)
+             for device in sorted((d for d in jax.devices() if d.process_index == p), key=lambda d: d.id)[:per_process]]
+  return Mesh(np.array(devices), (BATCH_AXIS,))
 
 
 def replicate(tree, mesh: Mesh | None):
-  """`tree` with every array on every device of `mesh` (as it is without a mesh)."""
-  return tree if mesh is None else jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
+  """`tree` with every array on every device of `mesh` (as it is without a mesh). Across processes the values
+  go through the host (device_put takes host values, the same on every process, or arrays already on the mesh)."""
+  if mesh is None:
+    return tree
+  sharding = NamedSharding(mesh, PartitionSpec())
+  if jax.process_count() > 1:
+    tree = jax.tree.map(lambda x: x if getattr(x, "sharding", None) == sharding else np.asarray(x), tree)
+  return jax.device_put(tree, sharding)
 
 
 def on_one_device(tree, mesh: Mesh | None):
-  """`tree` on the first device only, for work outside the step (evaluation runs once, not per device)."""
-  return tree if mesh is None else jax.device_put(tree, jax.local_devices()[0])
+  """`tree` on this process's first device only, for work outside the step (evaluation runs once, not per
+  device)."""
+  if mesh is None:
+    return tree
+  if jax.process_count() > 1:  # a replicated array reads back on every process
+    tree = jax.tree.map(np.asarray, tree)
+  return jax.device_put(tree, jax.local_devices()[0])
 
 
 def _by_dtype(tree):
@@ -64,9 +94,9 @@ def _by_dtype(tree):
 def map_reduce_over_batch(fn: Callable, shared, batch, mesh: Mesh | None):
   """(sum_b s_b, stacked e_b) where fn(shared, batch[b]) = (s_b, e_b), over the leading axis of every leaf of
   `batch` (static and small: the examples are unrolled): s_b are what adds up over the batch (losses,
-  gradients), e_b what is kept per example (a few scalars). On a mesh each device maps its slice; the sums
-  meet in one psum and the kept values in one all-gather per dtype (the leaves raveled into one vector each),
-  and both come back replicated."""
+  gradients), e_b what is kept per example (scalars, or arrays such as a view's screen radii). On a mesh each
+  device maps its slice; the sums meet in one psum and the kept values in one all-gather per dtype (the leaves
+  raveled into one vector each), and both come back replicated."""
 
   def local(shared, part):
     # the examples of a slice in turn (unrolled), not vmapped: batching the renderer's loops and scatters

@@ -5,6 +5,10 @@ The train state is a `TrainState` pytree over a fixed-capacity buffer of Gaussia
 (see densify.py); the step is built by `make_train_step`, jitted with the state donated, and compiled
 once per (SH degree, capacity). Every random choice is derived from (seed, step), so a run resumed from a
 checkpoint continues exactly as if it had not been interrupted. The loop itself is `core.loop.run`.
+
+A step takes `train.views_per_step` views (1, as in 3D-GS, by default): its gradient is the mean of the views'
+gradients, computed by the devices of a mesh that split the views (core.parallel), and every view counts once
+in the densification statistics, as it does when the views come one per step.
 """
 from __future__ import annotations
 
@@ -20,7 +24,7 @@ import optax
 from absl import logging
 from flax import struct
 
-from conceal_jax.core import fileio, loop, settings
+from conceal_jax.core import fileio, loop, parallel, settings
 from conceal_jax.data import datasets, ply
 from conceal_jax.gs import capacity, densify, evaluate, init, losses, metrics, optimizer
 from conceal_jax.splat import camera as camera_lib
@@ -36,21 +40,22 @@ INIT_KINDS = ("auto", "points", "random", "ply")
 @dataclasses.dataclass(frozen=True)
 class TrainSettings:
   """The `train` section besides the loop's fields: SH schedule (from sh_degree_start, +1 every
-  sh_increase_every steps, up to sh_degree), loss weight, periodic test PSNR."""
+  sh_increase_every steps, up to sh_degree), loss weight, periodic test PSNR, views per step."""
   sh_degree: int = 3
   sh_degree_start: int = 0
   sh_increase_every: int = 1000
   ssim_weight: float = 0.2
   eval_every: int = 0
   eval_views: int = 4
+  views_per_step: int = 1
 
   def __post_init__(self):
     if not 0 <= self.sh_degree <= 3:
       raise ValueError(f"train.sh_degree must be in 0..3, got {self.sh_degree}")
     if not 0 <= self.sh_degree_start <= self.sh_degree:
       raise ValueError(f"train.sh_degree_start must be in 0..train.sh_degree, got {self.sh_degree_start}")
-    if self.sh_increase_every < 1 or self.eval_every < 0 or self.eval_views < 1:
-      raise ValueError("train.sh_increase_every and eval_views must be >= 1, eval_every >= 0")
+    if self.sh_increase_every < 1 or self.eval_every < 0 or self.eval_views < 1 or self.views_per_step < 1:
+      raise ValueError("train.sh_increase_every, eval_views and views_per_step must be >= 1, eval_every >= 0")
     if not 0 <= self.ssim_weight <= 1:
       raise ValueError(f"train.ssim_weight must be in [0, 1], got {self.ssim_weight}")
 
@@ -89,7 +94,7 @@ class TrainState:
 def validate(config: ml_collections.ConfigDict) -> None:
   """Every value the train job reads, checked before anything runs (ValueError naming the key)."""
   loop_settings(config)
-  settings.from_section(TrainSettings, config.train)
+  parallel.check_batch(settings.from_section(TrainSettings, config.train).views_per_step)
   settings.from_section(DensifySchedule, config.train.densify)
   settings.from_section(densify.DensifyParams, config.train.densify)
   snapshot_steps(config)
@@ -181,33 +186,46 @@ def masked(gaussians: Gaussians, alive: jax.Array) -> Gaussians:
 
 
 def make_train_step(tx: optax.GradientTransformation, options: RenderOptions, ssim_weight: float,
-                    traces: loop.TraceCounter | None = None):
-  """Builds step(state, images [V, H, W, 3], cameras (stacked), view) -> (state, stats), jitted with the
-  state donated; `options` must carry a pair capacity, and a step whose render overflowed it returns the
-  state unchanged (see gs.capacity). It also accumulates the densification statistics (3D-GS Sec. 5.2): the
-  NDC norm of each visible Gaussian's 2D-mean gradient, its view count, and its largest screen radius."""
+                    traces: loop.TraceCounter | None = None, mesh=None):
+  """Builds step(state, images [V, H, W, 3], cameras (stacked), views) -> (state, stats), jitted with the state
+  donated; `views` is one view's index or int32 [B] of them, whose renders are split over the devices of `mesh`
+  (core.parallel; None: one device). The update is the mean of the B views' gradients. `options` must carry a
+  pair capacity, and a step where a render overflowed it returns the state unchanged (see gs.capacity). It also
+  accumulates the densification statistics (3D-GS Sec. 5.2) of every view: the NDC norm of each visible
+  Gaussian's 2D-mean gradient of the view's own loss, its view count, and its largest screen radius."""
 
   def loss_fn(gaussians, offsets, alive, image, camera):
     out = render(masked(gaussians, alive), camera, options, means2d_offset=offsets)
     return losses.photometric_loss(out.rgb, image, ssim_weight), out
 
-  def step(state: TrainState, images, cameras, view):
-    image = images[view]
-    camera = jax.tree.map(lambda x: x[view], cameras)
-    offsets = jnp.zeros((state.alive.shape[0], 2), image.dtype)
+  def per_view(shared, view):
+    gaussians, alive = shared
+    image, camera = view
+    offsets = jnp.zeros((alive.shape[0], 2), image.dtype)
     (loss, out), (grads, offset_grads) = jax.value_and_grad(loss_fn, argnums=(0, 1), has_aux=True)(
-        state.gaussians, offsets, state.alive, image, camera)
-    updates, opt_state = tx.update(grads, state.opt_state, state.gaussians)
+        gaussians, offsets, alive, image, camera)
     visible = out.radii > 0
     ndc_grads = offset_grads * jnp.array([camera.width / 2, camera.height / 2], image.dtype)
+    sums = dict(grads=grads, loss=loss, psnr=metrics.psnr(jnp.clip(out.rgb, 0, 1), image),
+                grad_norms=jnp.where(visible, jnp.linalg.norm(ndc_grads, axis=-1), 0.0),
+                visible=visible.astype(jnp.int32), overflow=out.num_overflow_tiles,
+                overflowed=out.overflowed.astype(jnp.int32))
+    return sums, dict(radii=out.radii, num_pairs=out.num_pairs)
+
+  def step(state: TrainState, images, cameras, views):
+    views = jnp.atleast_1d(views)
+    batch = (images[views], jax.tree.map(lambda x: x[views], cameras))
+    sums, each = parallel.map_reduce_over_batch(per_view, (state.gaussians, state.alive), batch, mesh)
+    count = views.shape[0]
+    grads = jax.tree.map(lambda g: g / count, sums["grads"])
+    updates, opt_state = tx.update(grads, state.opt_state, state.gaussians)
     new_state = state.replace(
         step=state.step + 1, gaussians=optax.apply_updates(state.gaussians, updates), opt_state=opt_state,
-        grad_accum=state.grad_accum + jnp.where(visible, jnp.linalg.norm(ndc_grads, axis=-1), 0.0),
-        grad_count=state.grad_count + visible.astype(jnp.int32),
-        max_radii=jnp.where(visible, jnp.maximum(state.max_radii, out.radii), state.max_radii))
-    stats = dict(loss=loss, psnr=metrics.psnr(jnp.clip(out.rgb, 0, 1), image), overflow=out.num_overflow_tiles,
-                 num_gaussians=jnp.sum(state.alive), num_pairs=out.num_pairs)
-    return capacity.keep_unless_overflowed(out.overflowed, new_state, state), stats
+        grad_accum=state.grad_accum + sums["grad_norms"], grad_count=state.grad_count + sums["visible"],
+        max_radii=jnp.maximum(state.max_radii, jnp.max(each["radii"], axis=0)))
+    stats = dict(loss=sums["loss"] / count, psnr=sums["psnr"] / count, overflow=sums["overflow"],
+                 num_gaussians=jnp.sum(state.alive), num_pairs=jnp.max(each["num_pairs"]))
+    return capacity.keep_unless_overflowed(sums["overflowed"] > 0, new_state, state), stats
 
   if traces is not None:
     step = traces.wrap("train_step", step)
@@ -247,6 +265,13 @@ def view_order(seed: int, epoch: int, num_views: int) -> np.ndarray:
   return np.random.default_rng([seed, epoch]).permutation(num_views)
 
 
+def step_views(seed: int, iteration: int, views_per_step: int, num_views: int) -> np.ndarray:
+  """The views of 1-based step `iteration` (int32 [views_per_step]): the next views of the epochs' shuffled
+  orders (view_order), a step that ends an epoch taking the rest from the next."""
+  positions = (iteration - 1) * views_per_step + np.arange(views_per_step)
+  return np.array([view_order(seed, p // num_views, num_views)[p % num_views] for p in positions], np.int32)
+
+
 def density_control(state: TrainState, iteration: int, schedule: DensifySchedule, params: densify.DensifyParams,
                     extent: float, white_background: bool, seed: int) -> TrainState:
   """The 3D-GS schedule: densify every `every` steps in (start, until); reset opacity every
@@ -280,8 +305,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   scene = evaluate.load_scene_data(config) if scene is None else scene
   extent = scene.scene_extent()
   tx = optimizer.gaussian_optimizer(config.train.lr, extent, config.train.iterations)
-  images = jnp.asarray(np.stack(scene.train_images))
-  cameras = camera_lib.stack(scene.train_cameras)
+  mesh = parallel.batch_mesh(t.views_per_step)
+  images = parallel.replicate(jnp.asarray(np.stack(scene.train_images)), mesh)
+  cameras = parallel.replicate(camera_lib.stack(scene.train_cameras), mesh)
   base_options = evaluate.render_options(config, scene.background)
   white = tuple(scene.background) == (1.0, 1.0, 1.0)
   snapshots = set(snapshot_steps(config))
@@ -290,17 +316,17 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   # One jitted step per SH degree and pair capacity; the pair capacity grows when a render needs more. It
   # starts from the checkpoint's, or from a guess for the buffer size at the first step.
   build = lambda degree, options: make_train_step(tx, dataclasses.replace(options, sh_degree=degree),
-                                                  t.ssim_weight, traces)
+                                                  t.ssim_weight, traces, mesh)
   steps = capacity.GrowingSteps(build, base_options)
 
   def step(state, iteration):
     if steps.capacity is None:
       steps.grow(render_lib.initial_capacity(int(state.alive.shape[0]), base_options))
     degree = t.sh_degree_at(iteration)
-    num_views = len(scene.train_images)
-    view = view_order(config.seed, (iteration - 1) // num_views, num_views)[(iteration - 1) % num_views]
+    views = step_views(config.seed, iteration, t.views_per_step, len(scene.train_images))
     buffer = int(state.alive.shape[0])
-    state, stats = steps(degree, state, images, cameras, view)
+    # densification makes the state anew on the host: replicated again (a no-op for a state already placed)
+    state, stats = steps(degree, parallel.replicate(state, mesh), images, cameras, parallel.replicate(views, mesh))
     variants.update((degree, buffer, tried) for tried in steps.last_capacities)  # an overflowed try compiled too
     return density_control(state, iteration, schedule, params, extent, white, config.seed), stats
 
@@ -310,7 +336,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
     if not t.eval_every or iteration % t.eval_every or iteration == config.train.iterations:
       return None
     options = dataclasses.replace(base_options, sh_degree=t.sh_degree_at(iteration))
-    test_psnr = evaluate.mean_psnr(masked(state.gaussians, state.alive), scene, options, t.eval_views)
+    placed = parallel.on_one_device((state.gaussians, state.alive), mesh)
+    test_psnr = evaluate.mean_psnr(masked(*placed), scene, options, t.eval_views)
     logging.info("step %d: test PSNR %.2f on %d views", iteration, test_psnr, t.eval_views)
     return dict(test_psnr=test_psnr)
 
