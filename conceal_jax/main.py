@@ -3,8 +3,10 @@
 Only wires flags; the jobs live in their own modules. Config values are overridden with
 `--config.key=value`; the final config is saved to DIR/config.json, and a workdir of a resumable mode run
 again with settings that change its run is refused (core.workdir). `--host_devices=N` splits a CPU host
-into N XLA devices before JAX starts (0, the default: one per core, at most 2), over which a concealment
-step spreads its views.
+into N XLA devices before JAX starts (0, the default: one per core, at most 2), over which a step spreads its
+views. `--coordinator_address`, `--num_processes` and `--process_id` (or JAX_COORDINATOR_ADDRESS,
+JAX_NUM_PROCESSES, JAX_PROCESS_ID) run one job over several processes, on one machine or several
+(core.parallel.start_processes); process 0 writes the workdir, process k its workdir/process_k.
 """
 from __future__ import annotations
 
@@ -38,6 +40,10 @@ RESUMABLE = ("train", "conceal", "baseline")
 FLAGS = flags.FLAGS
 flags.DEFINE_string("workdir", None, "Directory for outputs, checkpoints and the saved config.")
 flags.DEFINE_integer("host_devices", 0, "XLA devices a CPU host is split into (0: one per core, at most 2).")
+flags.DEFINE_string("coordinator_address", None, "host:port of process 0, for a run over several processes "
+                    "(default: $JAX_COORDINATOR_ADDRESS).")
+flags.DEFINE_integer("num_processes", None, "Processes of the run (default: $JAX_NUM_PROCESSES, else 1).")
+flags.DEFINE_integer("process_id", None, "This process's index, 0..num_processes-1 (default: $JAX_PROCESS_ID).")
 config_flags.DEFINE_config_file("config", None, "Path to a config file (a get_config() module).",
                                 lock_config=True)
 flags.mark_flags_as_required(["config", "workdir"])
@@ -62,7 +68,9 @@ def main(argv):
   # JAX logs each accelerator platform it looks for and does not find ("Unable to initialize backend 'tpu'")
   logging.getLogger("jax._src.xla_bridge").setLevel(logging.WARNING)
   try:
-    closing = summary.after_job(FLAGS.config, FLAGS.workdir, run(FLAGS.config, FLAGS.workdir))
+    parallel.start_processes(FLAGS.coordinator_address, FLAGS.num_processes, FLAGS.process_id)
+    workdir = parallel.process_workdir(FLAGS.workdir)
+    closing = summary.after_job(FLAGS.config, workdir, run(FLAGS.config, workdir))
   except (ValueError, OSError) as error:  # bad input: one clear line, no traceback
     print(f"conceal_jax: error: {error}", file=sys.stderr)
     sys.exit(1)

@@ -1,11 +1,13 @@
-"""Data parallelism over views (core.parallel): a teacher step's batch split over devices, and the same steps on 1
-and on 4 host devices."""
+"""Data parallelism over views (core.parallel): a teacher step's batch split over devices, the same steps on 1 and
+on 4 host devices, and one teacher trained by two processes joined through jax.distributed on loopback."""
 from __future__ import annotations
 
 import json
 import os
+import socket
 import subprocess
 import sys
+import textwrap
 
 import jax
 import jax.numpy as jnp
@@ -52,6 +54,31 @@ def test_batch_mesh_takes_the_largest_device_count_dividing_the_batch():
   assert parallel.batch_mesh(2).size == parallel.batch_mesh(4).size == 2
   with pytest.raises(ValueError, match="views per step"):
     parallel.check_batch(0)
+
+
+@pytest.mark.parametrize("flags,env,message", [
+    (dict(num_processes=2), {}, "coordinator"),
+    (dict(num_processes=2, coordinator_address="127.0.0.1:1"), {}, "coordinator"),
+    (dict(num_processes=2, coordinator_address="127.0.0.1:1", process_id=2), {}, r"0\.\.1"),
+    (dict(process_id=1), {}, "one process"),
+    ({}, dict(JAX_NUM_PROCESSES="two"), "integers"),
+    (dict(num_processes=0), {}, ">= 1")])
+def test_an_incomplete_process_setting_is_refused(monkeypatch, flags, env, message):
+  """Every refusal comes before jax.distributed is started (which would block waiting for a coordinator)."""
+  for name in parallel.PROCESS_ENV:
+    monkeypatch.delenv(name, raising=False)
+  for name, value in env.items():
+    monkeypatch.setenv(name, value)
+  with pytest.raises(ValueError, match=message):
+    parallel.start_processes(**flags)
+
+
+def test_one_process_starts_nothing(monkeypatch):
+  for name in parallel.PROCESS_ENV:
+    monkeypatch.delenv(name, raising=False)
+  assert parallel.start_processes() == 1 and parallel.start_processes(num_processes=1, process_id=0) == 1
+  monkeypatch.setenv("JAX_NUM_PROCESSES", "1")
+  assert parallel.start_processes() == 1 and parallel.process_workdir("w") == "w"
 
 
 @needs_two
@@ -121,3 +148,79 @@ def test_four_devices_train_and_conceal_as_one_does(tiny, tmp_path):
     for i, (a, b) in enumerate(zip(one, four)):
       assert_close_to_float_order(b, a, f"{job}: leaf {i}")
 
+
+def free_port() -> int:
+  with socket.socket() as s:
+    s.bind(("127.0.0.1", 0))
+    return s.getsockname()[1]
+
+
+# Two processes joined through jax.distributed on loopback, summing one value over both: whether this platform
+# (its jax, gloo, loopback sockets) can run several processes at all, before the test asks it to train.
+PROBE = textwrap.dedent("""
+    import sys
+    import jax, numpy as np
+    from jax.experimental import multihost_utils
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    jax.distributed.initialize(sys.argv[1], 2, int(sys.argv[2]), initialization_timeout=60)
+    print(int(np.sum(multihost_utils.process_allgather(np.array([jax.process_index() + 1])))))
+    """)
+
+
+def two_processes_unavailable() -> str | None:
+  """None where two local processes can sum over each other, else why not (the probe's last error line)."""
+  address = f"127.0.0.1:{free_port()}"
+  env = with_host_devices(1)
+  probes = [subprocess.Popen([sys.executable, "-c", PROBE, address, str(i)], env=env, stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True) for i in range(2)]
+  try:
+    outs = [p.communicate(timeout=120) for p in probes]
+  except subprocess.TimeoutExpired:
+    for p in probes:
+      p.kill()
+    return "two jax.distributed processes on loopback did not finish a sum within 120 s"
+  if all(p.returncode == 0 and out.split()[-1:] == ["3"] for p, (out, _) in zip(probes, outs)):
+    return None
+  errors = [line for _, err in outs for line in err.strip().splitlines()[-1:]]
+  return f"two jax.distributed processes on loopback cannot sum over each other here: {errors}"
+
+
+@pytest.mark.slow
+def test_two_processes_train_the_teacher_one_process_trains(tiny, tmp_path):
+  """`python -m conceal_jax.main` as two processes on this machine (one host device each; process 0 told by flags,
+  process 1 by the environment) trains a teacher taking two views per step, one view on each process: both
+  write the scene one process on two host devices trains, process 1 in its workdir/process_1."""
+  reason = two_processes_unavailable()
+  if reason:
+    pytest.skip(reason)
+  scene, start = tiny
+  command = [sys.executable, "-m", "conceal_jax.main", "--config=conceal_jax/configs/demo.py", "--config.mode=train",
+             f"--config.data.path={scene}", "--config.init.kind=ply", f"--config.init.ply={start}",
+             "--config.train.iterations=3", "--config.train.views_per_step=2", "--config.train.densify.start=100",
+             "--config.train.progress_bar=False", "--config.eval.max_views=1"]
+  address = f"127.0.0.1:{free_port()}"
+  env = with_host_devices(1)
+  launched = [
+      subprocess.Popen(command + [f"--workdir={tmp_path / 'two'}", f"--coordinator_address={address}",
+                                  "--num_processes=2", "--process_id=0"], cwd=REPO, env=env,
+                       stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True),
+      subprocess.Popen(command + [f"--workdir={tmp_path / 'two'}"], cwd=REPO, stdout=subprocess.PIPE,
+                       stderr=subprocess.STDOUT, text=True,
+                       env=dict(env, JAX_COORDINATOR_ADDRESS=address, JAX_NUM_PROCESSES="2", JAX_PROCESS_ID="1"))]
+  try:
+    outs = [p.communicate(timeout=900)[0] for p in launched]
+  finally:
+    for p in launched:
+      p.kill()
+  for i, (p, out) in enumerate(zip(launched, outs)):
+    assert p.returncode == 0, f"process {i}:\n{out[-3000:]}"
+  one = subprocess.run(command + [f"--workdir={tmp_path / 'one'}"], cwd=REPO, env=with_host_devices(2),
+                       capture_output=True, text=True, timeout=900)
+  assert one.returncode == 0, one.stderr[-3000:]
+  scenes = [ply.load_ply(tmp_path / folder / "point_cloud.ply") for folder in ("one", "two", "two/process_1")]
+  start_scene = ply.load_ply(start)
+  assert not np.allclose(scenes[0].means, start_scene.means), "the steps must have moved the scene"
+  for other in scenes[1:]:
+    jax.tree.map(lambda a, b: assert_close_to_float_order(b, a, "two processes' scene"), scenes[0], other)
+  summaries = [json.loads((tmp_path / folder / "train.json").read_text()) for folder in ("two", "two/process_1")]
+  assert [s["iterations"] for s in summaries] == [3, 3]

@@ -9,6 +9,10 @@ XLA's CPU backend runs one computation's loops on one thread, so a 2-core host i
 XLA devices for a step that renders two views. That split is the process's choice, made before JAX starts
 (`host_devices_flag`, set by `python -m conceal_jax.main --host_devices`), never by importing the library.
 
+Several processes (several machines, or several on one) share a batch the same way: `start_processes` joins
+them through `jax.distributed` before JAX starts, every process runs the same job on the same inputs, and the
+mesh takes the same number of devices from each, so the sums run over all of them. Each process keeps the whole
+state (replicated) and does the host-side work (densification, checkpoints, scoring) itself, on the same values.
 """
 from __future__ import annotations
 
@@ -23,6 +27,8 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 BATCH_AXIS = "batch"
 HOST_DEVICES_FLAG = "--xla_force_host_platform_device_count"
+# The environment variables start_processes reads where a flag is not given (the first is jax.distributed's own).
+PROCESS_ENV = ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID")
 
 
 def host_devices_flag(count: int) -> None:
@@ -31,6 +37,45 @@ def host_devices_flag(count: int) -> None:
   flags = os.environ.get("XLA_FLAGS", "")
   if HOST_DEVICES_FLAG not in flags:
     os.environ["XLA_FLAGS"] = f"{flags} {HOST_DEVICES_FLAG}={count}".strip()
+
+
+def start_processes(coordinator_address: str | None = None, num_processes: int | None = None,
+                    process_id: int | None = None) -> int:
+  """Joins this process to a run over `num_processes` processes (jax.distributed.initialize) and returns the
+  count; each value not given is read from PROCESS_ENV, and without a count (or with 1) nothing is started and
+  the run is this process alone. Called by the entry point before JAX's backend starts; on a CPU the processes'
+  collectives go through gloo. ValueError for an incomplete or inconsistent setting."""
+  env = dict(zip(("coordinator_address", "num_processes", "process_id"), (os.environ.get(k) for k in PROCESS_ENV)))
+  coordinator_address = coordinator_address or env["coordinator_address"] or None
+  try:
+    num_processes = int(num_processes if num_processes is not None else env["num_processes"] or 1)
+    process_id = None if process_id is None and not env["process_id"] else int(
+        process_id if process_id is not None else env["process_id"])
+  except ValueError as error:
+    raise ValueError(f"{PROCESS_ENV[1]} and {PROCESS_ENV[2]} must be integers ({error})") from error
+  if num_processes < 1:
+    raise ValueError(f"the number of processes must be >= 1, got {num_processes}")
+  if num_processes == 1:
+    if process_id not in (None, 0):
+      raise ValueError(f"process id {process_id} given for a run of one process (set the number of processes)")
+    return 1
+  if not coordinator_address or process_id is None:
+    raise ValueError(f"a run over {num_processes} processes needs the coordinator's address (host:port of process "
+                     f"0) and this process's id, as flags or as {PROCESS_ENV[0]} and {PROCESS_ENV[2]}")
+  if not 0 <= process_id < num_processes:
+    raise ValueError(f"process id must be in 0..{num_processes - 1}, got {process_id}")
+  # gloo: the CPU backend's collectives across processes (without it a CPU psum stays within one process)
+  jax.config.update("jax_cpu_collectives_implementation", "gloo")
+  jax.distributed.initialize(coordinator_address, num_processes, process_id)
+  return num_processes
+
+
+def process_workdir(workdir: str) -> str:
+  """Where this process writes a job's files: `workdir` for process 0 (and a run of one process); the others,
+  whose files are the same, write theirs to workdir/process_<id>, so processes sharing a file system never
+  write the same file and each resumes from its own checkpoints."""
+  index = jax.process_index()
+  return workdir if index == 0 else os.path.join(workdir, f"process_{index}")
 
 
 def check_batch(batch_size: int) -> None:
