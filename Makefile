@@ -7,7 +7,7 @@ WORKDIR ?= workdirs/demo
 JOBS ?= 2
 
 .PHONY: venv demo own-scene chromium test test-slow bench-render bench-train profile-train bench-conceal profile-conceal \
-        bench-baselines bench-robust bench-survive survive-runs bench-ownership reproduce clean
+        bench-baselines bench-robust bench-survive bench-falloff survive-runs bench-ownership reproduce clean
 
 venv: $(STAMP)
 
@@ -123,6 +123,10 @@ bench-robust: $(STAMP) | $(ROBUST_DEMO)/conceal/student.ply $(CLEAN_DEMO)
 # student (run `make demo` first), the survival designs' runs of `make survive-runs` and bench-conceal's lego run when present
 bench-survive: $(STAMP)
 	$(PY) -m experiments.bench_survive --out=experiments/results --workdir=workdirs/survive $(BENCH_ARGS)
+
+# how far from the key each design's decoder still reveals its image (the curve behind the near-key leakage figure)
+bench-falloff: $(STAMP)
+	$(PY) -m experiments.bench_falloff --out=experiments/results $(BENCH_ARGS)
 
 # the survival designs' runs that bench-survive scores: demo.py's variants in the demo teacher of `make demo`
 # (trained first if missing), and lego_conceal.py:film in bench-train's lego teacher when present (LEGO_FILM_STEPS)

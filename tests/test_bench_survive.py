@@ -1,6 +1,6 @@
-"""make bench-survive on a tiny marked scene: rows for every attack group asked for, with the fields issue 39
-names, re-alignment after the transforms, resumed without recomputing finished rows; the round trips skip
-cleanly without splat-transform (make node_modules)."""
+"""make bench-survive (and bench-falloff) on a tiny marked scene: rows for every attack group asked for, with the
+fields issue 39 names, re-alignment after the transforms, resumed without recomputing finished rows; the round trips
+skip cleanly without splat-transform (make node_modules)."""
 from __future__ import annotations
 
 import json
@@ -133,3 +133,19 @@ def test_the_change_profile_names_what_training_moved():
   after.sh[-1, 3, 2] += 0.1
   assert bench_survive.change_profile(before, after, carrier=3)["carrier_moved"] == 1 / 3
   assert bench_survive.change_profile(before, jax.tree.map(lambda x: x[:9], before)) is None
+
+
+def test_falloff_rows_start_at_the_key_and_skip_missing_runs(run, tmp_path, capsys):
+  """make bench-falloff on the same run: a row per angle, the key's own reveal at 0 degrees, runs without their
+  files skipped, the table and plot written."""
+  from experiments import bench_falloff
+  out = tmp_path / "out"
+  bench_falloff.main([f"--out={out}", f"--scenes=tiny={run / 'run'},gone={tmp_path / 'missing'}", "--directions=2"])
+  rows = json.loads((out / "falloff_bench.json").read_text())["rows"]
+  assert [r["angle_deg"] for r in rows] == list(bench_falloff.ANGLES_DEG) and {r["scene"] for r in rows} == {"tiny"}
+  at_key = rows[0]
+  # the hidden image is what the untouched student reveals at the key: one pose, SSIM 1
+  assert at_key["directions"] == 1 and at_key["mean_ssim"] > 0.99 and at_key["max_ssim"] == at_key["mean_ssim"]
+  assert all(r["directions"] == 2 and r["max_ssim"] >= r["mean_ssim"] for r in rows[1:])
+  assert "skipping gone" in capsys.readouterr().out
+  assert (out / "falloff_bench.md").read_text().count("| tiny |") == 1 and (out / "falloff_bench.png").is_file()
