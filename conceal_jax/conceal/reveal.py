@@ -24,7 +24,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, unet
+from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, message as message_lib, unet
 from conceal_jax.core import fileio, settings
 from conceal_jax.data import ply
 from conceal_jax.gs import metrics, register as register_lib, similarity as similarity_lib
@@ -229,7 +229,7 @@ def reveal_from_files(r: ml_collections.ConfigDict) -> np.ndarray:
 
 def reveal(config: ml_collections.ConfigDict, workdir: str) -> dict:
   """The reveal job: writes revealed.png and reveal.json (similarity to config.reveal.hidden if set; the
-  alignment found when config.reveal.owner is set)."""
+  alignment found when config.reveal.owner is set; with a key of message mode, the message read back)."""
   validate(config)
   r = config.reveal
   revealed, alignment = reveal_with_alignment(r)
@@ -240,5 +240,8 @@ def reveal(config: ml_collections.ConfigDict, workdir: str) -> dict:
   if r.hidden:
     reference = hidden_lib.load_hidden_image(r.hidden, revealed.shape[0])
     result.update(psnr=float(metrics.psnr(revealed, reference)), ssim=float(metrics.ssim(revealed, reference)))
+  hidden_message = message_lib.message_of_key(key_lib.load_key(r.key, r.key_number)[1])
+  if hidden_message is not None:
+    result["message"] = message_lib.read_message(revealed, hidden_message)
   fileio.write_json(os.path.join(workdir, REVEAL_FILE), result)
   return result

@@ -19,7 +19,7 @@ import ml_collections
 import numpy as np
 
 from conceal_jax.conceal import augment, hidden as hidden_lib, key as key_lib, reveal, scoring, settings as settings_lib
-from conceal_jax.conceal import carrier, unet, views as views_lib
+from conceal_jax.conceal import carrier, message as message_lib, unet, views as views_lib
 from conceal_jax.conceal.step import create_state, make_step
 from conceal_jax.core import fileio, loop, parallel
 from conceal_jax.data import ply
@@ -31,6 +31,7 @@ STUDENT_FILE = "student.ply"
 DECODER_FILE = "decoder.msgpack"
 KEY_FILE = "key.json"
 SUMMARY_FILE = "conceal.json"
+MESSAGE_FILE = "message.json"
 
 
 @dataclasses.dataclass
@@ -47,6 +48,7 @@ class Run:
   decoys: list
   options: render_lib.RenderOptions
   data: views_lib.ConcealData
+  message: np.ndarray | None = None  # the bits hidden in message mode (mark.message_bits), hiddens[0] their image
 
 
 def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Run:
@@ -55,6 +57,9 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
   s = plan.settings
   teacher = ply.load_ply(config.mark.teacher)
   hiddens = [hidden_lib.load_hidden_image(source, s.hidden_size) for source in plan.sources]
+  message = message_lib.configured_message(config.mark, config.seed)
+  if message is not None:
+    hiddens[0] = message_lib.message_image(message, s.hidden_size)
   scene = evaluate.load_scene_data(config)
   keys = key_lib.key_cameras(scene.train_cameras, plan.key_kind, plan.key_index, plan.key_seed, len(hiddens) - 1,
                              plan.key_offset)
@@ -74,7 +79,7 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
   data = views_lib.build_data(scene.train_images, teacher, options, list(scene.train_cameras) + decoys,
                               [camera for camera, _ in keys], hiddens, s.hidden_size, s.reading.clip, key_images,
                               trainable)
-  return Run(plan, teacher, start, scene, hiddens, keys, decoys, options, data)
+  return Run(plan, teacher, start, scene, hiddens, keys, decoys, options, data, message)
 
 
 def initial_decoder(config: ml_collections.ConfigDict, settings: settings_lib.ConcealSettings):
@@ -115,7 +120,8 @@ def save_outputs(run: Run, workdir: str, state) -> None:
     reveal.save_decoder(os.path.join(workdir, DECODER_FILE), state.decoder)
   (check_camera, info), extra = run.keys[0], run.keys[1:]
   info = dict(info, hidden_size=s.hidden_size, uses_decoder=s.use_decoder, decoder_width=s.decoder_width,
-              **s.reading.key_fields(), render_options=dataclasses.asdict(run.options))
+              **s.reading.key_fields(), render_options=dataclasses.asdict(run.options),
+              **(message_lib.key_fields(run.message) if run.message is not None else {}))
   key_lib.save_key(os.path.join(workdir, KEY_FILE), check_camera, info,
                    [(camera, dict(more, number=k, hidden=source))
                     for k, ((camera, more), source) in enumerate(zip(extra, run.plan.sources[1:]), 1)])
@@ -125,7 +131,8 @@ def save_outputs(run: Run, workdir: str, state) -> None:
 
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_steps: int | None = None) -> dict:
   """Trains student + decoder (checkpointed, resumable), then writes the student, decoder, key, hidden
-  images, conceal.json (settings, timing, curves) and metrics.json (scoring.evaluate_concealment)."""
+  images, conceal.json (settings, timing, curves) and metrics.json (scoring.evaluate_concealment); in message
+  mode also message.json, the message read from the key's reveal (message.read_message)."""
   plan = settings_lib.plan(config)
   s, c = plan.settings, config.conceal
   run = prepare(config, plan)
@@ -173,4 +180,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   scored = scoring.evaluate_concealment(config, workdir, run.scene, run.teacher, state.student,
                                         reveal_fn(s, state.decoder), [camera for camera, _ in run.keys], run.hiddens,
                                         run.options)
+  if run.message is not None:  # what the key reveals from the student, read as the message (message.json)
+    revealed = scoring.reveal_at_keys(state.student, [run.keys[0][0]], run.options, reveal_fn(s, state.decoder))[0]
+    scored = dict(scored, message=message_lib.read_message(np.asarray(revealed), run.message))
+    fileio.write_json(os.path.join(workdir, MESSAGE_FILE), scored["message"])
   return dict(summary, metrics=scored)

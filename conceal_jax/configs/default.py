@@ -150,6 +150,10 @@ def mark_section() -> ml_collections.ConfigDict:
   c.teacher = ""          # the teacher's .ply (required)
   c.hidden = "astronaut"  # an image path or a scikit-image sample name
   c.hidden_size = 64      # the hidden image and decoder resolution S (S x S)
+  # message mode (conceal/message.py): > 0 hides a message of this many bits, BCH-coded and laid out as the hidden
+  # image, instead of mark.hidden; mark.message its bits in hex ("": drawn from seed). key.json records it
+  c.message_bits = 0
+  c.message = ""
   # 'train_index', 'orbit' (a secret pose on the training orbit, from key_seed) or 'unseen' (a pose looking where
   # no camera of the scene looks, key_offset camera distances from their orbit target, turned about its axis by
   # key_seed; conceal.carrier)

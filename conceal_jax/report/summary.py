@@ -39,21 +39,33 @@ def conceal_lines(workdir: str, result: dict) -> list[str]:
           f"{m['student_vs_teacher']['psnr']:.2f} dB to the teacher's renders)",
           f"  leakage SSIM: test views {leakage['max_ssim_student_test_views']:.3f}, clean teacher at the key "
           f"{leakage['ssim_teacher_check_view']:.3f}, near the key {leakage['max_ssim_near_check']:.3f}",
+          *message_lines(m),
           f"  share {os.path.join(workdir, conceal_train.STUDENT_FILE)}; keep "
           f"{os.path.join(workdir, conceal_train.DECODER_FILE)} and "
           f"{os.path.join(workdir, conceal_train.KEY_FILE)} secret"]
 
 
+def message_lines(result: dict) -> list[str]:
+  """A message-mode key's reading (conceal.message.read_message), none otherwise."""
+  if "message" not in result:
+    return []
+  m = result["message"]
+  decoded = f"decoded {m['decoded']}" if m["decoded"] is not None else "not decodable (more errors than it corrects)"
+  return [f"  message ({m['bits']} bits, {m['code']}): raw bit accuracy {m['raw_bit_accuracy']:.4f} "
+          f"(binomial p 1e{m['log10_p_binomial']:.1f}), {decoded}, "
+          f"{'the message hidden' if m['message_exact'] else 'not the message hidden ' + m['message']}"]
+
+
 def reveal_lines(workdir: str, result: dict) -> list[str]:
   scores = (f": PSNR {result['psnr']:.2f} dB, SSIM {result['ssim']:.4f} to the hidden image" if "psnr" in result
             else "")
-  return [f"revealed from {result['ply']}{scores}",
+  return [f"revealed from {result['ply']}{scores}", *message_lines(result),
           f"  wrote {os.path.join(workdir, 'revealed.png')}, {reveal.REVEAL_FILE}"]
 
 
 def verify_lines(workdir: str, result: dict) -> list[str]:
   return [f"{result['ply']}: {'OWNED' if result['owned'] else 'not owned'}",
-          f"  evidence: {run_report.evidence_figures(result)}",
+          f"  evidence: {run_report.evidence_figures(result)}", *message_lines(result),
           f"  wrote {os.path.join(workdir, ownership.VERIFY_FILE)}, revealed.png"]
 
 

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, reveal
+from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, message as message_lib, reveal
 from conceal_jax.core import fileio, settings
 from conceal_jax.gs import evaluate, metrics
 from conceal_jax.robust import phase_statistic
@@ -192,7 +192,8 @@ def validate(config: ml_collections.ConfigDict) -> None:
 
 def verify(config: ml_collections.ConfigDict, workdir: str) -> dict:
   """The verify job: reveal at the key, test against the hidden image at verify.alpha (ownership_test), and
-  the SSIM, with the calibrated threshold's decision when verify.calibration names a file."""
+  the SSIM, with the calibrated threshold's decision when verify.calibration names a file; with a key of
+  message mode, the message read back (bit accuracy, binomial p-value, the corrected message)."""
   validate(config)
   r = config.reveal
   scene = reveal.load_keyed_scene(r)
@@ -211,6 +212,9 @@ def verify(config: ml_collections.ConfigDict, workdir: str) -> dict:
     result["calibration"] = dict(calibration, owned=decide(score, calibration))
   if scene.alignment is not None:
     result["alignment"] = scene.alignment
+  hidden_message = message_lib.message_of_key(key_lib.load_key(r.key, r.key_number)[1])
+  if hidden_message is not None:  # message mode: the bits read back, beside the test of their image
+    result["message"] = message_lib.read_message(revealed, hidden_message)
   fileio.write_image(os.path.join(workdir, "revealed.png"), revealed)
   fileio.write_image(os.path.join(workdir, "hidden.png"), hidden)
   with fileio.atomic_path(os.path.join(workdir, "null_revealed.npz")) as path:
