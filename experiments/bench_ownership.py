@@ -20,9 +20,13 @@ check render, model attacks on the scene), each with the null verify would draw 
 Each (decoder, scene) pair's trials are kept in --cache (an .npz per pair, keyed by the settings), so a run
 stopped part way resumes where it was.
 
-Writes ownership_bench.json (clean_trials, false_positives, alpha, tpr_at_alpha per marked run, the rows behind
-them) and ownership_bench.png (the clean trials' p-values against the uniform, log scale; their z against N(0, 1);
-the marked trials' z against the threshold) to --out.
+Message mode: each finished message-mode run of --message-runs (conceal/message.py) gives, per message length, the
+raw bit accuracy, whether the corrected message is exact, the render PSNR beside the teacher's, and verify on the
+student and on a clean scene read with the same key.
+
+Writes ownership_bench.json (clean_trials, false_positives, alpha, tpr_at_alpha per marked run, message rows per
+length, the rows behind them) and ownership_bench.png (the clean trials' p-values against the uniform, log scale;
+their z against N(0, 1); the marked trials' z against the threshold) to --out.
 """
 from __future__ import annotations
 
@@ -51,6 +55,11 @@ DEFAULT_RUNS = ("workdirs/demo/conceal,workdirs/survive_runs/demo_film,workdirs/
 DEFAULT_MARKED = ("workdirs/demo/conceal,workdirs/survive_runs/lego_film,"
                   "workdirs/bench/lego/conceal_ours_robust_clip_dec03_clip_w16")
 DEFAULT_CLEAN = "workdirs/demo/teacher,workdirs/demo_seed1/teacher,workdirs/bench/lego/teacher"
+# message mode (mark.message_bits): demo concealments of 32 and 48 bits, e.g.
+#   python -m conceal_jax.main --config=conceal_jax/configs/demo.py --workdir=workdirs/message/demo_32 \
+#     --config.mode=conceal --config.mark.teacher=workdirs/demo/teacher/point_cloud.ply --config.mark.message_bits=32
+DEFAULT_MESSAGE_RUNS = "workdirs/message/demo_32,workdirs/message/demo_48"
+DEFAULT_MESSAGE_CLEAN = "workdirs/demo_seed1/teacher/point_cloud.ply"
 MARKED_SEVERITIES = bench_robust.MARKED_SEVERITIES
 SHIFTS = 16  # circular shifts of each decoder's I among the hidden images of its clean trials
 CROPS = 16  # crops of each scikit-image picture among them
@@ -195,6 +204,37 @@ def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict
   return rows
 
 
+def message_row(run: pathlib.Path, clean_ply: str, alpha: float, scratch: pathlib.Path) -> dict:
+  """A message-mode concealment: the message read from the student at the key (message.json), the render against
+  the teacher's (metrics.json), and verify (ownership test + message) on the student and on the clean scene
+  `clean_ply` read with the same key and decoder."""
+  metrics = json.loads((run / "metrics.json").read_text())
+  read = json.loads((run / "message.json").read_text())
+  row = dict(run=str(run), bits=read["bits"], code=read["code"], corrects=read["corrects"],
+             bit_accuracy=read["raw_bit_accuracy"], message_exact=read["message_exact"],
+             errors_corrected=read["errors_corrected"], log10_p_binomial=read["log10_p_binomial"],
+             render_psnr=metrics["student_vs_ground_truth"]["psnr"],
+             teacher_psnr=metrics["teacher_vs_ground_truth"]["psnr"], hidden_ssim=metrics["hidden"]["ssim"],
+             leakage=metrics["leakage"])
+  for name, scene in (("verify_student", str(run / "student.ply")), ("verify_clean", clean_ply)):
+    if not pathlib.Path(scene).is_file():
+      continue
+    config = default.get_config()
+    config.mode, config.verify.alpha = "verify", alpha
+    config.reveal.ply, config.reveal.key, config.reveal.decoder = scene, str(run / "key.json"), str(
+        run / "decoder.msgpack")
+    config.reveal.hidden = str(run / "hidden.png")
+    (scratch / f"{run.name}_{name}").mkdir(parents=True, exist_ok=True)
+    verified = ownership.verify(config, str(scratch / f"{run.name}_{name}"))
+    row[name] = dict(scene=scene, owned=verified["owned"], log10_p=verified["log10_p"], z=verified["z"],
+                     bit_accuracy=verified["message"]["raw_bit_accuracy"],
+                     log10_p_binomial=verified["message"]["log10_p_binomial"],
+                     decoded=verified["message"]["decoded"], message_exact=verified["message"]["message_exact"])
+  print(f"{run}: {row['bits']} bits, raw bit accuracy {row['bit_accuracy']:.4f}, exact {row['message_exact']}, "
+        f"render {row['render_psnr']:.2f} dB (teacher {row['teacher_psnr']:.2f})", flush=True)
+  return row
+
+
 def tail_counts(log10_p: np.ndarray) -> list[dict]:
   """Clean trials with a p-value at most 10^-k against the count the null predicts, k = 1 .. 6."""
   return [dict(p_at_most=10.0 ** -k, observed=int(np.sum(log10_p <= -k)), predicted=float(log10_p.size * 10.0 ** -k))
@@ -257,9 +297,30 @@ def main():
   parser.add_argument("--null-views", type=int, default=default.get_config().verify.null_views)
   parser.add_argument("--cache", default="workdirs/bench/ownership_cache",
                       help="where each (decoder, scene) pair's trials are kept, to resume")
+  parser.add_argument("--message-runs", default=DEFAULT_MESSAGE_RUNS,
+                      help="comma-separated conceal workdirs of message mode")
+  parser.add_argument("--message-clean", default=DEFAULT_MESSAGE_CLEAN,
+                      help="a clean scene's .ply the message runs' keys are also read from")
+  parser.add_argument("--messages-only", action="store_true",
+                      help="refresh only the message rows of --out's ownership_bench.json (the message runs finish "
+                           "apart from the clean trials)")
   args = parser.parse_args()
   if not 0 < args.alpha < 1:
     raise SystemExit(f"--alpha must be strictly between 0 and 1, got {args.alpha}")
+  out = pathlib.Path(args.out)
+
+  def message_rows() -> dict:
+    runs = [pathlib.Path(p) for p in args.message_runs.split(",")
+            if p and (pathlib.Path(p) / "message.json").is_file()]
+    return {str(row["bits"]): row for row in (message_row(run, args.message_clean, args.alpha,
+                                                          pathlib.Path(args.cache) / "message_verify")
+                                              for run in runs)}
+
+  if args.messages_only:
+    result = json.loads((out / "ownership_bench.json").read_text())
+    result["message"] = message_rows()
+    fileio.write_json(out / "ownership_bench.json", result)
+    return
 
   def present(paths: str, files: tuple[str, ...]) -> list[pathlib.Path]:
     found = []
@@ -307,8 +368,7 @@ def main():
                       max_z=float(own_z.max()), decided_owned=int(sum(o["owned"] for t in per_run.values()
                                                                        for o in t["own"])),
                       rows={run: t["own"] for run, t in per_run.items()}),
-      marked=marked_rows)
-  out = pathlib.Path(args.out)
+      marked=marked_rows, message=message_rows())
   fileio.write_json(out / "ownership_bench.json", result)
   plot(log_model, log_p, z, own_z, marked_rows, args.alpha, out / "ownership_bench.png")
   print(json.dumps({k: v for k, v in result.items() if k not in ("marked", "own_hidden", "pairs", "top_clean_trials")},
