@@ -302,7 +302,13 @@ def ownership_test_table(ownership_bench: dict) -> list[str]:
   for k, (run, rate) in enumerate(tpr.items()):
     head = f"| {alpha:g} | {trials} ({pairs}) | {fp} " if k == 0 else "| | | "
     lines.append(head + f"| {run} | {'-' if rate is None else f'{100 * rate:.1f}%'} |")
-  lines += ["", "The clean trials' p-values against the null: [ownership_bench.png](ownership_bench.png).", "",
+  tail = ", ".join(f"<= {row['p_at_most']:g}: {row['observed']} ({row['predicted']:.3g})"
+                   for row in ownership_bench.get("tail_counts", [])[2:])
+  top = (ownership_bench.get("top_clean_trials") or [None])[0]
+  lines += ["", "The clean trials' p-values against the null: [ownership_bench.png](ownership_bench.png)."
+            + (f" Clean trials whose decision p-value is at most p, observed (predicted): {tail}." if tail else "")
+            + (f" The highest clean z, {top['z']:.2f} (p 1e{top['log10_p']:.2f}): decoder {top['decoder']} on "
+               f"{top['scene']}, {top['view']}, hidden image '{top['hidden']}'." if top else ""), "",
             "Message mode (BCH-coded bits laid out as the hidden image; raw bit accuracy before correction, render "
             "PSNR of the student on the test views beside the teacher's; the papers' figures are on their own "
             "scenes):", "",
