@@ -263,6 +263,9 @@ def test_two_hidden_images_each_at_its_own_key(tiny, tmp_path):
   assert saved["index"] == 4 and len(saved["camera"]["world_to_camera"]) == 4
   assert [(k["number"], k["kind"], k["index"], k["hidden"]) for k in saved["extra_keys"]] == [
       (1, "train_index", 3, "camera")]
+  # each key records its near-key length, the unit of its decoys' and its leakage figure's translations
+  lengths = [saved["near_length"], saved["extra_keys"][0]["near_length"]]
+  assert saved["near_length_from"] == "view_depth" and all(length > 0 for length in lengths)
   for name in ("hidden.png", "hidden_key1.png", "revealed.png", "revealed_key1.png"):
     assert (tmp_path / name).is_file(), name
 
@@ -281,6 +284,7 @@ def test_two_hidden_images_each_at_its_own_key(tiny, tmp_path):
   assert leakage["max_ssim_near_check"] == max(h["max_ssim_near_key"] for h in keys["hidden"])
   assert [(r["kind"], r["value"]) for r in m["near_check"]] == [
       ("translation", 0.02), ("translation", 0.05), ("rotation", 2.0), ("rotation", 5.0)]
+  assert [entry["length"] for entry in m["near_key_length"]] == lengths
   curve = [h for h in result["history"] if "hidden_psnr_keys" in h]
   np.testing.assert_allclose(curve[-1]["hidden_psnr_keys"], [h["psnr"] for h in keys["hidden"]], rtol=1e-4)
 

@@ -37,7 +37,7 @@ METRICS = dict(hidden=dict(psnr=30.5, ssim=0.97), leakage=dict(max_ssim_student_
                                                                ssim_teacher_check_view=0.12, max_ssim_near_check=0.17),
                leakage_floor=dict(max_ssim_teacher_test_views=0.14, ssim_teacher_at_worst_test_view=0.13),
                leakage_worst_test_view="r_1.png", num_test_views=2,
-               near_check=[dict(kind="translation", value=0.02, unit="fraction of extent", mean_ssim=0.1,
+               near_check=[dict(kind="translation", value=0.02, unit="fraction of key depth", mean_ssim=0.1,
                                 max_ssim=0.17, mean_psnr=6.0)],
                **{name: dict(psnr=p, ssim=0.9, lpips=0.05) for name, p in
                   (("student_vs_ground_truth", 29.0), ("teacher_vs_ground_truth", 29.2), ("student_vs_teacher", 41.0))})

@@ -77,7 +77,7 @@ def test_model_attack_rows_start_with_the_scene_as_shared():
 def test_pose_tolerance_falls_with_distance():
   g = scene()
   owner = no_decoder_owner(g, make_camera(48, 48))
-  rows = robustness.pose_tolerance_rows(g, owner, extent=2.0, translations=(0.0, 0.05), rotations_deg=(0.0, 5.0),
+  rows = robustness.pose_tolerance_rows(g, owner, length=2.0, translations=(0.0, 0.05), rotations_deg=(0.0, 5.0),
                                         directions=2)
   by = {(r["kind"], r["value"]): r for r in rows}
   np.testing.assert_allclose(by[("translation", 0.0)]["mean_ssim"], 1.0, atol=1e-5)

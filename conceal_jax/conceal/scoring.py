@@ -23,8 +23,9 @@ from conceal_jax.gs import evaluate, metrics
 from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.render import RenderOptions, render
 
-# Leakage near the key: the student at the check pose moved by these fractions of the scene extent, or
-# turned by these degrees, each in NEAR_DIRECTIONS random directions.
+# Leakage near the key: the student at the check pose moved by these fractions of the key's near-key length
+# (key.near_length: the depth of the scene as the key sees it), or turned by these degrees, each in
+# NEAR_DIRECTIONS random directions.
 NEAR_TRANSLATIONS = (0.02, 0.05)
 NEAR_ROTATIONS_DEG = (2.0, 5.0)
 NEAR_DIRECTIONS = 4
@@ -42,18 +43,19 @@ def scores_to_hidden(revealed, hidden) -> dict[str, np.ndarray]:
               ssim=np.asarray(metrics.batched_ssim(revealed, hidden), np.float64))
 
 
-def near_key_rows(gaussians, check_camera: Camera, options: RenderOptions, reveal_fn, hidden, extent: float,
+def near_key_rows(gaussians, check_camera: Camera, options: RenderOptions, reveal_fn, hidden, length: float,
                   translations=NEAR_TRANSLATIONS, rotations_deg=NEAR_ROTATIONS_DEG,
                   directions: int = NEAR_DIRECTIONS) -> list[dict]:
   """What `reveal_fn` reveals at poses near the key (key.nearby_cameras): per (kind, value), the mean and max
-  SSIM and the mean PSNR to I over the random directions (to the best of several hidden images)."""
-  poses = key_lib.nearby_cameras(check_camera, extent, translations, rotations_deg, directions)
+  SSIM and the mean PSNR to I over the random directions (to the best of several hidden images); translations
+  are fractions of `length`, the key's key.near_length."""
+  poses = key_lib.nearby_cameras(check_camera, length, translations, rotations_deg, directions)
   renders = evaluate.render_images(gaussians, [camera for _, _, camera in poses], options)
   scores = scores_to_hidden(reveal_fn(renders), hidden)
   rows = []
   for kind, value in dict.fromkeys((kind, value) for kind, value, _ in poses):
     mine = np.array([(k, v) == (kind, value) for k, v, _ in poses])
-    rows.append(dict(kind=kind, value=value, unit="fraction of extent" if kind == "translation" else "degrees",
+    rows.append(dict(kind=kind, value=value, unit="fraction of key depth" if kind == "translation" else "degrees",
                      mean_ssim=float(scores["ssim"][mine].mean()), max_ssim=float(scores["ssim"][mine].max()),
                      mean_psnr=float(scores["psnr"][mine].mean())))
   return rows
@@ -92,7 +94,9 @@ def leakage_scores(config, workdir: str, scene, teacher, student, reveal_fn, key
                    hiddens: np.ndarray, options: RenderOptions) -> dict:
   """Render quality of student and teacher on the test split and the leakage figures (module doc) over
   every hidden image [K, S, S, 3]; writes the student's test renders and normal_revealed.png (the test
-  view whose decoder output looks most like a hidden image)."""
+  view whose decoder output looks most like a hidden image). `near_key_length` per key: the length its
+  near-key translations are fractions of (key.near_length of the clean `teacher`), what it is, and the
+  scene extent beside it."""
   eval_opts = evaluate.eval_options(config, scene.background)
   cameras, targets, names = evaluate.held_out_views(scene, config.eval.max_views)
   student_renders = evaluate.render_images(student, cameras, eval_opts)
@@ -103,8 +107,9 @@ def leakage_scores(config, workdir: str, scene, teacher, student, reveal_fn, key
   worst = int(np.argmax(ssim_to_hidden))
   fileio.write_image(os.path.join(workdir, "normal_revealed.png"), np.asarray(normal_revealed[worst]))
   floor_ssim = scores_to_hidden(reveal_fn(teacher_renders), hiddens)["ssim"]
-  near_rows = [near_key_rows(student, camera, options, reveal_fn, hiddens, scene.scene_extent())
-               for camera in key_cameras]
+  lengths = [key_lib.near_length(teacher, camera, scene.train_cameras) for camera in key_cameras]
+  near_rows = [near_key_rows(student, camera, options, reveal_fn, hiddens, length)
+               for camera, (length, _) in zip(key_cameras, lengths)]
   net = config.eval.lpips_net
   return dict(
       student_vs_ground_truth=evaluate.image_metrics(student_renders, targets, names, net)["mean"],
@@ -114,6 +119,8 @@ def leakage_scores(config, workdir: str, scene, teacher, student, reveal_fn, key
       leakage_floor=dict(max_ssim_teacher_test_views=float(floor_ssim.max()),
                          ssim_teacher_at_worst_test_view=float(floor_ssim[worst])),
       near_rows=near_rows, num_test_views=len(names), lpips_net=metrics.LPIPS_NET_NAME[net],
+      near_key_length=[dict(length=length, source=source, scene_extent=scene.scene_extent())
+                       for length, source in lengths],
       eval_render_options=repr(eval_opts))
 
 

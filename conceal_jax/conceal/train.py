@@ -64,8 +64,12 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
   keys = key_lib.key_cameras(scene.train_cameras, plan.key_kind, plan.key_index, plan.key_seed, len(hiddens) - 1,
                              plan.key_offset)
   options = evaluate.render_options(config, scene.background)
-  decoys = [decoy for k, (camera, _) in enumerate(keys)
-            for decoy in key_lib.decoy_cameras(camera, scene.scene_extent(), plan.decoy_views, plan.decoy_translation,
+  # each key records the length its decoys' (and the leakage figure's) translations are fractions of
+  lengths = [key_lib.near_length(teacher, camera, scene.train_cameras) for camera, _ in keys]
+  keys = [(camera, dict(info, near_length=length, near_length_from=source))
+          for (camera, info), (length, source) in zip(keys, lengths)]
+  decoys = [decoy for k, (camera, info) in enumerate(keys)
+            for decoy in key_lib.decoy_cameras(camera, info["near_length"], plan.decoy_views, plan.decoy_translation,
                                                plan.decoy_rotation_deg, plan.key_seed + k)]
   # the released variant's check-view L1 target: the training image at a training-camera key, else the
   # teacher's render (an orbit pose has no image)

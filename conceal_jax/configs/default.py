@@ -237,8 +237,12 @@ def conceal_leakage_section() -> ml_collections.ConfigDict:
   """Leakage control (beyond the paper; off = the method as written): the decoder must reveal I at the key only.
   L_d^- also on the student's render of the normal view (what a viewer of the shared scene sees) and on the clean
   teacher's check render (the key reveals the student's change, not the pose); decoy_views cameras near every key
-  (moved by a fraction of the scene extent, turned by degrees, within the ranges) trained as normal views with
-  probability decoy_fraction, holding the student to the teacher and F to the identity there."""
+  (moved by a fraction of the key's depth, turned by degrees, within the ranges) trained as normal views with
+  probability decoy_fraction, holding the student to the teacher and F to the identity there. The key's depth
+  (key.near_length) is the opacity-weighted median depth of the teacher's Gaussians in its image (the camera
+  distance for a key that sees almost none): the unit of the near-key leakage figure's translations too, so that
+  a fraction means about the same pixel motion on an object-centred orbit and on a forward-facing capture, where
+  the 3D-GS extent (the spread of the camera centres) is small against the depth."""
   c = ml_collections.ConfigDict()
   c.identity_on_student = False
   c.identity_on_teacher_check = False

@@ -125,12 +125,13 @@ def attacked_scenes(gaussians: Gaussians, levels: Sequence[tuple] = model_attack
     yield name, level, severity, int(np.asarray(attacked.means).shape[0]), pad_like(attacked, num, gaussians.sh_degree)
 
 
-def pose_tolerance_rows(gaussians: Gaussians, owner: Owner, extent: float,
+def pose_tolerance_rows(gaussians: Gaussians, owner: Owner, length: float,
                         translations: Sequence[float] = (0.0, 0.002, 0.005, 0.01, 0.02, 0.05),
                         rotations_deg: Sequence[float] = (0.0, 0.25, 0.5, 1.0, 2.0, 5.0),
                         directions: int = 4) -> list[dict]:
-  """Hidden SSIM / PSNR with the check camera moved by fractions of the scene `extent` (rotation 0) and
-  turned by a few degrees (translation 0), each over `directions` random directions or axes: how
-  precisely the key must be kept, and how much a guessed nearby pose reveals."""
+  """Hidden SSIM / PSNR with the check camera moved by fractions of `length` (the key's key.near_length, the
+  depth of the scene as it sees it; rotation 0) and turned by a few degrees (translation 0), each over
+  `directions` random directions or axes: how precisely the key must be kept, and how much a guessed nearby
+  pose reveals."""
   return scoring.near_key_rows(gaussians, owner.check_camera, owner.options, owner.reveal_renders, owner.hidden,
-                              extent, translations, rotations_deg, directions)
+                              length, translations, rotations_deg, directions)
