@@ -36,8 +36,8 @@ def falloff_rows(label: str, run: pathlib.Path, directions: int = DIRECTIONS) ->
   """Rows (scene, run, angle_deg, mean_ssim, max_ssim, mean_psnr) of the run's reveal at the key turned by each
   of ANGLES_DEG."""
   config, student, owner = bench_robust.load_run(run)
-  extent = evaluate.load_scene_data(config).scene_extent()
-  rows = robustness.pose_tolerance_rows(student, owner, extent, translations=(), rotations_deg=ANGLES_DEG,
+  length = bench_robust.near_length(config, evaluate.load_scene_data(config), owner)
+  rows = robustness.pose_tolerance_rows(student, owner, length, translations=(), rotations_deg=ANGLES_DEG,
                                         directions=directions)
   return [dict(scene=label, run=str(run), angle_deg=r["value"], mean_ssim=r["mean_ssim"], max_ssim=r["max_ssim"],
                mean_psnr=r["mean_psnr"], directions=directions if r["value"] else 1) for r in rows]

@@ -59,6 +59,12 @@ def load_run(run: pathlib.Path):
   return config, ply.load_ply(str(run / "student.ply")), owner
 
 
+def near_length(config, scene, owner: robustness.Owner) -> float:
+  """The run's near-key length (key.near_length of its clean teacher, config.mark.teacher, at its key): the unit
+  of the pose rows' translations, as in the conceal job's leakage figure and the run's decoys."""
+  return key_lib.near_length(ply.load_ply(config.mark.teacher), owner.check_camera, scene.train_cameras)[0]
+
+
 def bench_run(run: pathlib.Path, test_views: int) -> dict:
   config, student, owner = load_run(run)
   scene = evaluate.load_scene_data(config)
@@ -67,7 +73,7 @@ def bench_run(run: pathlib.Path, test_views: int) -> dict:
   mild = [r["ssim_drop"] for r in image_rows for name, is_mild in PAPER_MILD
           if r["attack"] == name and is_mild(r["level"])]
   model_rows = robustness.model_attack_rows(student, owner, cameras, targets)
-  pose_rows = robustness.pose_tolerance_rows(student, owner, scene.scene_extent())
+  pose_rows = robustness.pose_tolerance_rows(student, owner, near_length(config, scene, owner))
   return dict(run=str(run), num_gaussians=int(student.num), test_views=len(cameras), **base,
               paper_mild_mean_ssim_drop=float(np.mean(mild)), image_attacks=image_rows,
               model_attacks=model_rows, pose=pose_rows)
@@ -177,7 +183,7 @@ def plot(results, path: pathlib.Path):
     twin.plot(labels, [r["render_psnr"] for r in rows], "k.", label="test PSNR")
     twin.set_ylabel("attacked scene test PSNR (dB)")
     middle.set_title(f"{name}: scene attacked", fontsize=9)
-    for kind, unit in (("translation", "% of extent"), ("rotation", "degrees")):
+    for kind, unit in (("translation", "% of key depth"), ("rotation", "degrees")):
       rows = [r for r in result["pose"] if r["kind"] == kind]
       scale = 100 if kind == "translation" else 1
       right.plot([scale * r["value"] for r in rows], [r["mean_ssim"] for r in rows], marker="o",

@@ -23,7 +23,7 @@ def summary(root: pathlib.Path) -> str:
       f"SSIM {concealed['hidden']['ssim']:.4f}"
       f"  (reveal job: {revealed['psnr']:.2f} dB / {revealed['ssim']:.4f})",
       f"leakage SSIM: student test views max {concealed['leakage']['max_ssim_student_test_views']:.4f}, "
-      f"clean teacher at the check view {clean['ssim']:.4f}, student near the check view (2-5% of the extent, "
+      f"clean teacher at the check view {clean['ssim']:.4f}, student near the check view (moved 2-5% of its depth, "
       f"2-5 degrees) max {concealed['leakage'].get('max_ssim_near_check', float('nan')):.4f}",
   ])
 

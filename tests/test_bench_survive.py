@@ -42,6 +42,7 @@ def run(tmp_path_factory):
                                  reveal.load_decoder(str(folder / "run" / "decoder.msgpack")), 4, 16)
   fileio.write_image(folder / "hidden.png", np.asarray(revealed))
   config.mark.hidden = str(folder / "hidden.png")
+  config.mark.teacher = str(folder / "run" / "student.ply")  # the clean scene (the student is untouched here)
   fileio.write_json(folder / "run" / "config.json", config.to_dict())
   # a threshold near 0.975: an untrained decoder's output varies little with what it is shown
   (folder / "cal.json").write_text(json.dumps(dict(clean=[0.95], marked=[0.999])))
