@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from conceal_jax.conceal import key as key_lib, scoring
 from conceal_jax.data.scene import camera_extent
@@ -101,3 +102,23 @@ def test_a_key_that_sees_no_gaussians_takes_the_camera_distance():
   length, source = key_lib.near_length(teacher, away, cameras)
   assert source == "camera_distance"
   assert length == key_lib.camera_distance(cameras) and abs(length - 4.0) < 1e-3
+
+
+def test_the_ratio_script_reports_every_key_kind(tmp_path, capsys):
+  """experiments/near_length.py on a generated demo scene and a teacher of random points around its centre: one row
+  per key kind, the ratio the length over the extent, the unseen key on the camera distance; a scene without SfM
+  points cannot stand in its points for a teacher."""
+  from conceal_jax.data import demo_scene, ply
+  from conceal_jax.gs import init
+  from experiments import near_length
+  scene = demo_scene.generate_demo_scene(tmp_path / "scene", num_train=6, num_test=1, size=32)
+  points, colors = init.random_box_points(np.random.default_rng(0), 500, 1.0)
+  ply.save_ply(tmp_path / "teacher.ply", init.gaussians_from_points(points, colors, sh_degree=0))
+  rows = near_length.rows(str(scene), str(tmp_path / "teacher.ply"))
+  assert [r["kind"] for r in rows] == list(key_lib.KEY_KINDS)
+  assert [r["source"] for r in rows] == ["view_depth", "view_depth", "camera_distance"]
+  assert all(abs(r["ratio"] - r["near_length"] / r["extent"]) < 1e-12 and 0.3 < r["ratio"] < 1.5 for r in rows)
+  near_length.main([f"--scenes={scene}={tmp_path / 'teacher.ply'}"])
+  assert capsys.readouterr().out.count("view_depth") == 2
+  with pytest.raises(ValueError, match="no SfM points"):  # a generated demo scene holds no point cloud
+    near_length.rows(str(scene), "points")
