@@ -41,7 +41,7 @@ import ml_collections
 import numpy as np
 from scipy import stats
 
-from conceal_jax.conceal import hidden as hidden_lib, key as key_lib
+from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, message
 from conceal_jax.configs import default
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
@@ -171,34 +171,37 @@ def clean_trials(run: pathlib.Path, scenes: list[dict], alpha: float, null_views
               owned=np.concatenate(owned), own=own, pairs=pairs, top=top, hidden_names=names)
 
 
+def attacked_reveals(student, owner):
+  """(kind, attack, level, severity, revealed [S, S, 3], scene) for the student untouched ("none") and under each
+  mild and medium attack: image attacks on its check render (scene: the student), model attacks on the scene."""
+  levels = [level for level in image_attacks.LEVELS if level[2] in MARKED_SEVERITIES]
+  revealed = np.asarray(owner.reveal_renders(robustness.attacked_check_renders(student, owner, levels)))
+  yield "none", "none", None, "none", revealed[0], student
+  for (name, level, severity), image in zip(levels, revealed[1:]):
+    yield "image", name, level, severity, image, student
+  levels = [level for level in model_attacks.LEVELS if level[2] in MARKED_SEVERITIES]
+  for name, level, severity, _, scene in robustness.attacked_scenes(student, levels):
+    if name != "none":
+      check = owner.reveal_renders(evaluate.render_images(scene, [owner.check_camera], owner.options))
+      yield "model", name, level, severity, np.asarray(check)[0], scene
+
+
 def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict]:
-  """The student of `run` under each mild and medium attack (image attacks on its check render, model attacks on
-  the scene), decided as verify decides; one row per attack level."""
+  """The student of `run` under each mild and medium attack (attacked_reveals), decided as verify decides, with
+  the null verify would draw from the (attacked) scene; one row per attack level."""
   _, student, owner = bench_robust.load_run(run)
   student = jax.tree.map(jnp.asarray, student)
   hidden = owner.hidden
-  rows = []
-
-  def add(kind, name, level, severity, revealed, nulls):
+  rows, nulls = [], None
+  for kind, name, level, severity, revealed, scene in attacked_reveals(student, owner):
+    if kind != "image" or nulls is None:  # image attacks leave the scene, and so its null, as it is
+      nulls = ownership.null_reveals(scene, owner.check_camera, owner.options, owner.reveal_renders, null_views,
+                                     hidden)
     result = ownership.decisions(revealed[None], hidden[None], np.concatenate(list(nulls.values())), alpha)
     rows.append(dict(kind=kind, attack=name, level=level, severity=severity, z=float(result["z"][0, 0]),
                      log10_p=float(result["log10_p"][0, 0]), log10_p_model=float(result["log10_p_model"][0, 0]),
                      log10_p_null=float(result["log10_p_null"][0, 0]), owned=bool(result["owned"][0, 0]),
                      ssim=float(metrics.ssim(revealed, hidden))))
-
-  levels = [level for level in image_attacks.LEVELS if level[2] in MARKED_SEVERITIES]
-  revealed = np.asarray(owner.reveal_renders(robustness.attacked_check_renders(student, owner, levels)))
-  nulls = ownership.null_reveals(student, owner.check_camera, owner.options, owner.reveal_renders, null_views, hidden)
-  add("none", "none", None, "none", revealed[0], nulls)
-  for (name, level, severity), image in zip(levels, revealed[1:]):
-    add("image", name, level, severity, image, nulls)
-  levels = [level for level in model_attacks.LEVELS if level[2] in MARKED_SEVERITIES]
-  for name, level, severity, _, scene in robustness.attacked_scenes(student, levels):
-    if name == "none":
-      continue
-    check = owner.reveal_renders(evaluate.render_images(scene, [owner.check_camera], owner.options))
-    nulls = ownership.null_reveals(scene, owner.check_camera, owner.options, owner.reveal_renders, null_views, hidden)
-    add("model", name, level, severity, np.asarray(check)[0], nulls)
   print(f"{run}: {sum(r['owned'] for r in rows[1:])} of {len(rows) - 1} attacked trials decided owned, lowest z "
         f"{min(r['z'] for r in rows[1:]):.2f}", flush=True)
   return rows
@@ -206,8 +209,9 @@ def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict
 
 def message_row(run: pathlib.Path, clean_ply: str, alpha: float, scratch: pathlib.Path) -> dict:
   """A message-mode concealment: the message read from the student at the key (message.json), the render against
-  the teacher's (metrics.json), and verify (ownership test + message) on the student and on the clean scene
-  `clean_ply` read with the same key and decoder."""
+  the teacher's (metrics.json), the message read under each mild and medium attack (attacked_reveals), and verify
+  (ownership test + message) on the student and on the clean scene `clean_ply` read with the same key and
+  decoder."""
   metrics = json.loads((run / "metrics.json").read_text())
   read = json.loads((run / "message.json").read_text())
   row = dict(run=str(run), bits=read["bits"], code=read["code"], corrects=read["corrects"],
@@ -216,6 +220,16 @@ def message_row(run: pathlib.Path, clean_ply: str, alpha: float, scratch: pathli
              render_psnr=metrics["student_vs_ground_truth"]["psnr"],
              teacher_psnr=metrics["teacher_vs_ground_truth"]["psnr"], hidden_ssim=metrics["hidden"]["ssim"],
              leakage=metrics["leakage"])
+  _, student, owner = bench_robust.load_run(run)
+  hidden_message = message.message_of_key(key_lib.load_key(str(run / "key.json"))[1])
+  row["attacks"] = []
+  for kind, name, level, severity, revealed, _ in attacked_reveals(jax.tree.map(jnp.asarray, student), owner):
+    read_back = message.read_message(revealed, hidden_message)
+    row["attacks"].append(dict(kind=kind, attack=name, level=level, severity=severity,
+                               bit_accuracy=read_back["raw_bit_accuracy"], message_exact=read_back["message_exact"]))
+  attacked = [a for a in row["attacks"] if a["kind"] != "none"]
+  row["attacked_exact"] = f"{sum(a['message_exact'] for a in attacked)} of {len(attacked)}"
+  row["attacked_min_bit_accuracy"] = min(a["bit_accuracy"] for a in attacked)
   for name, scene in (("verify_student", str(run / "student.ply")), ("verify_clean", clean_ply)):
     if not pathlib.Path(scene).is_file():
       continue
@@ -231,7 +245,8 @@ def message_row(run: pathlib.Path, clean_ply: str, alpha: float, scratch: pathli
                      log10_p_binomial=verified["message"]["log10_p_binomial"],
                      decoded=verified["message"]["decoded"], message_exact=verified["message"]["message_exact"])
   print(f"{run}: {row['bits']} bits, raw bit accuracy {row['bit_accuracy']:.4f}, exact {row['message_exact']}, "
-        f"render {row['render_psnr']:.2f} dB (teacher {row['teacher_psnr']:.2f})", flush=True)
+        f"render {row['render_psnr']:.2f} dB (teacher {row['teacher_psnr']:.2f}), exact under attacks "
+        f"{row['attacked_exact']}", flush=True)
   return row
 
 

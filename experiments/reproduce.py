@@ -226,7 +226,7 @@ def leakage_table(conceal_bench: dict) -> list[str]:
       lines.append(f"| {scene} | {label} | {seed_words(seeds)} | {' | '.join(leak)} | "
                    f"{spread(floors, '.3f') if floors else '-'} |")
   if len(lines) == 4:
-    lines.append(f"| {NOT_RUN} | | | | | | |")
+    lines.append(f"| {NOT_RUN} | | | | | | | |")
   return lines + [""]
 
 
@@ -310,20 +310,23 @@ def ownership_test_table(ownership_bench: dict) -> list[str]:
             + (f" The highest clean z, {top['z']:.2f} (p 1e{top['log10_p']:.2f}): decoder {top['decoder']} on "
                f"{top['scene']}, {top['view']}, hidden image '{top['hidden']}'." if top else ""), "",
             "Message mode (BCH-coded bits laid out as the hidden image; raw bit accuracy before correction, render "
-            "PSNR of the student on the test views beside the teacher's; the papers' figures are on their own "
-            "scenes):", "",
-            "| bits | code | raw bit accuracy | message after correction | render PSNR (teacher) | clean scene: bit "
-            "accuracy, decided | papers |", "|---|---|---|---|---|---|---|"]
+            "PSNR of the student on the test views beside the teacher's; runs: "
+            + (", ".join(row["run"] for row in (ownership_bench.get("message") or {}).values()) or "none")
+            + "; the papers' figures are on their own scenes):", "",
+            "| bits | code | raw bit accuracy | message after correction | exact under the mild and medium attacks "
+            "(lowest raw bit accuracy) | render PSNR (teacher) | clean scene: bit accuracy, decided | papers |",
+            "|---|---|---|---|---|---|---|---|"]
   messages = ownership_bench.get("message") or {}
   if not messages:
-    lines.append(f"| {NOT_RUN} | | | | | | |")
+    lines.append(f"| {NOT_RUN} | | | | | | | |")
   for bits, row in sorted(messages.items(), key=lambda item: int(item[0])):
     clean = row.get("verify_clean")
     clean_text = (f"{100 * clean['bit_accuracy']:.1f}%, {'owned' if clean['owned'] else 'not owned'}" if clean
                   else "-")
     lines.append(f"| {bits} | {row['code']} | {100 * row['bit_accuracy']:.2f}% | "
                  f"{'exact' if row['message_exact'] else 'wrong'} ({row['errors_corrected']} corrected) | "
-                 f"{row['render_psnr']:.2f} ({row['teacher_psnr']:.2f}) | {clean_text} | "
+                 f"{row.get('attacked_exact', '-')} ({100 * row.get('attacked_min_bit_accuracy', float('nan')):.1f}%)"
+                 f" | {row['render_psnr']:.2f} ({row['teacher_psnr']:.2f}) | {clean_text} | "
                  f"{MESSAGE_PAPERS.get(int(bits), '-')} |")
   return lines + [""]
 
@@ -387,7 +390,7 @@ def appendix_baseline_table(baseline_bench: dict) -> list[str]:
     lines.append(f"| {r.get('scene', 'lego')} | {r.get('method', '')} | {r.get('row', '')} | "
                  f"{cells(conceal_values(r))} | {results_io.leakage_cells(r['leakage'])} | {r.get('protocol', '')} |")
   if len(lines) == 4:
-    lines.append(f"| {NOT_RUN} | | | | | | |")
+    lines.append(f"| {NOT_RUN} | | | | | | | |")
   return lines + [""]
 
 
