@@ -210,3 +210,10 @@ def test_verify_requires_a_hidden_image(tmp_path):
   with pytest.raises(ValueError, match="reveal.hidden is required"):
     main_lib.run(config, str(tmp_path / "out"))
   assert not (tmp_path / "out").exists()
+
+
+def test_verify_renders_enough_turned_views_for_alpha():
+  """verify.null_views is a floor: a small hidden image gets the turned views its null needs for p <= alpha."""
+  assert ownership.turned_views_needed(1e-6, 64, 168, 32) == 32  # 200 * 8 * 64^2 draws already suffice
+  views = ownership.turned_views_needed(1e-6, 16, 168, 32)
+  assert 1 / (1 + 8 * (168 + views) * 16 ** 2) <= 1e-6 < 1 / (1 + 8 * (168 + views - 1) * 16 ** 2)
