@@ -55,6 +55,7 @@ NAME = "survive_bench"
 # (configs/demo.py's variants, lego_conceal.py:film)
 SCENES = {"demo": ("demo", "workdirs/demo/conceal", "recommended"),
           "demo_film": ("demo", "workdirs/survive_runs/demo_film", "film"),
+          "demo_film_pub": ("demo", "workdirs/survive_runs/demo_film_pub", "film_pub"),
           "demo_film_faint": ("demo", "workdirs/survive_runs/demo_film_faint", "film_faint"),
           "demo_film_reset": ("demo", "workdirs/survive_runs/demo_film_reset", "film_reset"),
           "demo_film_faint_keyed": ("demo", "workdirs/survive_runs/demo_film_faint_keyed", "film_faint_keyed"),
@@ -81,6 +82,9 @@ RECIPE_NOTES = {
             "opacity reset's ceiling); its base colours trained at rate 1e-2 through 8-bit colours a quarter of the "
             "steps, the decoder reading standardized renders, 64 decoys within 1-10 degrees of the key (demo.py:film, "
             "lego_conceal.py:film)",
+    "film_pub": "film trained through decimation too: a quarter of the check renders with a share ~ U[0, 1] of the "
+                "film's neighbouring pairs merged as splat-transform's decimation merges them, and the 8-bit grids "
+                "rounding at a point drawn per render (demo.py:film_pub)",
     "film_faint": "film with its colours at the gentle student's rate, 6.25e-4 (demo.py:film_faint; concealed on an "
                   "H200, attacked on the CPU)",
     "film_reset": "the first film: one grid of splats at opacity 0.5, trained through 8-bit colours and opacity "

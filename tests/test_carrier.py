@@ -107,7 +107,8 @@ def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_p
   Gaussians and leaves the film exactly as it was."""
   config = tiny_config(tiny, iterations=4, key_kind="unseen", **{"carrier.film": True, "carrier.spacing": 4.0,
                                                                   "attacks.quantize_fraction": 0.5,
-                                                                  "attacks.reset_fraction": 0.5})
+                                                                  "attacks.reset_fraction": 0.5,
+                                                                  "attacks.merge_fraction": 0.5})
   conceal_train.train_and_evaluate(config, str(tmp_path))
   teacher, student = ply.load_ply(str(tiny[1])), ply.load_ply(str(tmp_path / "student.ply"))
   n = teacher.num

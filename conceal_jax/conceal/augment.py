@@ -24,7 +24,9 @@ straight through), so that a mark carried by colours survives the round trip. Ea
 drawn anew (to the nearest value as .spz and .compressed.ply do, down as .sog does, or between): a film of faint
 splats, all of one opacity, comes back from each format at another 8-bit step, and its image changes with it. With
 conceal.attacks.reset_fraction, that share renders it with every opacity at most densify.RESET_CEILING, as the
-opacity reset of 3D-GS training with densification leaves the Gaussians no training view sees.
+opacity reset of 3D-GS training with densification leaves the Gaussians no training view sees. With
+conceal.attacks.merge_fraction, that share renders it with a share of the carrier film's pairs of neighbouring
+splats merged as a converter's decimation merges them (decimate.merge_pairs; the share of pairs ~ U[0, 1]).
 
 The recommended recipe (configs/recipes.through_attacks) trains through blur and noise only: what each
 distortion gained and cost is in experiments/results/conceal_options.md.
@@ -38,6 +40,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from conceal_jax.conceal import decimate
 from conceal_jax.gs import densify
 from conceal_jax.splat.gaussians import opacity_logit
 
@@ -51,7 +54,8 @@ DROPPED_LOGIT = -30.0
 # .spz's 8-bit base colour: byte = round(255 (0.15 dc + 0.5)), the SH DC term scaled by this before the offset.
 SPZ_COLOR_SCALE = 0.15
 # An Augmentation field f is config key conceal.attacks.<f>; a contrast factor and a dropout probability stay below 1.
-UPPER_BOUNDS = dict(contrast_max=1.0, dropout_max=1.0, quantize_fraction=1.0 + 1e-9, reset_fraction=1.0 + 1e-9)
+UPPER_BOUNDS = dict(contrast_max=1.0, dropout_max=1.0, quantize_fraction=1.0 + 1e-9, reset_fraction=1.0 + 1e-9,
+                    merge_fraction=1.0 + 1e-9)
 # Gaussians fields that parameter noise moves: all of them (robust.model_attacks.FIELDS).
 MODEL_FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 
@@ -98,6 +102,7 @@ class Augmentation:
   param_noise_max: float = 0.0  # relative parameter noise ~ U[0, max]
   quantize_fraction: float = 0.0  # the share of steps whose check render is of 8-bit colours and opacities
   reset_fraction: float = 0.0  # the share of steps whose check render is of opacities reset to densify.RESET_CEILING
+  merge_fraction: float = 0.0  # the share of steps whose check render merges film pairs (decimate.merge_pairs)
 
   def __post_init__(self):
     for f in dataclasses.fields(self):
@@ -113,7 +118,8 @@ class Augmentation:
   @property
   def perturbs_model(self) -> bool:
     """Whether a step renders the check view from a perturbed student (`perturb_gaussians`)."""
-    return max(self.dropout_max, self.param_noise_max, self.quantize_fraction, self.reset_fraction) > 0
+    return max(self.dropout_max, self.param_noise_max, self.quantize_fraction, self.reset_fraction,
+               self.merge_fraction) > 0
 
   @property
   def draws(self) -> bool:
@@ -150,19 +156,25 @@ def quantize_8bit(gaussians, rounding=0.5):
                            opacity_logits=straight_through(gaussians.opacity_logits, opacity_logit(opacity)))
 
 
-def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmentation):
+def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmentation,
+                      merges: decimate.Merges | None = None):
   """Gaussians [N] as the check render sees them: every field of MODEL_FIELDS plus normal noise of
   distortion["param_noise"] times that field's per-channel standard deviation over the N Gaussians (a
   constant: the noise's scale is not trained), then each Gaussian dropped (opacity logit DROPPED_LOGIT, no
   gradient) with probability distortion["dropout"]; drawn from the PRNG seed distortion["model_seed"]. First,
   where distortion["quantize"] is 1, the 8-bit colours and opacities (`quantize_8bit`, rounding at
   distortion["rounding"]), and where
-  distortion["reset"] is 1, every opacity at most densify.RESET_CEILING. A kind whose maximum in
+  distortion["reset"] is 1, every opacity at most densify.RESET_CEILING; before all, a share distortion["merge"]
+  of the pairs of `merges` merged (decimate.merge_pairs, from the PRNG seed distortion["model_seed"]). A kind
+  whose maximum in
   `augmentation` is 0 is left out at trace time (without any, the Gaussians themselves, and `distortion` may be
   None); at level 0 each is the identity, values and gradients."""
   a = augmentation
   if not a.perturbs_model:
     return gaussians
+  model_key = jax.random.key(distortion["model_seed"])
+  if a.merge_fraction > 0:
+    gaussians = decimate.merge_pairs(gaussians, merges, distortion["merge"], jax.random.fold_in(model_key, 2))
   if a.quantize_fraction > 0:
     quantized = quantize_8bit(gaussians, distortion["rounding"])
     gaussians = jax.tree.map(lambda q, x: jnp.where(distortion["quantize"] > 0, q, x), quantized, gaussians)
@@ -170,7 +182,7 @@ def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmenta
     reset = densify.reset_opacity(gaussians.opacity_logits)
     gaussians = gaussians.replace(opacity_logits=jnp.where(distortion["reset"] > 0, reset,
                                                            gaussians.opacity_logits))
-  noise_key, drop_key = jax.random.split(jax.random.key(distortion["model_seed"]))
+  noise_key, drop_key = jax.random.split(model_key)
   if a.param_noise_max > 0:
     keys = dict(zip(MODEL_FIELDS, jax.random.split(noise_key, len(MODEL_FIELDS))))
     level = distortion["param_noise"]
@@ -193,8 +205,9 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   a relative parameter noise ~ U[0, param_noise_max] and their seed; brightness ~ U[-brightness_max,
   brightness_max] and contrast ~ 1 + U[-contrast_max, contrast_max]; whether the step quantizes (1 with
   probability quantize_fraction) and resets the opacities (1 with probability reset_fraction); with
-  quantize_fraction, the point its grids round at ~ U[0, 1) (`quantize_8bit`). Later kinds are drawn after
-  earlier ones, so a run without them sees the distortions it always did."""
+  quantize_fraction, the point its grids round at ~ U[0, 1) (`quantize_8bit`); the share of film pairs merged
+  (~ U[0, 1] with probability merge_fraction, else 0). Later kinds are drawn after earlier ones, so a run without
+  them sees the distortions it always did."""
   a = augmentation
   image = dict(blur=np.float32(rng.uniform(0.0, a.blur_max)), noise=np.float32(rng.uniform(0.0, a.noise_max)),
                seed=np.uint32(rng.integers(2**32)))
@@ -205,4 +218,6 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   drawn["quantize"] = np.float32(a.quantize_fraction > 0 and rng.random() < a.quantize_fraction)
   drawn["reset"] = np.float32(a.reset_fraction > 0 and rng.random() < a.reset_fraction)
   drawn["rounding"] = np.float32(rng.random() if a.quantize_fraction > 0 else 0.5)
+  merges = a.merge_fraction > 0 and rng.random() < a.merge_fraction
+  drawn["merge"] = np.float32(rng.random() if merges else 0.0)
   return drawn

@@ -85,14 +85,15 @@ def pixel_loss(rgb: jax.Array, view: View, settings: ConcealSettings) -> jax.Arr
 
 
 def view_terms(student, decoder_plus, decoder_minus, view: View, settings: ConcealSettings,
-               options: RenderOptions) -> Terms:
-  """The terms of one view: the student rendered through view.model and its pixel loss; the render read by F
+               options: RenderOptions, merges=None) -> Terms:
+  """The terms of one view: the student rendered through view.model (with `merges`, the film pairs a decimation
+  merges: augment.perturb_gaussians) and its pixel loss; the render read by F
   at the decoder size (through view.image), once: against I where the view carries L_d^+ (lambda+ L_d^+,
   eq. 5, through the render, F as `decoder_plus`), else against itself as a constant (its L_d^- share, eq. 4,
   F as `decoder_minus`); and the teacher render against itself (its L_d^- share). A view carries L_d^+ or
   holds F to the identity on its own render, never both (views.step_views)."""
   s = settings
-  out = render(augment.perturb_gaussians(student, view.model, s.augmentation), view.camera, options)
+  out = render(augment.perturb_gaussians(student, view.model, s.augmentation, merges), view.camera, options)
   seen = decoder_view(augment.distort(out.rgb, view.image, s.augmentation), s)
   reads_hidden = view.plus_weight > 0
   own_decoder = jax.tree.map(lambda p, m: jnp.where(reads_hidden, p, m), decoder_plus, decoder_minus)

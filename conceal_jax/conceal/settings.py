@@ -200,6 +200,8 @@ def plan(config: ml_collections.ConfigDict) -> RunPlan:
   sources = (m.hidden,) + extra_hidden(m.extra_hidden, settings.use_decoder)
   if polish and not settings.use_decoder:
     raise ValueError("conceal.decoder_opt.polish_steps needs a decoder (conceal.use_decoder)")
+  if settings.augmentation.merge_fraction > 0 and not c.carrier.film:
+    raise ValueError("conceal.attacks.merge_fraction merges the carrier film's pairs: it needs conceal.carrier.film")
   return RunPlan(settings, dataclasses.replace(joint, iterations=joint.iterations + polish), c.iterations, polish,
                  sources, m.key_kind, m.key_index, m.key_seed, key_offset(config), lk.decoy_views,
                  ranges["decoy_translation"], ranges["decoy_rotation_deg"], film_plan(config))

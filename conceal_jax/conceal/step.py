@@ -41,23 +41,23 @@ def create_state(student, decoder, student_tx, decoder_tx) -> ConcealState:
 
 
 def gradients(student, decoder, views: objective.View, settings: ConcealSettings, options: RenderOptions, mesh=None,
-              train_student: bool = True):
+              train_student: bool = True, merges=None):
   """({'student': ..., 'plus': ..., 'minus': ...} gradients summed over the stacked views [B], their Terms [B]).
   'student' is the gradient of every term with respect to the student (None without `train_student`: then
   the renders are not differentiated); 'plus' and 'minus' the decoder's gradients of lambda+ L_d^+ and of
-  lambda- L_d^-."""
+  lambda- L_d^-. `merges`: the film pairs a decimation merges (views.ConcealData)."""
   argnums = (0, 1, 2) if train_student else (1, 2)
 
   def per_view(shared, view):
     def loss(student, decoder_plus, decoder_minus):
-      terms = objective.view_terms(student, decoder_plus, decoder_minus, view, settings, options)
+      terms = objective.view_terms(student, decoder_plus, decoder_minus, view, settings, options, shared[2])
       return terms.student + terms.plus + terms.minus, terms
 
     grads, terms = jax.grad(loss, argnums, has_aux=True)(shared[0], shared[1], shared[1])
     named = dict(zip(("student", "plus", "minus")[3 - len(argnums):], grads))
     return named, terms.replace(overflowed=terms.overflowed.astype(jnp.int32))
 
-  grads, terms = parallel.map_reduce_over_batch(per_view, (student, decoder), views, mesh)
+  grads, terms = parallel.map_reduce_over_batch(per_view, (student, decoder, merges), views, mesh)
   return dict(grads, student=grads.get("student")), terms
 
 
@@ -79,7 +79,7 @@ def make_step(settings: ConcealSettings, options: RenderOptions, student_tx, dec
 
   def step(state: ConcealState, data: ConcealData, view, normal_view, key_number=0, distortion=None):
     views = step_views(data, view, normal_view, key_number, distortion, s)
-    grads, terms = gradients(state.student, state.decoder, views, s, options, mesh, train_student)
+    grads, terms = gradients(state.student, state.decoder, views, s, options, mesh, train_student, data.merges)
     new = state.replace(step=state.step + 1)
     if train_student:
       student_grads = grads["student"]

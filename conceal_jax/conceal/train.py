@@ -19,7 +19,7 @@ import ml_collections
 import numpy as np
 
 from conceal_jax.conceal import augment, hidden as hidden_lib, key as key_lib, reveal, scoring, settings as settings_lib
-from conceal_jax.conceal import carrier, message as message_lib, unet, views as views_lib
+from conceal_jax.conceal import carrier, decimate, message as message_lib, unet, views as views_lib
 from conceal_jax.conceal.step import create_state, make_step
 from conceal_jax.core import fileio, loop, parallel
 from conceal_jax.data import ply
@@ -74,15 +74,16 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
   # the released variant's check-view L1 target: the training image at a training-camera key, else the
   # teacher's render (an orbit pose has no image)
   key_images = ([scene.train_images[info["index"]] for _, info in keys] if plan.key_kind == "train_index" else None)
-  start, trainable = teacher, None
+  start, trainable, merges = teacher, None, None
   if plan.film is not None:  # before the first key, unseen from every training and test view
     film = carrier.unseen_film(teacher, keys[0][0], list(scene.train_cameras) + list(scene.test_cameras), options,
                                plan.film.distance * key_lib.camera_distance(scene.train_cameras), plan.film.spacing,
                                plan.film.opacity, plan.film.layers)
     start, trainable = concatenate([teacher, film]), carrier.trainable_fields(teacher.num, film)
+    merges = decimate.film_merges(film, teacher.num) if s.augmentation.merge_fraction > 0 else None
   data = views_lib.build_data(scene.train_images, teacher, options, list(scene.train_cameras) + decoys,
                               [camera for camera, _ in keys], hiddens, s.hidden_size, s.reading.clip, key_images,
-                              trainable)
+                              trainable, merges)
   return Run(plan, teacher, start, scene, hiddens, keys, decoys, options, data, message)
 
 

@@ -26,7 +26,8 @@ from conceal_jax.splat.render import RenderOptions, render_batch
 # dropout, brightness 0, contrast 1): the distortion of a view that is not distorted
 NO_DISTORTION = dict(blur=np.float32(0.0), noise=np.float32(0.0), seed=np.uint32(0), dropout=np.float32(0.0),
                      param_noise=np.float32(0.0), model_seed=np.uint32(0), brightness=np.float32(0.0),
-                     contrast=np.float32(1.0), quantize=np.float32(0.0), reset=np.float32(0.0))
+                     contrast=np.float32(1.0), quantize=np.float32(0.0), reset=np.float32(0.0),
+                     rounding=np.float32(0.5), merge=np.float32(0.0))
 
 
 @struct.dataclass
@@ -34,20 +35,22 @@ class ConcealData:
   """images [V, H, W, 3]: ground truth of the training views; teacher [V + D, H, W, 3] and teacher_small
   [V + D, S, S, 3]: the teacher's renders of the normal views (training views, then decoys) at the render's
   and the decoder's size; cameras: Camera [V + D]; keys: Key [K]; trainable: None (the whole student trains)
-  or a 0/1 Gaussians [N] mask of what does (carrier.trainable_fields)."""
+  or a 0/1 Gaussians [N] mask of what does (carrier.trainable_fields); merges: None or the carrier film's pairs a
+  decimation merges (decimate.film_merges, for conceal.attacks.merge_fraction)."""
   images: jax.Array
   teacher: jax.Array
   teacher_small: jax.Array
   cameras: Camera
   keys: Key
   trainable: Any = None
+  merges: Any = None
 
 
 def build_data(train_images, teacher, options: RenderOptions, normal_cameras: list[Camera], key_cameras, hiddens,
-               size: int, clip: bool = False, key_images=None, trainable=None) -> ConcealData:
+               size: int, clip: bool = False, key_images=None, trainable=None, merges=None) -> ConcealData:
   """The device-resident inputs of the concealment step. `normal_cameras`: the training cameras then the
   decoys; `key_cameras` and `hiddens` [S, S, 3]: one of each per key; `key_images` [H, W, 3] per key: the
-  released variant's check-view targets (None: the teacher's renders there); `trainable`: ConcealData's.
+  released variant's check-view targets (None: the teacher's renders there); `trainable`, `merges`: ConcealData's.
   The teacher renders at the
   decoder size are clipped to [0, 1] first with `clip` (reveal.Reading)."""
   teacher_renders = evaluate.render_images(teacher, normal_cameras, options)
@@ -57,7 +60,7 @@ def build_data(train_images, teacher, options: RenderOptions, normal_cameras: li
                             reveal.resize_for_decoder(teacher_keys, size, clip))
   return ConcealData(images=jnp.asarray(np.stack(train_images)), teacher=teacher_renders,
                      teacher_small=reveal.resize_for_decoder(teacher_renders, size, clip),
-                     cameras=camera_lib.stack(list(normal_cameras)), keys=keys, trainable=trainable)
+                     cameras=camera_lib.stack(list(normal_cameras)), keys=keys, trainable=trainable, merges=merges)
 
 
 def identity_weights(settings: ConcealSettings) -> dict:

@@ -15,18 +15,18 @@ narrow decoder at a constant rate (a decaying one costs a 1300-step run more tha
 bench's variants (issue 39): `demo.py:film` is recipes.film (the mark in a carrier film only an unseen key sees,
 of faint layers whose colours train at a higher rate, through 8-bit colours) with 64 decoys near the key; the
 designs beside it: `film_mod` (film with the decoder reading the render through a sign field,
-recipes.modulated_decoder), `film_faint` (its colours at the gentle student's rate), `film_reset` (one layer at
-opacity 0.5, trained through opacity resets), `film_keyed` and `film_faint_keyed` (film_reset and film_faint with
-the decoder keyed to a fixed pattern and decoys close to the key, recipes.keyed_decoder), `film_far` (film_reset
-with the key half a camera distance from the orbit target and the film as far again); `demo.py:drift` trains
-through parameter drift (recipes.through_drift); `demo.py:orbit` keys a secret pose on the orbit instead of a
-training camera.
+recipes.modulated_decoder), `film_pub` (film trained through decimation too, recipes.through_decimation),
+`film_faint` (its colours at the gentle student's rate), `film_reset` (one layer at opacity 0.5, trained through
+opacity resets), `film_keyed` and `film_faint_keyed` (film_reset and film_faint with the decoder keyed to a fixed
+pattern and decoys close to the key, recipes.keyed_decoder), `film_far` (film_reset with the key half a camera
+distance from the orbit target and the film as far again); `demo.py:drift` trains through parameter drift
+(recipes.through_drift); `demo.py:orbit` keys a secret pose on the orbit instead of a training camera.
 """
 from conceal_jax.configs import default, recipes
 
 
-VARIANTS = ("film", "film_mod", "film_faint", "film_reset", "film_keyed", "film_faint_keyed", "film_far", "drift",
-            "orbit")
+VARIANTS = ("film", "film_mod", "film_pub", "film_faint", "film_reset", "film_keyed", "film_faint_keyed", "film_far",
+            "drift", "orbit")
 
 
 def get_config(variant: str = ""):
@@ -57,10 +57,12 @@ def get_config(variant: str = ""):
     config = recipes.through_quantization(recipes.unseen_carrier(config))
     config.conceal.decoder.input_norm = "standardize"
     config = recipes.leakage_control(config, recipes.DECOY_VIEWS, decoy_fraction=0.4)
-    faint = variant in ("film", "film_mod", "film_faint", "film_faint_keyed")
+    faint = variant in ("film", "film_mod", "film_pub", "film_faint", "film_faint_keyed")
     config = recipes.faint_film(config) if faint else recipes.through_reset(config)
-  if variant in ("film", "film_mod"):
+  if variant in ("film", "film_mod", "film_pub"):
     config = recipes.vivid_film(config)
+  if variant == "film_pub":
+    config = recipes.through_decimation(config)
   if variant == "film_mod":
     config = recipes.modulated_decoder(config)
   if variant in ("film_keyed", "film_faint_keyed"):

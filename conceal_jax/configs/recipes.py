@@ -24,13 +24,16 @@ DRIFT_NOISE = 0.15
 # Training through quantization and opacity resets: the share of steps whose check render is of 8-bit colours
 # and opacities, and of opacities reset.
 QUANTIZE_FRACTION = RESET_FRACTION = 0.25
+# Training through decimation: the share of steps whose check render has film pairs merged.
+MERGE_FRACTION = 0.25
 # The faint film: each splat at the opacity 3D-GS's reset lowers every opacity to (so the reset leaves it as it is),
 # a grid every FAINT_SPACING pixels of the key's image, FAINT_LAYERS grids: about half the background let through.
 FAINT_OPACITY, FAINT_SPACING, FAINT_LAYERS = 0.01, 4.0, 22
 # The rate of the film's base colours in the vivid film (the gentle student's is 6.25e-4).
 VIVID_DC_LR = 1e-2
 # The keyed decoder: fixed sign channels it reads beside the render, and decoys close to the key (translation as a
-# fraction of the scene extent, rotation in degrees) where a plain film reveals its image shifted.
+# fraction of the length the key sees, key.near_length; rotation in degrees) where a plain film reveals its image
+# shifted.
 PATTERN_CHANNELS = 4
 NEAR_DECOY_TRANSLATION, NEAR_DECOY_ROTATION_DEG = (0.005, 0.05), (0.5, 4.0)
 # The modulated decoder: the size of the blobs of its sign field, in decoder pixels (about the film's splats there).
@@ -128,6 +131,14 @@ def through_quantization(config, fraction: float = QUANTIZE_FRACTION):
   """A `fraction` of the check renders drawn from the student's colours and opacities rounded to 8 bits as .spz
   stores them (conceal.attacks.quantize_fraction), so that the mark survives publishing formats."""
   config.conceal.attacks.quantize_fraction = fraction
+  return config
+
+
+def through_decimation(config, fraction: float = MERGE_FRACTION):
+  """A `fraction` of the check renders drawn with a share (~ U[0, 1]) of the carrier film's neighbouring splats
+  merged pairwise as a converter's decimation merges them (conceal.attacks.merge_fraction), so that the mark
+  survives a scene shrunk for the web."""
+  config.conceal.attacks.merge_fraction = fraction
   return config
 
 

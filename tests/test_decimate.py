@@ -1,0 +1,108 @@
+"""conceal/decimate.py: the carrier film's pairs a converter's decimation merges, each merged against a float64
+reference of the moment-matching merge, and applied to a share of the pairs in the check render."""
+from __future__ import annotations
+
+import itertools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from conceal_jax.conceal import augment, carrier, decimate
+from conceal_jax.gs import similarity
+from conceal_jax.splat.camera import Camera
+from tests.test_augment import _random_gaussians
+
+
+def _greedy_reference(points: np.ndarray) -> set[tuple[int, int]]:
+  """Greedy matching over every edge of the complete graph, shortest first (NEIGHBOURS covers all of a small set)."""
+  edges = sorted(itertools.combinations(range(len(points)), 2),
+                 key=lambda e: np.linalg.norm(points[e[0]] - points[e[1]]))
+  taken, pairs = set(), set()
+  for i, j in edges:
+    if i not in taken and j not in taken:
+      taken |= {i, j}
+      pairs.add((i, j))
+  return pairs
+
+
+def test_nearest_pairs_is_the_greedy_matching_closest_first():
+  points = np.random.default_rng(0).normal(size=(9, 3))
+  pairs = decimate.nearest_pairs(points)
+  assert pairs.shape == (4, 2) and len(set(pairs.ravel())) == 8  # disjoint; one of nine is left out
+  assert {tuple(sorted(p)) for p in pairs.tolist()} == _greedy_reference(points)
+  assert decimate.nearest_pairs(points[:1]).shape == (0, 2)
+
+
+def test_moment_matched_keeps_the_pairs_mass_and_first_two_moments():
+  """Against float64 sums written out: the merged mean and covariance are the mass-weighted mixture's (law of
+  total variance), read back from the merged log-scales and quaternion; the opacity keeps the mass (opacity times
+  the ellipsoid's approximate area) where it stays below 1; the weight is the first's share of the mass."""
+  g = _random_gaussians(40, seed=1)
+  g = g.replace(opacity_logits=g.opacity_logits - 3.0)  # faint splats: no opacity reaches the cap
+  pairs = decimate.nearest_pairs(np.asarray(g.means, np.float64))
+  merged = decimate.moment_matched(g, pairs)
+  x = jax.tree.map(lambda a: np.asarray(a, np.float64), g)
+  for k, (i, j) in enumerate(pairs):
+    cov, mass = [], []
+    for n in (i, j):
+      q = x.quats[n] / np.linalg.norm(x.quats[n])
+      r = similarity.quaternion_to_matrix(q)
+      s = np.exp(x.log_scales[n])
+      cov.append(r @ np.diag(s**2) @ r.T)
+      a, b, c = s
+      area = 4 * np.pi * (((a * b)**1.6075 + (a * c)**1.6075 + (b * c)**1.6075) / 3)**(1 / 1.6075)
+      mass.append(area / (1 + np.exp(-x.opacity_logits[n])))
+    w = mass[0] / (mass[0] + mass[1])
+    mean = w * x.means[i] + (1 - w) * x.means[j]
+    expected = (w * (cov[0] + np.outer(x.means[i] - mean, x.means[i] - mean))
+                + (1 - w) * (cov[1] + np.outer(x.means[j] - mean, x.means[j] - mean)))
+    np.testing.assert_allclose(merged["weight"][k], w, rtol=1e-9)
+    np.testing.assert_allclose(merged["means"][k], mean, atol=1e-12)
+    r = similarity.quaternion_to_matrix(merged["quats"][k])
+    s = np.exp(merged["log_scales"][k])
+    np.testing.assert_allclose(r @ np.diag(s**2) @ r.T, expected, rtol=1e-6, atol=1e-12)
+    opacity = 1 / (1 + np.exp(-merged["opacity_logits"][k]))
+    np.testing.assert_allclose(opacity * decimate.ellipsoid_area(s), mass[0] + mass[1], rtol=1e-6)
+
+
+def test_merge_pairs_at_share_0_and_1_and_its_gradient_reaches_both_colours():
+  g = _random_gaussians(30, seed=2)
+  merges = decimate.film_merges(jax.tree.map(lambda a: a[10:], g), offset=10)
+  key = jax.random.key(0)
+  same = decimate.merge_pairs(g, merges, jnp.float32(0.0), key)
+  for a, b in zip(jax.tree.leaves(same), jax.tree.leaves(g)):
+    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+  merged = decimate.merge_pairs(g, merges, jnp.float32(1.0), key)
+  first, second, w = (np.asarray(v) for v in (merges.first, merges.second, merges.weight))
+  assert first.min() >= 10 and second.min() >= 10  # only the film's rows
+  np.testing.assert_allclose(np.asarray(merged.means)[first], np.asarray(merges.means))
+  np.testing.assert_array_equal(np.asarray(merged.opacity_logits)[second], decimate.DROPPED_LOGIT)
+  sh = np.asarray(g.sh, np.float64)
+  np.testing.assert_allclose(np.asarray(merged.sh)[first], w[:, None, None] * sh[first]
+                             + (1 - w[:, None, None]) * sh[second], rtol=1e-5, atol=1e-6)
+  untouched = np.setdiff1d(np.arange(30), np.concatenate([first, second]))
+  np.testing.assert_array_equal(np.asarray(merged.sh)[untouched], sh[untouched].astype(np.float32))
+  # the merged Gaussians' colours (the first of each pair; the second is dropped) against both colours of the pair
+  grad = jax.grad(lambda dc: jnp.sum(decimate.merge_pairs(g.replace(sh=g.sh.at[:, 0].set(dc)), merges,
+                                                          jnp.float32(1.0), key).sh[merges.first, 0]))(g.sh[:, 0])
+  grad = np.asarray(grad)[:, 0]
+  np.testing.assert_allclose(grad[first], w, rtol=1e-5)
+  np.testing.assert_allclose(grad[second], 1 - w, rtol=1e-5)
+  assert np.all(np.isfinite(grad))
+
+
+def test_the_check_render_merges_the_drawn_share_of_the_films_pairs():
+  """The augmentation draws the share of pairs on a merge_fraction of the steps, and perturb_gaussians merges
+  that share of the film built by carrier.film (every pair at share 1)."""
+  camera = Camera.from_intrinsics(np.eye(4), 40.0, 40.0, 16.0, 16.0, 32, 32)
+  film = carrier.film(camera, 2.0, 4.0, 0.01, (0.2, 0.6, 0.9), 0, layers=4)
+  merges = decimate.film_merges(film, 0)
+  assert len(np.asarray(merges.first)) == film.num // 2
+  a = augment.Augmentation(merge_fraction=0.5)
+  shares = np.array([augment.draw(np.random.default_rng(i), a)["merge"] for i in range(400)])
+  assert abs(np.mean(shares > 0) - 0.5) < 0.1 and shares.max() < 1.0
+  dropped = lambda share: np.sum(np.asarray(augment.perturb_gaussians(
+      film, dict(augment.draw(np.random.default_rng(0), a), merge=np.float32(share), model_seed=np.uint32(3)), a,
+      merges).opacity_logits) == decimate.DROPPED_LOGIT)
+  assert dropped(1.0) == film.num // 2 and dropped(0.0) == 0 and 0 < dropped(0.5) < film.num // 2
