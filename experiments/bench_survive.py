@@ -85,6 +85,9 @@ RECIPE_NOTES = {
     "film_pub": "film trained through decimation too: a quarter of the check renders with a share ~ U[0, 1] of the "
                 "film's neighbouring pairs merged as splat-transform's decimation merges them, and the 8-bit grids "
                 "rounding at a point drawn per render (demo.py:film_pub)",
+    "film_pub_grid": "film_pub with the film at opacity 2.001/255, a value every format's 8-bit opacity stores "
+                     "unchanged (rounded or floored) and below the opacity reset's ceiling (demo.py:film_pub with "
+                     "--config.conceal.carrier.opacity=0.0078471)",
     "film_faint": "film with its colours at the gentle student's rate, 6.25e-4 (demo.py:film_faint; concealed on an "
                   "H200, attacked on the CPU)",
     "film_reset": "the first film: one grid of splats at opacity 0.5, trained through 8-bit colours and opacity "
