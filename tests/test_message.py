@@ -20,7 +20,9 @@ from tests.helpers import make_camera, random_gaussians
 BCH_127 = ((36, 15), (43, 14), (50, 13), (57, 11), (64, 10))
 
 
-@pytest.mark.parametrize("bits, k, t", [(32, 36, 15), (36, 36, 15), (48, 50, 13), (50, 50, 13), (64, 64, 10)])
+# each code is built once per process, about 11 s of galois' compiled construction: beyond 32 bits, slow tests
+@pytest.mark.parametrize("bits, k, t", [(32, 36, 15)] + [pytest.param(*case, marks=pytest.mark.slow) for case in
+                                                         ((36, 36, 15), (48, 50, 13), (50, 50, 13), (64, 64, 10))])
 def test_the_code_corrects_the_most_errors_among_those_carrying_the_bits(bits, k, t):
   bch = message.code(bits)
   assert (bch.n, bch.k, bch.t) == (127, k, t)
@@ -51,7 +53,7 @@ def flip_bits(image: np.ndarray, n: int, which) -> np.ndarray:
   return np.where(mask, 1.0 - image, image)
 
 
-@pytest.mark.parametrize("bits", [32, 48])
+@pytest.mark.parametrize("bits", [32, pytest.param(48, marks=pytest.mark.slow)])
 def test_decoding_corrects_up_to_t_raw_errors_and_no_more(bits):
   rng = np.random.default_rng(bits)
   hidden = message.random_message(bits, 3)

@@ -99,6 +99,7 @@ def test_moved_key_scales_the_near_plane():
   assert reveal.similarity_report(sim.Similarity.identity())["angle_deg"] == 0.0
 
 
+@pytest.mark.slow  # verify renders its null views of a moved scene: about a minute on two cores
 def test_verify_decides_after_re_alignment(marked, tmp_path):
   """The re-aligned key reveals what the untouched scene did: the calibrated SSIM threshold decides it owned and
   z is far higher than at the key as saved. (The untrained decoder's output varies little whatever it reads, so

@@ -219,6 +219,7 @@ def test_clipped_reading_ignores_values_outside_the_unit_range(small_params):
   assert reveal.Reading.from_key(info) == reading and reveal.Reading.from_key({}) == reveal.PAPER_READING
 
 
+@pytest.mark.slow  # a keyed decoder no recipe uses (film_designs.md): compiled U-Nets, ~10 s
 def test_pattern_channels_are_fixed_signs_read_beside_the_render():
   """conceal.decoder.pattern: the params take 3 + P input channels, the pattern is +-1, the same on every call, and
   the keyed U-Net is the plain one reading [render, pattern]: what a shifted render no longer lines up with."""
@@ -261,6 +262,7 @@ def test_modulation_field_is_fixed_signs_that_a_shift_decorrelates():
     unet.modulation_field(8, 8, 0.0)
 
 
+@pytest.mark.slow  # a keyed decoder no recipe uses (film_designs.md): compiled U-Nets, ~10 s
 def test_the_modulated_unet_is_the_render_plus_the_plain_unet_of_the_render_through_the_field():
   """F(x) = x + U(x * p), standardized alike; zero U params give the identity; finite gradients; the reading
   records its modulation; a decoder cannot be keyed both ways."""
