@@ -49,8 +49,8 @@ from conceal_jax.splat.gaussians import opacity_logit
 _MIN_SIGMA = 1e-3
 # Kernel half-width in standard deviations (skimage.filters.gaussian's default truncate).
 TRUNCATE = 4.0
-# A dropped Gaussian's opacity logit: sigmoid(-30) ~ 1e-13, far below any alpha the renderer composites.
-DROPPED_LOGIT = -30.0
+# A dropped Gaussian's opacity logit (the one a merged-away splat gets too).
+DROPPED_LOGIT = decimate.DROPPED_LOGIT
 # .spz's 8-bit base colour: byte = round(255 (0.15 dc + 0.5)), the SH DC term scaled by this before the offset.
 SPZ_COLOR_SCALE = 0.15
 # An Augmentation field f is config key conceal.attacks.<f>; a contrast factor and a dropout probability stay below 1.
