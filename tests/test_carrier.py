@@ -15,6 +15,7 @@ from conceal_jax.gs import evaluate, init, optimizer, train as gs_train
 from conceal_jax.splat.camera import Camera, look_at, orbit_eye
 from conceal_jax.splat.gaussians import concatenate, quaternion_to_rotation
 from conceal_jax.splat.render import RenderOptions, render
+from tests import helpers
 from tests.test_conceal import tiny, tiny_config  # noqa: F401  (the module-scoped scene fixture)
 
 OPTIONS = RenderOptions(background=(1.0, 1.0, 1.0), tile_size=8)
@@ -103,12 +104,13 @@ def test_an_unseen_film_changes_no_normal_view():
 
 def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_path):
   """Concealing into the film (through 8-bit colours and opacity resets, as the film recipe does) trains its
-  base colours only; 3D-GS fine-tuning of the shared student on its training views then moves the teacher's
+  base colours only, within conceal.carrier.dc_bound (below the white start's 1.77, so every step clips); 3D-GS fine-tuning of the shared student on its training views then moves the teacher's
   Gaussians and leaves the film exactly as it was."""
   config = tiny_config(tiny, iterations=4, key_kind="unseen", **{"carrier.film": True, "carrier.spacing": 4.0,
                                                                   "attacks.quantize_fraction": 0.5,
                                                                   "attacks.reset_fraction": 0.5,
-                                                                  "attacks.merge_fraction": 0.5})
+                                                                  "attacks.merge_fraction": 0.5,
+                                                                  "carrier.dc_bound": 1.0})
   conceal_train.train_and_evaluate(config, str(tmp_path))
   teacher, student = ply.load_ply(str(tiny[1])), ply.load_ply(str(tmp_path / "student.ply"))
   n = teacher.num
@@ -121,6 +123,7 @@ def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_p
   for field in ("means", "log_scales", "quats", "opacity_logits"):
     np.testing.assert_allclose(getattr(student, field)[n:], getattr(film_start, field), atol=1e-6)
   assert not np.allclose(student.sh[n:, 0], film_start.sh[:, 0])
+  assert np.abs(student.sh[n:, 0]).max() <= 1.0 + 1e-6
   np.testing.assert_array_equal(student.sh[n:, 1:], 0.0)  # the bands above DC stay empty
 
   scene = evaluate.load_scene_data(config)
@@ -136,6 +139,19 @@ def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_p
   assert not np.allclose(tuned.sh[:n], student.sh[:n])
   for field in ("means", "log_scales", "quats", "opacity_logits", "sh"):
     np.testing.assert_array_equal(getattr(tuned, field)[n:], getattr(student, field)[n:])
+
+
+def test_bound_colours_clips_the_trained_base_colours_only():
+  rng = np.random.default_rng(0)
+  n, carried = 5, 4
+  student = helpers.random_gaussians(0, n + carried, degree=1)
+  student = student.replace(sh=jnp.asarray(rng.normal(0.0, 4.0, student.sh.shape), jnp.float32))
+  mask = carrier.trainable_fields(n, jax.tree.map(lambda x: x[:carried], student))
+  bounded = carrier.bound_colours(student, mask, 2.0)
+  dc, want = np.asarray(bounded.sh[:, 0]), np.asarray(student.sh[:, 0], np.float64)
+  want[n:] = np.clip(want[n:], -2.0, 2.0)
+  np.testing.assert_allclose(dc, want, rtol=0, atol=0)
+  np.testing.assert_array_equal(bounded.sh[:, 1:], student.sh[:, 1:])
 
 
 def test_a_film_needs_an_unseen_key(tiny, tmp_path):

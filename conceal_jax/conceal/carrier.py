@@ -117,3 +117,11 @@ def trainable_fields(num_teacher: int, carrier: Gaussians) -> Gaussians:
   return Gaussians(means=mask(carrier.means, 0.0), log_scales=mask(carrier.log_scales, 0.0),
                    quats=mask(carrier.quats, 0.0), opacity_logits=mask(carrier.opacity_logits, 0.0),
                    sh=mask(carrier.sh, dc_only))
+
+
+def bound_colours(student: Gaussians, trainable: Gaussians, bound: float) -> Gaussians:
+  """student with the base colours (SH DC) of its trainable rows (`trainable_fields`' mask) clipped to [-bound,
+  bound]: the projection after each update that keeps the film's colours inside what a format stores."""
+  dc = student.sh[:, 0]
+  bounded = jnp.where(trainable.sh[:, 0] > 0, jnp.clip(dc, -bound, bound), dc)
+  return student.replace(sh=student.sh.at[:, 0].set(bounded))

@@ -30,7 +30,8 @@ class ConcealSettings:
   ground truth, L_d^- on the teacher's check render, an L1 of the check render to its image);
   use_decoder / consistency / guidance: the paper's ablations (Table 3); granularity: what the guidance
   calls a layer (guidance.py); the four loss weights (lambda's); leakage control and training through
-  attacks, our extensions (configs/default.py, conceal.leakage and conceal.attacks).
+  attacks, our extensions (configs/default.py, conceal.leakage and conceal.attacks); film_dc_bound: the bound the
+  carrier film's base colours are clipped to after each update (conceal.carrier.dc_bound; 0: none).
   """
   variant: str = "paper"
   use_decoder: bool = True
@@ -49,6 +50,7 @@ class ConcealSettings:
   decoy_fraction: float = 0.0
   augmentation: augment.Augmentation = augment.Augmentation()
   identity_distorted: bool = False
+  film_dc_bound: float = 0.0
 
   def __post_init__(self):
     if self.variant not in VARIANTS:
@@ -73,6 +75,8 @@ class ConcealSettings:
     if self.decoy_fraction and not self.distill:
       raise ValueError("conceal.leakage.decoy_fraction needs L_kd (variant 'paper' with consistency): decoy poses "
                        "have no ground truth, only the teacher's renders")
+    if self.film_dc_bound < 0:
+      raise ValueError(f"conceal.carrier.dc_bound must not be negative, got {self.film_dc_bound}")
     if self.identity_distorted and not (self.identity_on_student and self.augmentation.distorts_image):
       raise ValueError("conceal.attacks.identity_distorted needs conceal.leakage.identity_on_student and an image "
                        "distortion (conceal.attacks blur_max, noise_max, brightness_max or contrast_max > 0)")
@@ -167,7 +171,8 @@ def step_settings(config: ml_collections.ConfigDict) -> ConcealSettings:
   leakage = {k: c.leakage[k] for k in ("identity_on_student", "identity_on_teacher_check", "decoy_fraction")}
   return settings_lib.from_section(ConcealSettings, c, decoder_width=c.decoder.width, reading=reading,
                                    hidden_size=config.mark.hidden_size, augmentation=augmentation,
-                                   identity_distorted=c.attacks.identity_distorted, **leakage)
+                                   identity_distorted=c.attacks.identity_distorted,
+                                   film_dc_bound=c.carrier.dc_bound if c.carrier.film else 0.0, **leakage)
 
 
 def plan(config: ml_collections.ConfigDict) -> RunPlan:

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from conceal_jax.conceal import guidance, objective
+from conceal_jax.conceal import carrier, guidance, objective
 from conceal_jax.conceal.settings import ConcealSettings
 from conceal_jax.conceal.views import ConcealData, step_views
 from conceal_jax.core import loop, parallel
@@ -86,7 +86,10 @@ def make_step(settings: ConcealSettings, options: RenderOptions, student_tx, dec
       if data.trainable is not None:  # what is not trained gets a zero gradient, so Adam leaves it exactly
         student_grads = jax.tree.map(jnp.multiply, student_grads, data.trainable)
       updates, student_opt = student_tx.update(student_grads, state.student_opt, state.student)
-      new = new.replace(student=optax.apply_updates(state.student, updates), student_opt=student_opt)
+      student = optax.apply_updates(state.student, updates)
+      if s.film_dc_bound > 0:
+        student = carrier.bound_colours(student, data.trainable, s.film_dc_bound)
+      new = new.replace(student=student, student_opt=student_opt)
     stats = dict(loss=jnp.sum(terms.student + terms.plus + terms.minus), normal=terms.student[0],
                  plus=terms.plus[1] / s.weight_plus, minus=jnp.sum(terms.minus), psnr=terms.psnr[0],
                  num_pairs=jnp.max(terms.num_pairs))

@@ -283,13 +283,15 @@ def conceal_carrier_section() -> ml_collections.ConfigDict:
   before the key (mark.key_offset's unit), `layers` grids of one splat every `spacing` pixels of the key's image,
   of `opacity`, in the space only the key sees; only the film's base colours train, so the normal views are the
   teacher's and fine-tuning on them leaves the mark as it is. Splats at opacity 0.01 or less, as many layers as
-  make the film opaque enough, outlive 3D-GS's opacity reset (it lowers every opacity to at most 0.01)."""
+  make the film opaque enough, outlive 3D-GS's opacity reset (it lowers every opacity to at most 0.01). dc_bound > 0
+  clips the film's base colours (SH DC) to [-dc_bound, dc_bound] after each update (a format's range; 0: none)."""
   c = ml_collections.ConfigDict()
   c.film = False
   c.distance = 0.1
   c.spacing = 2.0
   c.opacity = 0.5
   c.layers = 1
+  c.dc_bound = 0.0
   return c
 
 

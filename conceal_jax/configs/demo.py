@@ -15,7 +15,8 @@ narrow decoder at a constant rate (a decaying one costs a 1300-step run more tha
 bench's variants (issue 39): `demo.py:film` is recipes.film (the mark in a carrier film only an unseen key sees,
 of faint layers whose colours train at a higher rate, through 8-bit colours) with 64 decoys near the key; the
 designs beside it: `film_mod` (film with the decoder reading the render through a sign field,
-recipes.modulated_decoder), `film_pub` (film trained through decimation too, recipes.through_decimation),
+recipes.modulated_decoder), `film_pub` (film trained through decimation too, recipes.through_decimation), `film_web` (film_pub
+at an opacity and within colours the publishing formats store unchanged, recipes.publishable_film),
 `film_faint` (its colours at the gentle student's rate), `film_reset` (one layer at opacity 0.5, trained through
 opacity resets), `film_keyed` and `film_faint_keyed` (film_reset and film_faint with the decoder keyed to a fixed
 pattern and decoys close to the key, recipes.keyed_decoder), `film_far` (film_reset with the key half a camera
@@ -25,7 +26,7 @@ distance from the orbit target and the film as far again); `demo.py:drift` train
 from conceal_jax.configs import default, recipes
 
 
-VARIANTS = ("film", "film_mod", "film_pub", "film_faint", "film_reset", "film_keyed", "film_faint_keyed", "film_far",
+VARIANTS = ("film", "film_mod", "film_pub", "film_web", "film_faint", "film_reset", "film_keyed", "film_faint_keyed", "film_far",
             "drift", "orbit")
 
 
@@ -57,12 +58,14 @@ def get_config(variant: str = ""):
     config = recipes.through_quantization(recipes.unseen_carrier(config))
     config.conceal.decoder.input_norm = "standardize"
     config = recipes.leakage_control(config, recipes.DECOY_VIEWS, decoy_fraction=0.4)
-    faint = variant in ("film", "film_mod", "film_pub", "film_faint", "film_faint_keyed")
+    faint = variant in ("film", "film_mod", "film_pub", "film_web", "film_faint", "film_faint_keyed")
     config = recipes.faint_film(config) if faint else recipes.through_reset(config)
-  if variant in ("film", "film_mod", "film_pub"):
+  if variant in ("film", "film_mod", "film_pub", "film_web"):
     config = recipes.vivid_film(config)
-  if variant == "film_pub":
+  if variant in ("film_pub", "film_web"):
     config = recipes.through_decimation(config)
+  if variant == "film_web":
+    config = recipes.publishable_film(config)
   if variant == "film_mod":
     config = recipes.modulated_decoder(config)
   if variant in ("film_keyed", "film_faint_keyed"):

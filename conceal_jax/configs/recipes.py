@@ -29,6 +29,10 @@ MERGE_FRACTION = 0.25
 # The faint film: each splat at the opacity 3D-GS's reset lowers every opacity to (so the reset leaves it as it is),
 # a grid every FAINT_SPACING pixels of the key's image, FAINT_LAYERS grids: about half the background let through.
 FAINT_OPACITY, FAINT_SPACING, FAINT_LAYERS = 0.01, 4.0, 22
+# The publishable film: an opacity every format's 8-bit opacity stores unchanged, rounded or floored (2/255 and a
+# little more, below the reset's ceiling), and base colours within .spz's range (it stores 0.15 * dc + 0.5 in
+# 8 bits, so |dc| beyond 0.5 / 0.15 is cut off).
+GRID_OPACITY, SPZ_DC_BOUND = 2.001 / 255, 0.5 / 0.15
 # The rate of the film's base colours in the vivid film (the gentle student's is 6.25e-4).
 VIVID_DC_LR = 1e-2
 # The keyed decoder: fixed sign channels it reads beside the render, and decoys close to the key (translation as a
@@ -99,6 +103,15 @@ def vivid_film(config, lr: float = VIVID_DC_LR):
   theirs): a faint film's contrast is its opacity times how far its colours move from the background's, and at a
   gentle student's rate they hardly move in a run."""
   config.conceal.lr.sh_dc = lr
+  return config
+
+
+def publishable_film(config):
+  """The film at GRID_OPACITY with its base colours held within SPZ_DC_BOUND (conceal.carrier.opacity and
+  dc_bound): the publishing formats store both as they are, so a round trip leaves the film's image unchanged but
+  for 8-bit rounding of its colours."""
+  c = config.conceal.carrier
+  c.opacity, c.dc_bound = GRID_OPACITY, SPZ_DC_BOUND
   return config
 
 
