@@ -56,6 +56,8 @@ NAME = "survive_bench"
 SCENES = {"demo": ("demo", "workdirs/demo/conceal", "recommended"),
           "demo_film": ("demo", "workdirs/survive_runs/demo_film", "film"),
           "demo_film_pub": ("demo", "workdirs/survive_runs/demo_film_pub", "film_pub"),
+          "demo_film_web": ("demo", "workdirs/survive_runs/demo_film_web", "film_web"),
+          "demo_film_watch": ("demo", "workdirs/survive_runs/demo_film_watch", "film_watch"),
           "demo_film_faint": ("demo", "workdirs/survive_runs/demo_film_faint", "film_faint"),
           "demo_film_reset": ("demo", "workdirs/survive_runs/demo_film_reset", "film_reset"),
           "demo_film_faint_keyed": ("demo", "workdirs/survive_runs/demo_film_faint_keyed", "film_faint_keyed"),
@@ -77,17 +79,21 @@ CONVERSIONS = ([("sog", None, dict(fmt="sog")), ("spz", None, dict(fmt="spz")),
 RECIPE_NOTES = {
     "recommended": "the mark in the teacher's Gaussians, refined (configs/demo.py; bench-conceal's recommended lego "
                    "row)",
-    "film": "the carrier film (recipes.film): the key looks where no camera looks, one camera distance out from "
-            "their orbit target, and the film 0.1 camera distances before it, 22 grids of splats at opacity 0.01 (the "
-            "opacity reset's ceiling); its base colours trained at rate 1e-2 through 8-bit colours a quarter of the "
-            "steps, the decoder reading standardized renders, 64 decoys within 1-10 degrees of the key (demo.py:film, "
-            "lego_conceal.py:film)",
+    "film": "the faint carrier film (demo.py:film; recipes.film before it became film_watch's): the key looks where "
+            "no camera looks, one camera distance out from their orbit target, and the film 0.1 camera distances "
+            "before it, 22 grids of splats at opacity 0.01 (the opacity reset's ceiling); its base colours trained at "
+            "rate 1e-2 through 8-bit colours a quarter of the steps, the decoder reading standardized renders, 64 "
+            "decoys within 1-10 degrees of the key",
     "film_pub": "film trained through decimation too: a quarter of the check renders with a share ~ U[0, 1] of the "
                 "film's neighbouring pairs merged as splat-transform's decimation merges them, and the 8-bit grids "
                 "rounding at a point drawn per render (demo.py:film_pub)",
     "film_pub_grid": "film_pub with the film at opacity 2.001/255, a value every format's 8-bit opacity stores "
                      "unchanged (rounded or floored) and below the opacity reset's ceiling (demo.py:film_pub with "
                      "--config.conceal.carrier.opacity=0.0078471)",
+    "film_web": "film_pub at the opacity 2.001/255 with the film's base colours held within .spz's range, |SH DC| "
+                "<= 0.5 / 0.15 (recipes.publishable_film; demo.py:film_web)",
+    "film_watch": "film_web with the key watched closely: 192 decoys, one the normal view on 90% of the steps, L_d^- "
+                  "weighted 1.5 (recipes.watched_key; demo.py:film_watch, recipes.film's design)",
     "film_faint": "film with its colours at the gentle student's rate, 6.25e-4 (demo.py:film_faint; concealed on an "
                   "H200, attacked on the CPU)",
     "film_reset": "the first film: one grid of splats at opacity 0.5, trained through 8-bit colours and opacity "

@@ -104,7 +104,8 @@ def test_an_unseen_film_changes_no_normal_view():
 
 def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_path):
   """Concealing into the film (through 8-bit colours and opacity resets, as the film recipe does) trains its
-  base colours only, within conceal.carrier.dc_bound (below the white start's 1.77, so every step clips); 3D-GS fine-tuning of the shared student on its training views then moves the teacher's
+  base colours only, within conceal.carrier.dc_bound (below the white start's 1.77, so every step clips);
+  3D-GS fine-tuning of the shared student on its training views then moves the teacher's
   Gaussians and leaves the film exactly as it was."""
   config = tiny_config(tiny, iterations=4, key_kind="unseen", **{"carrier.film": True, "carrier.spacing": 4.0,
                                                                   "attacks.quantize_fraction": 0.5,

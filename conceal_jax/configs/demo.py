@@ -12,22 +12,23 @@
 
 Its concealment is a short recommended recipe: leakage control (32 decoys), the gentle student and the
 narrow decoder at a constant rate (a decaying one costs a 1300-step run more than it gains). The survival
-bench's variants (issue 39): `demo.py:film` is recipes.film (the mark in a carrier film only an unseen key sees,
+bench's variants (issue 39): `demo.py:film` is the first faint film (the mark in a carrier film only an unseen key sees,
 of faint layers whose colours train at a higher rate, through 8-bit colours) with 64 decoys near the key; the
 designs beside it: `film_mod` (film with the decoder reading the render through a sign field,
-recipes.modulated_decoder), `film_pub` (film trained through decimation too, recipes.through_decimation), `film_web` (film_pub
-at an opacity and within colours the publishing formats store unchanged, recipes.publishable_film),
-`film_faint` (its colours at the gentle student's rate), `film_reset` (one layer at opacity 0.5, trained through
-opacity resets), `film_keyed` and `film_faint_keyed` (film_reset and film_faint with the decoder keyed to a fixed
-pattern and decoys close to the key, recipes.keyed_decoder), `film_far` (film_reset with the key half a camera
-distance from the orbit target and the film as far again); `demo.py:drift` trains through parameter drift
+recipes.modulated_decoder), `film_pub` (film trained through decimation too, recipes.through_decimation),
+`film_web` (film_pub at an opacity and within colours the publishing formats store unchanged,
+recipes.publishable_film), `film_watch` (film_web with decoys on most steps, recipes.watched_key: recipes.film's
+design), `film_faint` (its colours at the gentle student's rate), `film_reset` (one layer at opacity 0.5, trained
+through opacity resets), `film_keyed` and `film_faint_keyed` (film_reset and film_faint with the decoder keyed to
+a fixed pattern and decoys close to the key, recipes.keyed_decoder), `film_far` (film_reset with the key half a
+camera distance from the orbit target and the film as far again); `demo.py:drift` trains through parameter drift
 (recipes.through_drift); `demo.py:orbit` keys a secret pose on the orbit instead of a training camera.
 """
 from conceal_jax.configs import default, recipes
 
 
-VARIANTS = ("film", "film_mod", "film_pub", "film_web", "film_faint", "film_reset", "film_keyed", "film_faint_keyed", "film_far",
-            "drift", "orbit")
+VARIANTS = ("film", "film_mod", "film_pub", "film_web", "film_watch", "film_faint", "film_reset", "film_keyed",
+            "film_faint_keyed", "film_far", "drift", "orbit")
 
 
 def get_config(variant: str = ""):
@@ -58,14 +59,17 @@ def get_config(variant: str = ""):
     config = recipes.through_quantization(recipes.unseen_carrier(config))
     config.conceal.decoder.input_norm = "standardize"
     config = recipes.leakage_control(config, recipes.DECOY_VIEWS, decoy_fraction=0.4)
-    faint = variant in ("film", "film_mod", "film_pub", "film_web", "film_faint", "film_faint_keyed")
+    faint = variant in ("film", "film_mod", "film_pub", "film_web", "film_watch", "film_faint",
+                        "film_faint_keyed")
     config = recipes.faint_film(config) if faint else recipes.through_reset(config)
-  if variant in ("film", "film_mod", "film_pub", "film_web"):
+  if variant in ("film", "film_mod", "film_pub", "film_web", "film_watch"):
     config = recipes.vivid_film(config)
-  if variant in ("film_pub", "film_web"):
+  if variant in ("film_pub", "film_web", "film_watch"):
     config = recipes.through_decimation(config)
-  if variant == "film_web":
+  if variant in ("film_web", "film_watch"):
     config = recipes.publishable_film(config)
+  if variant == "film_watch":
+    config = recipes.watched_key(config)
   if variant == "film_mod":
     config = recipes.modulated_decoder(config)
   if variant in ("film_keyed", "film_faint_keyed"):

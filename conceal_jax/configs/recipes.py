@@ -33,6 +33,8 @@ FAINT_OPACITY, FAINT_SPACING, FAINT_LAYERS = 0.01, 4.0, 22
 # little more, below the reset's ceiling), and base colours within .spz's range (it stores 0.15 * dc + 0.5 in
 # 8 bits, so |dc| beyond 0.5 / 0.15 is cut off).
 GRID_OPACITY, SPZ_DC_BOUND = 2.001 / 255, 0.5 / 0.15
+# The watched key: decoys near the key on most steps, many of them, and L_d^- weighted above L_d^+.
+WATCH_DECOY_VIEWS, WATCH_DECOY_FRACTION, WATCH_WEIGHT_MINUS = 192, 0.9, 1.5
 # The rate of the film's base colours in the vivid film (the gentle student's is 6.25e-4).
 VIVID_DC_LR = 1e-2
 # The keyed decoder: fixed sign channels it reads beside the render, and decoys close to the key (translation as a
@@ -73,10 +75,24 @@ def recommended(config):
 
 def film(config):
   """The recommended recipe with the mark in a carrier film that only an unseen key sees (unseen_carrier), made of
-  faint layers that 3D-GS's opacity reset leaves as they are (faint_film) of colours free to move (vivid_film),
-  trained through 8-bit colours (through_quantization), read by the decoder from standardized renders."""
-  config = through_quantization(vivid_film(faint_film(unseen_carrier(recommended(config)))))
+  faint layers that 3D-GS's opacity reset leaves as they are (faint_film) of colours free to move (vivid_film)
+  that the publishing formats store as they are (publishable_film), trained through 8-bit colours and decimation
+  (through_quantization, through_decimation), read by the decoder from standardized renders only at the key
+  (watched_key), and not through image distortions (owner_rendered)."""
+  config = owner_rendered(recommended(config))
+  config = publishable_film(vivid_film(faint_film(unseen_carrier(config))))
+  config = watched_key(through_decimation(through_quantization(config)))
   config.conceal.decoder.input_norm = "standardize"
+  return config
+
+
+def owner_rendered(config):
+  """No training through blur or noise of the check render (conceal.attacks.blur_max, noise_max): the owner
+  renders the key from the suspect's scene, so no image reaches the decoder distorted, and a decoder taught to
+  read through them reads a coarser texture, which a key turned a degree or two still shows."""
+  a = config.conceal.attacks
+  a.blur_max = a.noise_max = 0.0
+  a.identity_distorted = False
   return config
 
 
@@ -112,6 +128,16 @@ def publishable_film(config):
   for 8-bit rounding of its colours."""
   c = config.conceal.carrier
   c.opacity, c.dc_bound = GRID_OPACITY, SPZ_DC_BOUND
+  return config
+
+
+def watched_key(config):
+  """Decoys near the key (WATCH_DECOY_VIEWS of them) as the normal view on WATCH_DECOY_FRACTION of the steps, and
+  L_d^- weighted WATCH_WEIGHT_MINUS: a decoder that reads a texture it is not watched closely on learns to read it
+  wherever it lies, and reveals the image shifted when the key is turned a degree or two. A film's normal views
+  teach little else (no training view sees the film)."""
+  config = leakage_control(config, WATCH_DECOY_VIEWS, WATCH_DECOY_FRACTION)
+  config.conceal.weight_minus = WATCH_WEIGHT_MINUS
   return config
 
 
