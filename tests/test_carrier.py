@@ -158,6 +158,8 @@ def test_bound_colours_clips_the_trained_base_colours_only():
 def test_a_film_needs_an_unseen_key(tiny, tmp_path):
   with pytest.raises(ValueError, match="conceal.carrier.film needs mark.key_kind='unseen'"):
     conceal_train.train_and_evaluate(tiny_config(tiny, **{"carrier.film": True}), str(tmp_path))
+  with pytest.raises(ValueError, match="conceal.carrier.dc_bound bounds the carrier film's colours"):
+    conceal_train.train_and_evaluate(tiny_config(tiny, **{"carrier.dc_bound": 3.0}), str(tmp_path))
   with pytest.raises(ValueError, match="conceal.carrier.distance and spacing"):
     conceal_train.train_and_evaluate(tiny_config(tiny, key_kind="unseen", **{"carrier.film": True,
                                                                              "carrier.opacity": 1.0}), str(tmp_path))

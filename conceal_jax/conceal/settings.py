@@ -172,7 +172,7 @@ def step_settings(config: ml_collections.ConfigDict) -> ConcealSettings:
   return settings_lib.from_section(ConcealSettings, c, decoder_width=c.decoder.width, reading=reading,
                                    hidden_size=config.mark.hidden_size, augmentation=augmentation,
                                    identity_distorted=c.attacks.identity_distorted,
-                                   film_dc_bound=c.carrier.dc_bound if c.carrier.film else 0.0, **leakage)
+                                   film_dc_bound=c.carrier.dc_bound, **leakage)
 
 
 def plan(config: ml_collections.ConfigDict) -> RunPlan:
@@ -207,6 +207,8 @@ def plan(config: ml_collections.ConfigDict) -> RunPlan:
     raise ValueError("conceal.decoder_opt.polish_steps needs a decoder (conceal.use_decoder)")
   if settings.augmentation.merge_fraction > 0 and not c.carrier.film:
     raise ValueError("conceal.attacks.merge_fraction merges the carrier film's pairs: it needs conceal.carrier.film")
+  if settings.film_dc_bound > 0 and not c.carrier.film:
+    raise ValueError("conceal.carrier.dc_bound bounds the carrier film's colours: it needs conceal.carrier.film")
   return RunPlan(settings, dataclasses.replace(joint, iterations=joint.iterations + polish), c.iterations, polish,
                  sources, m.key_kind, m.key_index, m.key_seed, key_offset(config), lk.decoy_views,
                  ranges["decoy_translation"], ranges["decoy_rotation_deg"], film_plan(config))

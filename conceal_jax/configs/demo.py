@@ -29,6 +29,8 @@ from conceal_jax.configs import default, recipes
 
 VARIANTS = ("film", "film_mod", "film_pub", "film_web", "film_watch", "film_faint", "film_reset", "film_keyed",
             "film_faint_keyed", "film_far", "drift", "orbit")
+# The faint films whose colours train at the vivid rate, each building on the one before from film_pub on.
+VIVID_FILMS = ("film", "film_mod", "film_pub", "film_web", "film_watch")
 
 
 def get_config(variant: str = ""):
@@ -59,14 +61,13 @@ def get_config(variant: str = ""):
     config = recipes.through_quantization(recipes.unseen_carrier(config))
     config.conceal.decoder.input_norm = "standardize"
     config = recipes.leakage_control(config, recipes.DECOY_VIEWS, decoy_fraction=0.4)
-    faint = variant in ("film", "film_mod", "film_pub", "film_web", "film_watch", "film_faint",
-                        "film_faint_keyed")
+    faint = variant in VIVID_FILMS + ("film_faint", "film_faint_keyed")
     config = recipes.faint_film(config) if faint else recipes.through_reset(config)
-  if variant in ("film", "film_mod", "film_pub", "film_web", "film_watch"):
+  if variant in VIVID_FILMS:
     config = recipes.vivid_film(config)
-  if variant in ("film_pub", "film_web", "film_watch"):
+  if variant in VIVID_FILMS[2:]:  # film_pub and what builds on it
     config = recipes.through_decimation(config)
-  if variant in ("film_web", "film_watch"):
+  if variant in VIVID_FILMS[3:]:
     config = recipes.publishable_film(config)
   if variant == "film_watch":
     config = recipes.watched_key(config)
