@@ -124,8 +124,9 @@ def test_perturb_gaussians_at_level_zero_is_the_identity_with_finite_gradients()
     np.testing.assert_array_equal(np.asarray(getattr(grads, name)), 1.0)
 
 
-def test_quantize_8bit_matches_the_spz_bytes_and_passes_gradients_through():
-  """Against a float64 encoder of .spz's bytes: the base colours and opacities land on its 8-bit grids, the
+def test_quantize_8bit_matches_the_formats_bytes_and_passes_gradients_through():
+  """Against float64 encoders of .spz's bytes (base colours, opacities) and .compressed.ply's (higher SH bands,
+  a floor to 256 levels of [-4, 4) read back at the level's centre): the values land on those grids, the
   other fields stay, the gradient is the identity's; a step that does not quantize leaves the Gaussians."""
   g = _random_gaussians(2000, seed=3)
   q = augment.quantize_8bit(g)
@@ -134,7 +135,8 @@ def test_quantize_8bit_matches_the_spz_bytes_and_passes_gradients_through():
   np.testing.assert_allclose(np.asarray(q.sh[:, 0]), (byte / 255 - 0.5) / 0.15, atol=1e-5)
   opacity = np.clip(np.round(255 / (1 + np.exp(-np.asarray(g.opacity_logits, np.float64)))), 0.5, 254.5) / 255
   np.testing.assert_allclose(np.asarray(jax.nn.sigmoid(q.opacity_logits)), opacity, atol=1e-6)
-  np.testing.assert_array_equal(np.asarray(q.sh[:, 1:]), np.asarray(g.sh[:, 1:]))
+  rest_byte = np.clip(np.floor(256 * (np.asarray(g.sh[:, 1:], np.float64) + 4) / 8), 0, 255)
+  np.testing.assert_allclose(np.asarray(q.sh[:, 1:]), (rest_byte + 0.5) / 256 * 8 - 4, atol=1e-6)
   np.testing.assert_array_equal(np.asarray(q.means), np.asarray(g.means))
   grads = jax.grad(lambda gs: sum(jnp.sum(x) for x in jax.tree.leaves(augment.quantize_8bit(gs))))(g)
   assert all(np.all(np.asarray(x) == 1.0) for x in jax.tree.leaves(grads))
@@ -151,7 +153,8 @@ def test_quantize_8bit_matches_the_spz_bytes_and_passes_gradients_through():
 
 def test_quantize_8bit_rounds_where_it_is_told_as_the_formats_do():
   """Rounding 0 takes each value to the 8-bit step below (.sog's faint opacities come back a step lower than
-  .spz's), 0.5 to the nearest; an opacity of 0.01 (2.55 steps) lands on 2/255 and 3/255; each step draws its
+  .spz's), 0.5 to the nearest; an opacity of 0.01 (2.55 steps) lands on 2/255 and 3/255, higher SH bands of
+  zeros on the cells either side of 0 (+1/64 as .compressed.ply stores them, -1/64); each step draws its
   rounding point from [0, 1) when it quantizes, and a run without quantization draws none."""
   g = _random_gaussians(500, seed=4)
   logits = np.asarray(g.opacity_logits, np.float64)
@@ -163,6 +166,10 @@ def test_quantize_8bit_rounds_where_it_is_told_as_the_formats_do():
       augment.quantize_8bit(faint, rounding).opacity_logits)))
   np.testing.assert_allclose(opacity(0.0), [2 / 255], rtol=1e-5)
   np.testing.assert_allclose(opacity(0.5), [3 / 255], rtol=1e-5)
+  bands_of_zeros = g.replace(sh=g.sh.at[:, 1:].set(0.0))
+  rest = lambda rounding: np.unique(np.asarray(augment.quantize_8bit(bands_of_zeros, rounding).sh[:, 1:]))
+  np.testing.assert_allclose(rest(0.5), [1 / 64], rtol=1e-6)  # .compressed.ply's converter writes this
+  np.testing.assert_allclose(rest(0.0), [-1 / 64], rtol=1e-6)
   a = augment.Augmentation(quantize_fraction=0.5)
   points = np.array([augment.draw(np.random.default_rng(i), a)["rounding"] for i in range(400)])
   assert points.min() >= 0.0 and points.max() < 1.0 and abs(points.mean() - 0.5) < 0.05

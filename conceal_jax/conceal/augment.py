@@ -19,8 +19,9 @@ drawn from [0, dropout_max], and every stored parameter moved by normal noise of
 [0, param_noise_max], the relative noise of model_attacks.parameter_noise. A decoder taught to read perturbed
 check renders also reads near-key views of the student more readily. With conceal.attacks.quantize_fraction, that
 share of the steps renders the check view from the student's base colours and opacities on 8-bit grids as .spz
-stores them, the coarsest grid of the publishing formats (`quantize_8bit`; the gradient passes the rounding
-straight through), so that a mark carried by colours survives the round trip. Each such step rounds at a point
+stores them, the coarsest grid of the publishing formats, and its higher SH bands as .compressed.ply stores them,
+the one grid that has no zero (`quantize_8bit`; the gradient passes the rounding straight through), so that a
+mark carried by colours survives the round trip. Each such step rounds at a point
 drawn anew (to the nearest value as .spz and .compressed.ply do, down as .sog does, or between): a film of faint
 splats, all of one opacity, comes back from each format at another 8-bit step, and its image changes with it. With
 conceal.attacks.reset_fraction, that share renders it with every opacity at most densify.RESET_CEILING, as the
@@ -53,6 +54,8 @@ TRUNCATE = 4.0
 DROPPED_LOGIT = decimate.DROPPED_LOGIT
 # .spz's 8-bit base colour: byte = round(255 (0.15 dc + 0.5)), the SH DC term scaled by this before the offset.
 SPZ_COLOR_SCALE = 0.15
+# .compressed.ply's higher SH bands: byte = floor(256 (v + 4) / 8), read back as the centre of its cell of this width.
+REST_CELL = 8.0 / 256.0
 # An Augmentation field f is config key conceal.attacks.<f>; a contrast factor and a dropout probability stay below 1.
 UPPER_BOUNDS = dict(contrast_max=1.0, dropout_max=1.0, quantize_fraction=1.0 + 1e-9, reset_fraction=1.0 + 1e-9,
                     merge_fraction=1.0 + 1e-9)
@@ -146,13 +149,19 @@ def distort(image: jax.Array, distortion: dict | None, augmentation: Augmentatio
 def quantize_8bit(gaussians, rounding=0.5):
   """Gaussians with their base colours (SH DC) and opacities on .spz's 8-bit grids (SPZ_COLOR_SCALE; opacity in
   steps of 1/255), each value taken to the step below value + `rounding` steps (0.5: the nearest, as .spz; 0: the
-  one below; traced), the rounding passed straight through by the gradient."""
+  one below; traced), and their higher SH bands on .compressed.ply's 8-bit grid (REST_CELL-wide cells of
+  [-4, 4), each read back at its centre, so a band of zeros comes back at +-REST_CELL / 2: the cell below
+  value + `rounding` - 1/2 cells; 0.5 is the converter's floor); the rounding passed straight through by the
+  gradient."""
   straight_through = lambda x, rounded: x + jax.lax.stop_gradient(rounded - x)
   dc = gaussians.sh[:, 0]
   byte = jnp.clip(jnp.floor(255.0 * (SPZ_COLOR_SCALE * dc + 0.5) + rounding), 0.0, 255.0)
   dc_8bit = (byte / 255.0 - 0.5) / SPZ_COLOR_SCALE
+  rest = gaussians.sh[:, 1:]
+  cell = jnp.clip(jnp.floor(rest / REST_CELL + rounding - 0.5), -128.0, 127.0)
+  sh_8bit = jnp.concatenate([dc_8bit[:, None], (cell + 0.5) * REST_CELL], axis=1)
   opacity = jnp.clip(jnp.floor(255.0 * jax.nn.sigmoid(gaussians.opacity_logits) + rounding), 0.5, 254.5) / 255.0
-  return gaussians.replace(sh=gaussians.sh.at[:, 0].set(straight_through(dc, dc_8bit)),
+  return gaussians.replace(sh=straight_through(gaussians.sh, sh_8bit),
                            opacity_logits=straight_through(gaussians.opacity_logits, opacity_logit(opacity)))
 
 

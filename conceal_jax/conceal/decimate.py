@@ -20,7 +20,7 @@ from flax import struct
 from scipy.spatial import cKDTree
 
 from conceal_jax.gs import similarity
-from conceal_jax.splat.gaussians import Gaussians, opacity_logit
+from conceal_jax.splat.gaussians import Gaussians, covariance_3d, opacity_logit
 
 # Knud Thomsen's approximation of an ellipsoid's surface area, the one splat-transform weighs a splat's mass by.
 ELLIPSOID_P = 1.6075
@@ -76,10 +76,8 @@ def moment_matched(gaussians: Gaussians, pairs: np.ndarray) -> dict[str, np.ndar
   scales = np.exp(np.asarray(gaussians.log_scales, np.float64))
   opacity = 1.0 / (1.0 + np.exp(-np.asarray(gaussians.opacity_logits, np.float64)))
   mass = opacity * ellipsoid_area(scales)
-  quats = np.asarray(gaussians.quats, np.float64)
-  rotations = np.stack([similarity.quaternion_to_matrix(q) for q in quats / np.linalg.norm(quats, axis=-1,
-                                                                                         keepdims=True)])
-  covariances = rotations @ (scales[:, :, None]**2 * np.swapaxes(rotations, -1, -2))  # R diag(s^2) R^T
+  with jax.enable_x64(True):
+    covariances = np.asarray(covariance_3d(jax.tree.map(lambda x: np.asarray(x, np.float64), gaussians)))
   means = np.asarray(gaussians.means, np.float64)
   i, j = pairs[:, 0], pairs[:, 1]
   weight = mass[i] / (mass[i] + mass[j])
