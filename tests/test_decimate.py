@@ -7,6 +7,7 @@ import itertools
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from conceal_jax.conceal import augment, carrier, decimate
 from conceal_jax.gs import similarity
@@ -68,7 +69,7 @@ def test_moment_matched_keeps_the_pairs_mass_and_first_two_moments():
 
 def test_merge_pairs_at_share_0_and_1_and_its_gradient_reaches_both_colours():
   g = _random_gaussians(30, seed=2)
-  merges = decimate.film_merges(jax.tree.map(lambda a: a[10:], g), offset=10)
+  (merges,) = decimate.film_merges(jax.tree.map(lambda a: a[10:], g), offset=10)
   key = jax.random.key(0)
   same = decimate.merge_pairs(g, merges, jnp.float32(0.0), key)
   for a, b in zip(jax.tree.leaves(same), jax.tree.leaves(g)):
@@ -93,12 +94,12 @@ def test_merge_pairs_at_share_0_and_1_and_its_gradient_reaches_both_colours():
 
 
 def test_the_check_render_merges_the_drawn_share_of_the_films_pairs():
-  """The augmentation draws the share of pairs on a merge_fraction of the steps, and perturb_gaussians merges
-  that share of the film built by carrier.film (every pair at share 1)."""
+  """The augmentation draws the depth of the merges on a merge_fraction of the steps, and perturb_gaussians merges
+  that share of the film built by carrier.film (every pair at depth 1)."""
   camera = Camera.from_intrinsics(np.eye(4), 40.0, 40.0, 16.0, 16.0, 32, 32)
   film = carrier.film(camera, 2.0, 4.0, 0.01, (0.2, 0.6, 0.9), 0, layers=4)
   merges = decimate.film_merges(film, 0)
-  assert len(np.asarray(merges.first)) == film.num // 2
+  assert len(merges) == 1 and len(np.asarray(merges[0].first)) == film.num // 2
   a = augment.Augmentation(merge_fraction=0.5)
   shares = np.array([augment.draw(np.random.default_rng(i), a)["merge"] for i in range(400)])
   assert abs(np.mean(shares > 0) - 0.5) < 0.1 and shares.max() < 1.0
@@ -106,3 +107,35 @@ def test_the_check_render_merges_the_drawn_share_of_the_films_pairs():
       film, dict(augment.draw(np.random.default_rng(0), a), merge=np.float32(share), model_seed=np.uint32(3)), a,
       merges).opacity_logits) == decimate.DROPPED_LOGIT)
   assert dropped(1.0) == film.num // 2 and dropped(0.0) == 0 and 0 < dropped(0.5) < film.num // 2
+
+
+def test_a_second_round_merges_what_the_first_leaves_keeping_mass_and_colour():
+  """Two rounds (merge_depth 1.5): round 1 pairs the Gaussians round 0 merged into, at their rows; at depth 2 a
+  quarter of the film is left, each Gaussian of four splats' mass and the mass-weighted mean of their colours (the
+  gradient reaches each of the four); depths up to 1 are the first round alone, depth 1.5 half the second's pairs;
+  a depth beyond MAX_MERGE_DEPTH is refused."""
+  camera = Camera.from_intrinsics(np.eye(4), 40.0, 40.0, 16.0, 16.0, 32, 32)
+  film = carrier.film(camera, 2.0, 4.0, 0.01, (0.2, 0.6, 0.9), 0, layers=4)
+  film = film.replace(sh=jax.random.normal(jax.random.key(1), film.sh.shape))
+  a = augment.Augmentation(merge_fraction=1.0, merge_depth=2.0)
+  first, second = decimate.film_merges(film, 0, a.merge_rounds)
+  rounds = lambda depth: decimate.merge_rounds(film, (first, second), jnp.float32(depth), jax.random.key(0))
+  alive = lambda g: np.asarray(g.opacity_logits) > decimate.DROPPED_LOGIT
+  pairs_of_round_1 = np.concatenate([np.asarray(second.first), np.asarray(second.second)])
+  assert np.all(alive(rounds(1.0))[pairs_of_round_1])  # what round 0 left
+  assert alive(rounds(1.0)).sum() == film.num - len(np.asarray(first.first))
+  assert alive(rounds(2.0)).sum() == film.num - len(np.asarray(first.first)) - len(np.asarray(second.first))
+  assert alive(rounds(1.0)).sum() > alive(rounds(1.5)).sum() > alive(rounds(2.0)).sum()
+  deep = rounds(2.0)
+  opacity = lambda g: 1 / (1 + np.exp(-np.asarray(g.opacity_logits, np.float64)))
+  mass = lambda g: opacity(g) * decimate.ellipsoid_area(np.exp(np.asarray(g.log_scales, np.float64)))
+  np.testing.assert_allclose(np.sum(mass(deep)[alive(deep)]), np.sum(mass(film)), rtol=1e-4)
+  colour = lambda g: np.sum((mass(g)[:, None] * np.asarray(g.sh[:, 0], np.float64))[alive(g)], axis=0)
+  np.testing.assert_allclose(colour(deep), colour(film), rtol=1e-4, atol=1e-4)
+  row = int(np.asarray(second.first)[0])
+  grad = np.asarray(jax.grad(lambda dc: decimate.merge_rounds(
+      film.replace(sh=film.sh.at[:, 0].set(dc)), (first, second), jnp.float32(2.0),
+      jax.random.key(0)).sh[row, 0, 0])(film.sh[:, 0]))[:, 0]
+  assert np.sum(grad > 0) == 4 and np.isclose(grad.sum(), 1.0, rtol=1e-5)
+  with pytest.raises(ValueError, match="merge_depth"):
+    augment.Augmentation(merge_depth=2.5)

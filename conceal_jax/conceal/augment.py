@@ -26,8 +26,9 @@ drawn anew (to the nearest value as .spz and .compressed.ply do, down as .sog do
 splats, all of one opacity, comes back from each format at another 8-bit step, and its image changes with it. With
 conceal.attacks.reset_fraction, that share renders it with every opacity at most densify.RESET_CEILING, as the
 opacity reset of 3D-GS training with densification leaves the Gaussians no training view sees. With
-conceal.attacks.merge_fraction, that share renders it with a share of the carrier film's pairs of neighbouring
-splats merged as a converter's decimation merges them (decimate.merge_pairs; the share of pairs ~ U[0, 1]).
+conceal.attacks.merge_fraction, that share renders it with the carrier film's neighbouring splats merged as a
+converter's decimation merges them, to a depth ~ U[0, conceal.attacks.merge_depth] rounds (decimate.merge_rounds:
+depth 0.5 merges half the pairs, 1 every pair, 1.2 every pair and a fifth of the pairs of what that leaves).
 
 The recommended recipe (configs/recipes.through_attacks) trains through blur and noise only: what each
 distortion gained and cost is in experiments/results/conceal_options.md.
@@ -59,6 +60,8 @@ REST_CELL = 8.0 / 256.0
 # An Augmentation field f is config key conceal.attacks.<f>; a contrast factor and a dropout probability stay below 1.
 UPPER_BOUNDS = dict(contrast_max=1.0, dropout_max=1.0, quantize_fraction=1.0 + 1e-9, reset_fraction=1.0 + 1e-9,
                     merge_fraction=1.0 + 1e-9)
+# A decimation to a quarter of the film is two rounds of merges; deeper than that a film keeps no image.
+MAX_MERGE_DEPTH = 2.0
 # Gaussians fields that parameter noise moves: all of them (robust.model_attacks.FIELDS).
 MODEL_FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 
@@ -105,13 +108,21 @@ class Augmentation:
   param_noise_max: float = 0.0  # relative parameter noise ~ U[0, max]
   quantize_fraction: float = 0.0  # the share of steps whose check render is of 8-bit colours and opacities
   reset_fraction: float = 0.0  # the share of steps whose check render is of opacities reset to densify.RESET_CEILING
-  merge_fraction: float = 0.0  # the share of steps whose check render merges film pairs (decimate.merge_pairs)
+  merge_fraction: float = 0.0  # the share of steps whose check render merges film pairs (decimate.merge_rounds)
+  merge_depth: float = 1.0  # the rounds of merges such a render goes up to: its depth ~ U[0, merge_depth]
 
   def __post_init__(self):
     for f in dataclasses.fields(self):
       value, below = getattr(self, f.name), UPPER_BOUNDS.get(f.name, math.inf)
       if not 0 <= value < below:  # NaN fails too
         raise ValueError(f"conceal.attacks.{f.name} must be in [0, {below:g}), got {value}")
+    if not 1 <= self.merge_depth <= MAX_MERGE_DEPTH:
+      raise ValueError(f"conceal.attacks.merge_depth must be in [1, {MAX_MERGE_DEPTH}], got {self.merge_depth}")
+
+  @property
+  def merge_rounds(self) -> int:
+    """The rounds of film merges a step may draw (decimate.film_merges' levels)."""
+    return math.ceil(self.merge_depth)
 
   @property
   def distorts_image(self) -> bool:
@@ -166,15 +177,16 @@ def quantize_8bit(gaussians, rounding=0.5):
 
 
 def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmentation,
-                      merges: decimate.Merges | None = None):
+                      merges: tuple[decimate.Merges, ...] | None = None):
   """Gaussians [N] as the check render sees them: every field of MODEL_FIELDS plus normal noise of
   distortion["param_noise"] times that field's per-channel standard deviation over the N Gaussians (a
   constant: the noise's scale is not trained), then each Gaussian dropped (opacity logit DROPPED_LOGIT, no
   gradient) with probability distortion["dropout"]; drawn from the PRNG seed distortion["model_seed"]. First,
   where distortion["quantize"] is 1, the 8-bit colours and opacities (`quantize_8bit`, rounding at
   distortion["rounding"]), and where
-  distortion["reset"] is 1, every opacity at most densify.RESET_CEILING; before all, a share distortion["merge"]
-  of the pairs of `merges` merged (decimate.merge_pairs, from the PRNG seed distortion["model_seed"]). A kind
+  distortion["reset"] is 1, every opacity at most densify.RESET_CEILING; before all, the film decimated
+  distortion["merge"] rounds deep by the rounds of `merges` (decimate.merge_rounds, from the PRNG seed
+  distortion["model_seed"]). A kind
   whose maximum in
   `augmentation` is 0 is left out at trace time (without any, the Gaussians themselves, and `distortion` may be
   None); at level 0 each is the identity, values and gradients."""
@@ -183,7 +195,7 @@ def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmenta
     return gaussians
   model_key = jax.random.key(distortion["model_seed"])
   if a.merge_fraction > 0:
-    gaussians = decimate.merge_pairs(gaussians, merges, distortion["merge"], jax.random.fold_in(model_key, 2))
+    gaussians = decimate.merge_rounds(gaussians, merges, distortion["merge"], jax.random.fold_in(model_key, 2))
   if a.quantize_fraction > 0:
     quantized = quantize_8bit(gaussians, distortion["rounding"])
     gaussians = jax.tree.map(lambda q, x: jnp.where(distortion["quantize"] > 0, q, x), quantized, gaussians)
@@ -214,8 +226,8 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   a relative parameter noise ~ U[0, param_noise_max] and their seed; brightness ~ U[-brightness_max,
   brightness_max] and contrast ~ 1 + U[-contrast_max, contrast_max]; whether the step quantizes (1 with
   probability quantize_fraction) and resets the opacities (1 with probability reset_fraction); with
-  quantize_fraction, the point its grids round at ~ U[0, 1) (`quantize_8bit`); the share of film pairs merged
-  (~ U[0, 1] with probability merge_fraction, else 0). Later kinds are drawn after earlier ones, so a run without
+  quantize_fraction, the point its grids round at ~ U[0, 1) (`quantize_8bit`); the depth of the film's merges
+  (~ U[0, merge_depth] with probability merge_fraction, else 0: decimate.merge_rounds). Later kinds are drawn after earlier ones, so a run without
   them sees the distortions it always did."""
   a = augmentation
   image = dict(blur=np.float32(rng.uniform(0.0, a.blur_max)), noise=np.float32(rng.uniform(0.0, a.noise_max)),
@@ -228,5 +240,5 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   drawn["reset"] = np.float32(a.reset_fraction > 0 and rng.random() < a.reset_fraction)
   drawn["rounding"] = np.float32(rng.random() if a.quantize_fraction > 0 else 0.5)
   merges = a.merge_fraction > 0 and rng.random() < a.merge_fraction
-  drawn["merge"] = np.float32(rng.random() if merges else 0.0)
+  drawn["merge"] = np.float32(rng.random() * a.merge_depth if merges else 0.0)
   return drawn

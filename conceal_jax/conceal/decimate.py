@@ -95,15 +95,37 @@ def moment_matched(gaussians: Gaussians, pairs: np.ndarray) -> dict[str, np.ndar
               opacity_logits=np.asarray(opacity_logit(np.clip(merged_opacity, 1e-7, 1.0 - 1e-7))), weight=weight)
 
 
-def film_merges(film: Gaussians, offset: int) -> Merges:
-  """The Merges of the film's splats paired with near neighbours (`nearest_pairs`), its indices shifted by
-  `offset` (the film's first row in the student: the teacher's Gaussian count)."""
-  pairs = nearest_pairs(np.asarray(film.means, np.float64))
-  merged = moment_matched(film, pairs)
-  f32 = lambda x: jnp.asarray(x, jnp.float32)
-  return Merges(first=jnp.asarray(pairs[:, 0] + offset, jnp.int32), second=jnp.asarray(pairs[:, 1] + offset, jnp.int32),
-                means=f32(merged["means"]), log_scales=f32(merged["log_scales"]), quats=f32(merged["quats"]),
-                opacity_logits=f32(merged["opacity_logits"]), weight=f32(merged["weight"]))
+def film_merges(film: Gaussians, offset: int, levels: int = 1) -> tuple[Merges, ...]:
+  """The Merges of `levels` rounds of decimation of the film, its indices shifted by `offset` (the film's first row
+  in the student: the teacher's Gaussian count): round 0 pairs the film's splats with near neighbours
+  (`nearest_pairs`); each later round pairs what the one before leaves once every one of its pairs has merged
+  (a converter decimating deeper than half merges some groups of three or four), its pairs indexing the student's
+  rows where the merged Gaussians live (each pair's first)."""
+  rounds, rows = [], np.arange(film.num)
+  for _ in range(levels):
+    pairs = nearest_pairs(np.asarray(film.means, np.float64))
+    merged = moment_matched(film, pairs)
+    f32 = lambda x: jnp.asarray(x, jnp.float32)
+    rounds.append(Merges(first=jnp.asarray(rows[pairs[:, 0]] + offset, jnp.int32),
+                         second=jnp.asarray(rows[pairs[:, 1]] + offset, jnp.int32), means=f32(merged["means"]),
+                         log_scales=f32(merged["log_scales"]), quats=f32(merged["quats"]),
+                         opacity_logits=f32(merged["opacity_logits"]), weight=f32(merged["weight"])))
+    unpaired = np.setdiff1d(np.arange(film.num), pairs.ravel())
+    fields = {name: np.concatenate([merged[name], np.asarray(getattr(film, name), np.float64)[unpaired]])
+              for name in ("means", "log_scales", "quats", "opacity_logits")}
+    film = film.replace(**fields, sh=np.zeros((len(fields["means"]),) + film.sh.shape[1:], np.float32))
+    rows = np.concatenate([rows[pairs[:, 0]], rows[unpaired]])
+  return tuple(rounds)
+
+
+def merge_rounds(gaussians: Gaussians, merges: tuple[Merges, ...], depth: jax.Array, key: jax.Array) -> Gaussians:
+  """gaussians [N] decimated `depth` (traced) rounds deep by the rounds of `film_merges`: round k merges a share
+  clip(depth - k, 0, 1) of its pairs (`merge_pairs`), so a round only starts once the one before has merged
+  every pair. At depth 0 the Gaussians themselves, values and gradients."""
+  for k, merges_k in enumerate(merges):
+    gaussians = merge_pairs(gaussians, merges_k, jnp.clip(depth - k, 0.0, 1.0),
+                            key if k == 0 else jax.random.fold_in(key, k))
+  return gaussians
 
 
 def merge_pairs(gaussians: Gaussians, merges: Merges, share: jax.Array, key: jax.Array) -> Gaussians:

@@ -80,7 +80,8 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
                                plan.film.distance * key_lib.camera_distance(scene.train_cameras), plan.film.spacing,
                                plan.film.opacity, plan.film.layers)
     start, trainable = concatenate([teacher, film]), carrier.trainable_fields(teacher.num, film)
-    merges = decimate.film_merges(film, teacher.num) if s.augmentation.merge_fraction > 0 else None
+    if s.augmentation.merge_fraction > 0:
+      merges = decimate.film_merges(film, teacher.num, s.augmentation.merge_rounds)
   data = views_lib.build_data(scene.train_images, teacher, options, list(scene.train_cameras) + decoys,
                               [camera for camera, _ in keys], hiddens, s.hidden_size, s.reading.clip, key_images,
                               trainable, merges)

@@ -35,8 +35,8 @@ class ConcealData:
   """images [V, H, W, 3]: ground truth of the training views; teacher [V + D, H, W, 3] and teacher_small
   [V + D, S, S, 3]: the teacher's renders of the normal views (training views, then decoys) at the render's
   and the decoder's size; cameras: Camera [V + D]; keys: Key [K]; trainable: None (the whole student trains)
-  or a 0/1 Gaussians [N] mask of what does (carrier.trainable_fields); merges: None or the carrier film's pairs a
-  decimation merges (decimate.film_merges, for conceal.attacks.merge_fraction)."""
+  or a 0/1 Gaussians [N] mask of what does (carrier.trainable_fields); merges: None or the rounds of the carrier
+  film's pairs a decimation merges (decimate.film_merges, for conceal.attacks.merge_fraction)."""
   images: jax.Array
   teacher: jax.Array
   teacher_small: jax.Array

@@ -24,8 +24,9 @@ DRIFT_NOISE = 0.15
 # Training through quantization and opacity resets: the share of steps whose check render is of 8-bit colours
 # and opacities, and of opacities reset.
 QUANTIZE_FRACTION = RESET_FRACTION = 0.25
-# Training through decimation: the share of steps whose check render has film pairs merged.
-MERGE_FRACTION = 0.25
+# Training through decimation: the share of steps whose check render has film pairs merged, and how many rounds
+# deep at most (a converter's decimation to 50% merges every pair of the film and some of what that leaves).
+MERGE_FRACTION, MERGE_DEPTH = 0.25, 1.5
 # The faint film: each splat at the opacity 3D-GS's reset lowers every opacity to (so the reset leaves it as it is),
 # a grid every FAINT_SPACING pixels of the key's image, FAINT_LAYERS grids: about half the background let through.
 FAINT_OPACITY, FAINT_SPACING, FAINT_LAYERS = 0.01, 4.0, 22
@@ -34,7 +35,7 @@ FAINT_OPACITY, FAINT_SPACING, FAINT_LAYERS = 0.01, 4.0, 22
 # 8 bits, so |dc| beyond 0.5 / 0.15 is cut off).
 GRID_OPACITY, SPZ_DC_BOUND = 2.001 / 255, 0.5 / 0.15
 # The watched key: decoys near the key on most steps, many of them, and L_d^- weighted above L_d^+.
-WATCH_DECOY_VIEWS, WATCH_DECOY_FRACTION, WATCH_WEIGHT_MINUS = 192, 0.9, 1.5
+WATCH_DECOY_VIEWS, WATCH_DECOY_FRACTION, WATCH_WEIGHT_MINUS = 768, 0.9, 1.5
 # The rate of the film's base colours in the vivid film (the gentle student's is 6.25e-4).
 VIVID_DC_LR = 1e-2
 # The keyed decoder: fixed sign channels it reads beside the render, and decoys close to the key (translation as a
@@ -131,12 +132,12 @@ def publishable_film(config):
   return config
 
 
-def watched_key(config):
-  """Decoys near the key (WATCH_DECOY_VIEWS of them) as the normal view on WATCH_DECOY_FRACTION of the steps, and
+def watched_key(config, decoy_views: int = WATCH_DECOY_VIEWS):
+  """Decoys near the key (`decoy_views` of them) as the normal view on WATCH_DECOY_FRACTION of the steps, and
   L_d^- weighted WATCH_WEIGHT_MINUS: a decoder that reads a texture it is not watched closely on learns to read it
   wherever it lies, and reveals the image shifted when the key is turned a degree or two. A film's normal views
   teach little else (no training view sees the film)."""
-  config = leakage_control(config, WATCH_DECOY_VIEWS, WATCH_DECOY_FRACTION)
+  config = leakage_control(config, decoy_views, WATCH_DECOY_FRACTION)
   config.conceal.weight_minus = WATCH_WEIGHT_MINUS
   return config
 
@@ -173,11 +174,11 @@ def through_quantization(config, fraction: float = QUANTIZE_FRACTION):
   return config
 
 
-def through_decimation(config, fraction: float = MERGE_FRACTION):
-  """A `fraction` of the check renders drawn with a share (~ U[0, 1]) of the carrier film's neighbouring splats
-  merged pairwise as a converter's decimation merges them (conceal.attacks.merge_fraction), so that the mark
-  survives a scene shrunk for the web."""
-  config.conceal.attacks.merge_fraction = fraction
+def through_decimation(config, fraction: float = MERGE_FRACTION, depth: float = MERGE_DEPTH):
+  """A `fraction` of the check renders drawn with the carrier film's neighbouring splats merged pairwise as a
+  converter's decimation merges them, up to `depth` rounds deep (conceal.attacks.merge_fraction, merge_depth), so
+  that the mark survives a scene shrunk for the web."""
+  config.conceal.attacks.merge_fraction, config.conceal.attacks.merge_depth = fraction, depth
   return config
 
 
