@@ -438,17 +438,20 @@ def test_a_format_is_complete_only_with_every_file_its_loader_reads(tmp_path):
   transforms = _write_transforms(tmp_path / "t", {"fl_x": 10.0}, _frames(["a.png"]), {"a.png": _gradient(6, 8)})
   assert datasets.format_check(blender, "blender").complete
   assert datasets.format_check(colmap, "colmap") == (True, "a COLMAP model in sparse/0 (cameras, images, "
-                                                         "points3D), images in images/")
+                                                         "points3D), images in images/", "images")
   (blender / "transforms_test.json").unlink()
-  assert datasets.format_check(blender, "blender") == (False, "no transforms_test.json")
-  (colmap / "images").rename(colmap / "images_2")
+  assert datasets.format_check(blender, "blender")[:2] == (False, "no transforms_test.json")
+  (colmap / "images").rename(colmap / "images_2")  # only a downscaled copy: read by default, and said
+  assert datasets.format_check(colmap, "colmap").images == "images_2"
+  (colmap / "images_2").rename(colmap / "pictures")
   assert datasets.format_check(colmap, "colmap").reason.endswith("but no images folder images/")
-  assert datasets.detect_format(colmap, images="images_2") == "colmap"
-  with pytest.raises(DatasetError, match=r"colmap: [^;]*no images folder images/;.* holding images: images_2/$"):
+  assert datasets.detect_format(colmap, images="pictures") == "colmap"
+  with pytest.raises(DatasetError, match=r"colmap: [^;]*no images folder images/;.* holding images: pictures/$"):
     datasets.load_scene(colmap)
   # A json that names each image leaves nothing for an images folder to choose.
   check = datasets.format_check(transforms, "transforms", images="images_2")
-  assert check == (False, "the images are named in transforms.json, so the images folder 'images_2' does not apply")
+  assert check[:2] == (False, "the images are named in transforms.json, so the images folder 'images_2' does not "
+                       "apply")
   with pytest.raises(DatasetError, match="the images folder 'images_2' does not apply"):
     datasets.load_scene(transforms, images="images_2")
   with pytest.raises(DatasetError, match="also given the format 'llff'"):

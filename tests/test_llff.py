@@ -243,13 +243,23 @@ def test_shared_layout_loads_as_llff_from_the_folder_named(shared_llff, caplog):
   assert "images in images_8/" in log
 
 
+def test_without_an_images_folder_the_least_downscaled_copy_is_read_and_said(shared_llff, caplog):
+  """data.images left at 'images' in a capture shared without images/: its least downscaled copy (images_8/
+  before images_16/) is read, and the log says so."""
+  _write_images(shared_llff / "images_16", HEIGHT // 4, WIDTH // 4)
+  caplog.set_level(logging.INFO, logger="absl")
+  scene = evaluate.load_scene_data(_config(shared_llff))
+  assert (scene.train_cameras[0].width, scene.train_cameras[0].height) == (WIDTH // 2, HEIGHT // 2)
+  assert "no images/ folder: images in images_8/, the least downscaled copy" in caplog.text
+
+
 def test_a_missing_images_folder_is_one_error_listing_the_folders_there(shared_llff):
   with pytest.raises(DatasetError) as info:
-    evaluate.load_scene_data(_config(shared_llff))
+    evaluate.load_scene_data(_config(shared_llff, images="images_2"))
   message = str(info.value)
   assert "holds no complete scene format" in message
   assert "colmap: the COLMAP model in sparse has no images.bin or .txt" in message
-  assert "llff: poses_bounds.npy, but no images folder images/" in message
+  assert "llff: poses_bounds.npy, but no images folder images_2/" in message
   assert message.endswith("Folders holding images: images_8/")
 
 

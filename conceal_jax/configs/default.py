@@ -70,7 +70,8 @@ def data_section() -> ml_collections.ConfigDict:
   c.path = "demo"
   # 'auto' (the first complete one of blender, colmap, transforms, llff; the choice is logged) or one of those
   c.format = "auto"
-  # COLMAP and LLFF: the images folder in data.path, e.g. 'images_4' (downscaled copies; cameras follow them)
+  # COLMAP and LLFF: the images folder in data.path, e.g. 'images_4' (downscaled copies; cameras follow them);
+  # 'images' where a capture has none reads its least downscaled images_<factor>/ (logged)
   c.images = "images"
   c.downscale = 1.0        # image resolution divisor
   c.background = "default"  # 'white', 'black' or 'default' (white for Blender, black otherwise)

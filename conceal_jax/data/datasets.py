@@ -38,23 +38,29 @@ LOADERS: dict[str, Callable[..., SceneData]] = {
 FORMATS = ("blender", "colmap", "transforms", "llff")
 AUTO = "auto"
 DEFAULT_IMAGES = "images"
+# Folders of downscaled copies: images_<factor>.
+DOWNSCALED_PREFIX = "images_"
 # Formats whose images are found by folder (`images`); the others' json names every image file.
 FOLDER_FORMATS = ("colmap", "llff")
 
 
 class FormatCheck(NamedTuple):
-  """Whether a folder is a complete capture of one format; reason: what shows it is, or what it lacks."""
+  """Whether a folder is a complete capture of one format; reason: what shows it is, or what it lacks; images:
+  the images folder it reads (FOLDER_FORMATS)."""
   complete: bool
   reason: str
+  images: str = DEFAULT_IMAGES
 
 
 class FormatChoice(NamedTuple):
   """The format a folder is loaded as. reason: what makes it complete; detected: chosen by detection (not
-  named); skipped: (format, what it lacks) for each format detection tried before it."""
+  named); skipped: (format, what it lacks) for each format detection tried before it; images: the images
+  folder a FOLDER_FORMATS loader reads."""
   kind: str
   reason: str
   detected: bool
   skipped: tuple[tuple[str, str], ...] = ()
+  images: str = DEFAULT_IMAGES
 
 
 def images_folder_problem(images: object) -> str | None:
@@ -107,9 +113,15 @@ def _colmap_check(root: Path, images: str) -> FormatCheck:
 
 
 def _folder_check(root: Path, images: str, found: str) -> FormatCheck:
-  if not (root / images).is_dir():
-    return FormatCheck(False, f"{found}, but no images folder {images}/")
-  return FormatCheck(True, f"{found}, images in {images}/")
+  if (root / images).is_dir():
+    return FormatCheck(True, f"{found}, images in {images}/", images)
+  copies = sorted((int(name[len(DOWNSCALED_PREFIX):]), name) for name in image_folders(root)
+                  if name.startswith(DOWNSCALED_PREFIX) and name[len(DOWNSCALED_PREFIX):].isdigit())
+  if images == DEFAULT_IMAGES and copies:  # captures are often shared with their downscaled copies only
+    finest = copies[0][1]
+    return FormatCheck(True, f"{found}, no {images}/ folder: images in {finest}/, the least downscaled copy "
+                       "(data.images names another)", finest)
+  return FormatCheck(False, f"{found}, but no images folder {images}/")
 
 
 def choose_format(root: PathLike, data_format: str = AUTO, images: str = DEFAULT_IMAGES) -> FormatChoice:
@@ -133,7 +145,7 @@ def choose_format(root: PathLike, data_format: str = AUTO, images: str = DEFAULT
   for kind in FORMATS if data_format == AUTO else (data_format,):
     check = format_check(root, kind, images)
     if check.complete:
-      return FormatChoice(kind, check.reason, data_format == AUTO, tuple(skipped))
+      return FormatChoice(kind, check.reason, data_format == AUTO, tuple(skipped), check.images)
     skipped.append((kind, check.reason))
   what = "holds no complete scene format" if data_format == AUTO else f"is not a complete {data_format} scene"
   folders = ", ".join(f"{name}/" for name in image_folders(root)) or "none"
@@ -177,7 +189,7 @@ def load_scene(kind_or_path: PathLike, downscale: float = 1, background: Sequenc
   choice = choose_format(root, data_format, images)
   log_choice(root, choice)
   if choice.kind in FOLDER_FORMATS:
-    kwargs["images_dir"] = images
+    kwargs["images_dir"] = choice.images
   if background is not None:
     kwargs["background"] = background
   return LOADERS[choice.kind](root, downscale, **kwargs)
