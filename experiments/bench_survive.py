@@ -59,6 +59,7 @@ SCENES = {"demo": ("demo", "workdirs/demo/conceal", "recommended"),
           "demo_film_web": ("demo", "workdirs/survive_runs/demo_film_web", "film_web"),
           "demo_film_watch": ("demo", "workdirs/survive_runs/demo_film_watch", "film_watch"),
           "demo_film_watch768_2600": ("demo", "workdirs/survive_runs/demo_film_watch768_2600", "film_watch768_2600"),
+          "demo_film_long": ("demo", "workdirs/survive_runs/demo_film_long", "film_long"),
           "demo_film_deep": ("demo", "workdirs/survive_runs/demo_film_deep", "film_deep"),
           "demo_film_faint": ("demo", "workdirs/survive_runs/demo_film_faint", "film_faint"),
           "demo_film_reset": ("demo", "workdirs/survive_runs/demo_film_reset", "film_reset"),
@@ -98,9 +99,9 @@ RECIPE_NOTES = {
                   "weighted 1.5 (recipes.watched_key at 192 decoys; demo.py:film_watch)",
     "film_watch768_2600": "film_watch with 768 decoys, concealed for 2600 steps (demo.py:film_watch with "
                           "--config.conceal.leakage.decoy_views=768 --config.conceal.iterations=2600)",
-    "film_deep": "recipes.film's design on the demo: film_watch with 768 decoys, trained through merges up to 1.5 "
-                 "rounds deep (recipes.MERGE_DEPTH) and .compressed.ply's grid of the higher SH bands, for 2600 steps "
-                 "(demo.py:film_deep)",
+    "film_long": "recipes.film's design on the demo: film_watch with 768 decoys for 2600 steps, the check render's "
+                 "8-bit grids including .compressed.ply's of the higher SH bands (demo.py:film_long)",
+    "film_deep": "film_long trained through merges up to 1.5 rounds deep (recipes.DEEP_MERGE_DEPTH; demo.py:film_deep)",
     "film_faint": "film with its colours at the gentle student's rate, 6.25e-4 (demo.py:film_faint; concealed on an "
                   "H200, attacked on the CPU)",
     "film_reset": "the first film: one grid of splats at opacity 0.5, trained through 8-bit colours and opacity "

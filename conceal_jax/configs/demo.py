@@ -17,9 +17,9 @@ of faint layers whose colours train at a higher rate, through 8-bit colours) wit
 designs beside it: `film_mod` (film with the decoder reading the render through a sign field,
 recipes.modulated_decoder), `film_pub` (film trained through decimation too, recipes.through_decimation),
 `film_web` (film_pub at an opacity and within colours the publishing formats store unchanged,
-recipes.publishable_film), `film_watch` (film_web with 192 decoys on most steps, recipes.watched_key), `film_deep`
-(recipes.film's design: film_watch with 768 decoys, trained through merges deeper than pairs, .compressed.ply's
-SH grid, and twice as long, FILM_ITERATIONS), `film_faint` (its colours at the gentle student's rate), `film_reset` (one layer at opacity 0.5, trained
+recipes.publishable_film), `film_watch` (film_web with 192 decoys on most steps, recipes.watched_key), `film_long`
+(recipes.film's design: film_watch with 768 decoys and twice as long, FILM_ITERATIONS), `film_deep` (film_long
+trained through merges deeper than pairs, recipes.DEEP_MERGE_DEPTH), `film_faint` (its colours at the gentle student's rate), `film_reset` (one layer at opacity 0.5, trained
 through opacity resets), `film_keyed` and `film_faint_keyed` (film_reset and film_faint with the decoder keyed to
 a fixed pattern and decoys close to the key, recipes.keyed_decoder), `film_far` (film_reset with the key half a
 camera distance from the orbit target and the film as far again); `demo.py:drift` trains through parameter drift
@@ -28,10 +28,10 @@ camera distance from the orbit target and the film as far again); `demo.py:drift
 from conceal_jax.configs import default, recipes
 
 
-VARIANTS = ("film", "film_mod", "film_pub", "film_web", "film_watch", "film_deep", "film_faint", "film_reset", "film_keyed",
+VARIANTS = ("film", "film_mod", "film_pub", "film_web", "film_watch", "film_long", "film_deep", "film_faint", "film_reset", "film_keyed",
             "film_faint_keyed", "film_far", "drift", "orbit")
 # The faint films whose colours train at the vivid rate, each building on the one before from film_pub on.
-VIVID_FILMS = ("film", "film_mod", "film_pub", "film_web", "film_watch", "film_deep")
+VIVID_FILMS = ("film", "film_mod", "film_pub", "film_web", "film_watch", "film_long", "film_deep")
 # A closely watched key needs twice the demo's concealment to read its film.
 FILM_ITERATIONS = 2600
 
@@ -68,13 +68,14 @@ def get_config(variant: str = ""):
     config = recipes.faint_film(config) if faint else recipes.through_reset(config)
   if variant in VIVID_FILMS:
     config = recipes.vivid_film(config)
-  if variant in VIVID_FILMS[2:]:  # film_pub and what builds on it (the rows before film_deep merged pairs only)
-    config = recipes.through_decimation(config, depth=recipes.MERGE_DEPTH if variant == "film_deep" else 1.0)
+  if variant in VIVID_FILMS[2:]:  # film_pub and what builds on it
+    deep = variant == "film_deep"
+    config = recipes.through_decimation(config, depth=recipes.DEEP_MERGE_DEPTH if deep else recipes.MERGE_DEPTH)
   if variant in VIVID_FILMS[3:]:
     config = recipes.publishable_film(config)
   if variant == "film_watch":
     config = recipes.watched_key(config, decoy_views=192)
-  if variant == "film_deep":
+  if variant in ("film_long", "film_deep"):
     config = recipes.watched_key(config)
     config.conceal.iterations = FILM_ITERATIONS
   if variant == "film_mod":

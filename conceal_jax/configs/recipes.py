@@ -25,8 +25,10 @@ DRIFT_NOISE = 0.15
 # and opacities, and of opacities reset.
 QUANTIZE_FRACTION = RESET_FRACTION = 0.25
 # Training through decimation: the share of steps whose check render has film pairs merged, and how many rounds
-# deep at most (a converter's decimation to 50% merges every pair of the film and some of what that leaves).
-MERGE_FRACTION, MERGE_DEPTH = 0.25, 1.5
+# deep at most (pairs only: deeper merges cost the film more at the key than they gain after a converter's 50%).
+MERGE_FRACTION, MERGE_DEPTH = 0.25, 1.0
+# Training twice as deep (demo.py:film_deep), as a converter's decimation to 50% merges some groups of 3 and 4.
+DEEP_MERGE_DEPTH = 1.5
 # The faint film: each splat at the opacity 3D-GS's reset lowers every opacity to (so the reset leaves it as it is),
 # a grid every FAINT_SPACING pixels of the key's image, FAINT_LAYERS grids: about half the background let through.
 FAINT_OPACITY, FAINT_SPACING, FAINT_LAYERS = 0.01, 4.0, 22
