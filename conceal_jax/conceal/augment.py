@@ -221,14 +221,14 @@ def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmenta
 
 
 def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
-  """One step's distortion within `augmentation`'s maxima: blur sigma ~ U[0, blur_max], noise sigma
-  ~ U[0, noise_max], a noise seed; of the model (`perturb_gaussians`) a dropout probability ~ U[0, dropout_max],
-  a relative parameter noise ~ U[0, param_noise_max] and their seed; brightness ~ U[-brightness_max,
-  brightness_max] and contrast ~ 1 + U[-contrast_max, contrast_max]; whether the step quantizes (1 with
-  probability quantize_fraction) and resets the opacities (1 with probability reset_fraction); with
-  quantize_fraction, the point its grids round at ~ U[0, 1) (`quantize_8bit`); the depth of the film's merges
-  (~ U[0, merge_depth] with probability merge_fraction, else 0: decimate.merge_rounds). Later kinds are drawn after earlier ones, so a run without
-  them sees the distortions it always did."""
+  """One step's distortion within `augmentation`'s maxima: blur sigma ~ U[0, blur_max], noise sigma ~ U[0, noise_max],
+  a noise seed; of the model (`perturb_gaussians`) a dropout probability ~ U[0, dropout_max], a relative parameter
+  noise ~ U[0, param_noise_max] and their seed; brightness ~ U[-brightness_max, brightness_max] and contrast ~ 1 +
+  U[-contrast_max, contrast_max]; whether the step quantizes (1 with probability quantize_fraction) and resets the
+  opacities (1 with probability reset_fraction); with quantize_fraction, the point its grids round at ~ U[0, 1)
+  (`quantize_8bit`); the depth of the film's merges (~ U[0, merge_depth] with probability merge_fraction, else 0:
+  decimate.merge_rounds). Later kinds are drawn after earlier ones, so a run without them sees the distortions it
+  always did."""
   a = augmentation
   image = dict(blur=np.float32(rng.uniform(0.0, a.blur_max)), noise=np.float32(rng.uniform(0.0, a.noise_max)),
                seed=np.uint32(rng.integers(2**32)))
