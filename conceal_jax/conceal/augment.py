@@ -179,17 +179,15 @@ def quantize_8bit(gaussians, rounding=0.5):
 def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmentation,
                       merges: tuple[decimate.Merges, ...] | None = None):
   """Gaussians [N] as the check render sees them: every field of MODEL_FIELDS plus normal noise of
-  distortion["param_noise"] times that field's per-channel standard deviation over the N Gaussians (a
-  constant: the noise's scale is not trained), then each Gaussian dropped (opacity logit DROPPED_LOGIT, no
-  gradient) with probability distortion["dropout"]; drawn from the PRNG seed distortion["model_seed"]. First,
-  where distortion["quantize"] is 1, the 8-bit colours and opacities (`quantize_8bit`, rounding at
-  distortion["rounding"]), and where
-  distortion["reset"] is 1, every opacity at most densify.RESET_CEILING; before all, the film decimated
-  distortion["merge"] rounds deep by the rounds of `merges` (decimate.merge_rounds, from the PRNG seed
-  distortion["model_seed"]). A kind
-  whose maximum in
-  `augmentation` is 0 is left out at trace time (without any, the Gaussians themselves, and `distortion` may be
-  None); at level 0 each is the identity, values and gradients."""
+  distortion["param_noise"] times that field's per-channel standard deviation over the N Gaussians (a constant:
+  the noise's scale is not trained), then each Gaussian dropped (opacity logit DROPPED_LOGIT, no gradient) with
+  probability distortion["dropout"]; drawn from the PRNG seed distortion["model_seed"]. First, where
+  distortion["quantize"] is 1, the 8-bit colours and opacities (`quantize_8bit`, rounding at
+  distortion["rounding"]), and where distortion["reset"] is 1, every opacity at most densify.RESET_CEILING; before
+  all, the film decimated distortion["merge"] rounds deep by the rounds of `merges` (decimate.merge_rounds, from
+  the PRNG seed distortion["model_seed"]). A kind whose maximum in `augmentation` is 0 is left out at trace time
+  (without any, the Gaussians themselves, and `distortion` may be None); at level 0 each is the identity, values
+  and gradients."""
   a = augmentation
   if not a.perturbs_model:
     return gaussians

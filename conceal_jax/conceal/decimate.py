@@ -102,10 +102,10 @@ def film_merges(film: Gaussians, offset: int, levels: int = 1) -> tuple[Merges, 
   (a converter decimating deeper than half merges some groups of three or four), its pairs indexing the student's
   rows where the merged Gaussians live (each pair's first)."""
   rounds, rows = [], np.arange(film.num)
+  f32 = lambda x: jnp.asarray(x, jnp.float32)
   for _ in range(levels):
     pairs = nearest_pairs(np.asarray(film.means, np.float64))
     merged = moment_matched(film, pairs)
-    f32 = lambda x: jnp.asarray(x, jnp.float32)
     rounds.append(Merges(first=jnp.asarray(rows[pairs[:, 0]] + offset, jnp.int32),
                          second=jnp.asarray(rows[pairs[:, 1]] + offset, jnp.int32), means=f32(merged["means"]),
                          log_scales=f32(merged["log_scales"]), quats=f32(merged["quats"]),
