@@ -6,7 +6,7 @@ is turned by, the curve behind the near-key leakage figure (2 and 5 degrees, bou
 
 Each scene is a finished conceal workdir (bench_survive.SCENES' labels, or label=workdir); one without its files is
 skipped with a note. The student is rendered at the key turned by ANGLES_DEG about DIRECTIONS random axes through
-its centre (key.nearby_camera, the poses the conceal job's leakage figure uses, more of them and closer in) and
+its centre (near.nearby_camera, the poses the conceal job's leakage figure uses, more of them and closer in) and
 revealed with the run's decoder (robustness.pose_tolerance_rows): mean and max SSIM to the hidden image per angle.
 Rows merge into <out>/falloff_bench.json ({"rows": [...]}, one per scene and angle) with a table and a plot.
 """

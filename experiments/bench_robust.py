@@ -31,7 +31,7 @@ import jax
 import ml_collections
 import numpy as np
 
-from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, reveal
+from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, near, reveal
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, train
@@ -60,9 +60,9 @@ def load_run(run: pathlib.Path):
 
 
 def near_length(config, scene, owner: robustness.Owner) -> float:
-  """The run's near-key length (key.near_length of its clean teacher, config.mark.teacher, at its key): the unit
+  """The run's near-key length (near.near_length of its clean teacher, config.mark.teacher, at its key): the unit
   of the pose rows' translations, as in the conceal job's leakage figure and the run's decoys."""
-  return key_lib.near_length(ply.load_ply(config.mark.teacher), owner.check_camera, scene.train_cameras)[0]
+  return near.near_length(ply.load_ply(config.mark.teacher), owner.check_camera, scene.train_cameras)[0]
 
 
 def bench_run(run: pathlib.Path, test_views: int) -> dict:

@@ -1,4 +1,4 @@
-"""The near-key length (key.near_length) against the 3D-GS extent it replaced, per scene and key kind (issue 41
+"""The near-key length (near.near_length) against the 3D-GS extent it replaced, per scene and key kind (issue 41
 item 6): no training, only a teacher (or a capture's SfM points) and its cameras.
 
   python -m experiments.near_length --scenes=demo=workdirs/demo/teacher/point_cloud.ply
@@ -17,7 +17,7 @@ import argparse
 
 import numpy as np
 
-from conceal_jax.conceal import key as key_lib
+from conceal_jax.conceal import key as key_lib, near
 from conceal_jax.configs import default
 from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, init
@@ -44,7 +44,7 @@ def rows(path: str, teacher: str, data_format: str = "auto", downscale: float = 
   out = []
   for kind in KINDS:
     camera, _ = key_lib.check_camera(scene.train_cameras, kind, -2, 0)
-    length, source = key_lib.near_length(gaussians, camera, scene.train_cameras)
+    length, source = near.near_length(gaussians, camera, scene.train_cameras)
     out.append(dict(scene=path, teacher=teacher, kind=kind, near_length=length, source=source, extent=extent,
                     ratio=length / extent))
   return out

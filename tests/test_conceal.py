@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conceal_jax.conceal import key, reveal, settings as settings_lib, train as conceal_train, views as views_lib
+from conceal_jax.conceal import key, near, reveal, settings as settings_lib, train as conceal_train, views as views_lib
 from conceal_jax.data import demo_scene, ply
 from conceal_jax.gs import init, losses
 from conceal_jax import main as main_lib
@@ -87,7 +87,7 @@ def test_extra_keys_are_further_cameras_of_the_kind():
 
 def test_decoys_lie_near_the_key_within_their_ranges():
   check = Camera.from_intrinsics(look_at([0.0, -4.0, 1.0], [0.0, 0.0, 0.0]), 40.0, 40.0, 16.0, 16.0, 32, 32)
-  decoys = key.decoy_cameras(check, 2.0, 9, (0.05, 0.1), (3.0, 6.0), seed=1)
+  decoys = near.decoy_cameras(check, 2.0, 9, (0.05, 0.1), (3.0, 6.0), seed=1)
   center = camera_centers([check])[0]
   forward = np.asarray(check.world_to_camera)[2, :3]
   for k, decoy in enumerate(decoys):
@@ -102,10 +102,10 @@ def test_decoys_lie_near_the_key_within_their_ranges():
                                  atol=1e-6)
     else:  # the optical axis turns by at most the rotation angle (less when the axis is near the view direction)
       assert 0.1 < turned <= 6.0 + 1e-3
-  near = key.nearby_cameras(check, 2.0, (0.05,), (), 4)
+  near = near.nearby_cameras(check, 2.0, (0.05,), (), 4)
   assert not any(np.allclose(np.asarray(d.world_to_camera), np.asarray(n.world_to_camera))
                  for d in decoys for _, _, n in near)
-  again = key.decoy_cameras(check, 2.0, 9, (0.05, 0.1), (3.0, 6.0), seed=1)
+  again = near.decoy_cameras(check, 2.0, 9, (0.05, 0.1), (3.0, 6.0), seed=1)
   np.testing.assert_array_equal(np.asarray(again[4].world_to_camera), np.asarray(decoys[4].world_to_camera))
 
 

@@ -1,4 +1,4 @@
-"""The near-key length (key.near_length): the unit of the leakage figure's and the decoys' translations, the
+"""The near-key length (near.near_length): the unit of the leakage figure's and the decoys' translations, the
 depth of the scene as the key sees it, so that a fraction means about the same pixel motion on an orbit and on a
 forward-facing capture."""
 from __future__ import annotations
@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from conceal_jax.conceal import key as key_lib, scoring
+from conceal_jax.conceal import key as key_lib, near, scoring
 from conceal_jax.data.scene import camera_extent
 from conceal_jax.splat.camera import Camera, look_at
 from tests.helpers import make_gaussians
@@ -57,10 +57,10 @@ def project(camera_: Camera, means: np.ndarray) -> np.ndarray:
 def pixel_motion(teacher, key: Camera, length: float, fraction: float) -> float:
   """Median pixel shift of the Gaussians the key sees, with the key moved by `fraction` of `length` in
   scoring.NEAR_DIRECTIONS random directions (the leakage figure's poses), averaged over the directions."""
-  _, _, inside = key_lib.view_depths(teacher, key)
+  _, _, inside = near.view_depths(teacher, key)
   means = np.asarray(teacher.means, np.float64)[inside]
   before = project(key, means)
-  moved = key_lib.nearby_cameras(key, length, (fraction,), (), scoring.NEAR_DIRECTIONS)
+  moved = near.nearby_cameras(key, length, (fraction,), (), scoring.NEAR_DIRECTIONS)
   return float(np.mean([np.median(np.linalg.norm(project(c, means) - before, axis=1)) for _, _, c in moved]))
 
 
@@ -68,7 +68,7 @@ def test_a_fraction_of_the_near_length_moves_the_image_alike_on_both_geometries(
   motions, old = {}, {}
   for name, (cameras, teacher) in dict(forward=forward_facing(), orbit=orbit()).items():
     key = cameras[-2]
-    length, source = key_lib.near_length(teacher, key, cameras)
+    length, source = near.near_length(teacher, key, cameras)
     assert source == "view_depth"
     fraction = scoring.NEAR_TRANSLATIONS[-1]
     motions[name] = pixel_motion(teacher, key, length, fraction)
@@ -87,11 +87,11 @@ def test_near_length_is_the_opacity_weighted_median_depth_in_the_image():
            (0.0, 0.0, -5.0),  # behind the camera
            (30.0, 0.0, 1.0)]  # outside the image
   opacities = [logit(0.9), -30.0, logit(0.2), logit(0.9), 10.0, 10.0]
-  depth, opacity, inside = key_lib.view_depths(gaussians(means, opacities), key)
+  depth, opacity, inside = near.view_depths(gaussians(means, opacities), key)
   np.testing.assert_allclose(depth, [2, 3, 5, 9, -5, 1], atol=1e-5)
   assert inside.tolist() == [True, True, True, True, False, False]
   # the weights of the depths 2, 3, 5, 9 are 0.9, ~0, 0.2, 0.9: half of 2.0 is reached at depth 5
-  length, source = key_lib.near_length(gaussians(means, opacities), key, [key])
+  length, source = near.near_length(gaussians(means, opacities), key, [key])
   assert source == "view_depth" and abs(length - 5.0) < 1e-5
 
 
@@ -99,7 +99,7 @@ def test_a_key_that_sees_no_gaussians_takes_the_camera_distance():
   cameras, teacher = orbit()
   centre = np.linalg.inv(np.asarray(cameras[0].world_to_camera, np.float64))[:3, 3]
   away = camera(centre, 2 * centre)  # looking out of the orbit, where no camera looks
-  length, source = key_lib.near_length(teacher, away, cameras)
+  length, source = near.near_length(teacher, away, cameras)
   assert source == "camera_distance"
   assert length == key_lib.camera_distance(cameras) and abs(length - 4.0) < 1e-3
 

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from conceal_jax import RenderOptions, render
-from conceal_jax.conceal import key as key_lib, reveal
+from conceal_jax.conceal import near, reveal
 from conceal_jax.robust import model_attacks, robustness
 from conceal_jax.splat.camera import camera_centers
 from tests.helpers import make_camera, random_gaussians
@@ -26,10 +26,10 @@ def no_decoder_owner(gaussians, camera, size=16):
 
 def test_nearby_camera_moves_and_turns_by_the_asked_amount():
   camera = make_camera(32, 24)
-  moved = key_lib.nearby_camera(camera, 0.3, 0.0, seed=1)
+  moved = near.nearby_camera(camera, 0.3, 0.0, seed=1)
   np.testing.assert_allclose(np.linalg.norm(camera_centers([moved])[0] - camera_centers([camera])[0]), 0.3,
                              rtol=1e-5)
-  turned = key_lib.nearby_camera(camera, 0.0, 4.0, seed=2)
+  turned = near.nearby_camera(camera, 0.0, 4.0, seed=2)
   r0 = np.asarray(camera.world_to_camera, np.float64)[:3, :3]
   r1 = np.asarray(turned.world_to_camera, np.float64)[:3, :3]
   angle = np.degrees(np.arccos(np.clip((np.trace(r1 @ r0.T) - 1) / 2, -1, 1)))

@@ -17,14 +17,14 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from conceal_jax.conceal import key as key_lib
+from conceal_jax.conceal import near
 from conceal_jax.core import fileio
 from conceal_jax.gs import evaluate, metrics
 from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.render import RenderOptions, render
 
 # Leakage near the key: the student at the check pose moved by these fractions of the key's near-key length
-# (key.near_length: the depth of the scene as the key sees it), or turned by these degrees, each in
+# (near.near_length: the depth of the scene as the key sees it), or turned by these degrees, each in
 # NEAR_DIRECTIONS random directions.
 NEAR_TRANSLATIONS = (0.02, 0.05)
 NEAR_ROTATIONS_DEG = (2.0, 5.0)
@@ -46,10 +46,10 @@ def scores_to_hidden(revealed, hidden) -> dict[str, np.ndarray]:
 def near_key_rows(gaussians, check_camera: Camera, options: RenderOptions, reveal_fn, hidden, length: float,
                   translations=NEAR_TRANSLATIONS, rotations_deg=NEAR_ROTATIONS_DEG,
                   directions: int = NEAR_DIRECTIONS) -> list[dict]:
-  """What `reveal_fn` reveals at poses near the key (key.nearby_cameras): per (kind, value), the mean and max
+  """What `reveal_fn` reveals at poses near the key (near.nearby_cameras): per (kind, value), the mean and max
   SSIM and the mean PSNR to I over the random directions (to the best of several hidden images); translations
-  are fractions of `length`, the key's key.near_length."""
-  poses = key_lib.nearby_cameras(check_camera, length, translations, rotations_deg, directions)
+  are fractions of `length`, the key's near.near_length."""
+  poses = near.nearby_cameras(check_camera, length, translations, rotations_deg, directions)
   renders = evaluate.render_images(gaussians, [camera for _, _, camera in poses], options)
   scores = scores_to_hidden(reveal_fn(renders), hidden)
   rows = []
@@ -95,7 +95,7 @@ def leakage_scores(config, workdir: str, scene, teacher, student, reveal_fn, key
   """Render quality of student and teacher on the test split and the leakage figures (module doc) over
   every hidden image [K, S, S, 3]; writes the student's test renders and normal_revealed.png (the test
   view whose decoder output looks most like a hidden image). `near_key_length` per key: the length its
-  near-key translations are fractions of (key.near_length of the clean `teacher`), what it is, and the
+  near-key translations are fractions of (near.near_length of the clean `teacher`), what it is, and the
   scene extent beside it."""
   eval_opts = evaluate.eval_options(config, scene.background)
   cameras, targets, names = evaluate.held_out_views(scene, config.eval.max_views)
@@ -107,7 +107,7 @@ def leakage_scores(config, workdir: str, scene, teacher, student, reveal_fn, key
   worst = int(np.argmax(ssim_to_hidden))
   fileio.write_image(os.path.join(workdir, "normal_revealed.png"), np.asarray(normal_revealed[worst]))
   floor_ssim = scores_to_hidden(reveal_fn(teacher_renders), hiddens)["ssim"]
-  lengths = [key_lib.near_length(teacher, camera, scene.train_cameras) for camera in key_cameras]
+  lengths = [near.near_length(teacher, camera, scene.train_cameras) for camera in key_cameras]
   near_rows = [near_key_rows(student, camera, options, reveal_fn, hiddens, length)
                for camera, (length, _) in zip(key_cameras, lengths)]
   net = config.eval.lpips_net

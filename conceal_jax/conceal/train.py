@@ -19,7 +19,7 @@ import ml_collections
 import numpy as np
 
 from conceal_jax.conceal import augment, hidden as hidden_lib, key as key_lib, reveal, scoring, settings as settings_lib
-from conceal_jax.conceal import carrier, decimate, message as message_lib, unet, views as views_lib
+from conceal_jax.conceal import carrier, decimate, message as message_lib, near, unet, views as views_lib
 from conceal_jax.conceal.step import create_state, make_step
 from conceal_jax.core import fileio, loop, parallel
 from conceal_jax.data import ply
@@ -65,11 +65,11 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
                              plan.key_offset)
   options = evaluate.render_options(config, scene.background)
   # each key records the length its decoys' (and the leakage figure's) translations are fractions of
-  lengths = [key_lib.near_length(teacher, camera, scene.train_cameras) for camera, _ in keys]
+  lengths = [near.near_length(teacher, camera, scene.train_cameras) for camera, _ in keys]
   keys = [(camera, dict(info, near_length=length, near_length_from=source))
           for (camera, info), (length, source) in zip(keys, lengths)]
   decoys = [decoy for k, (camera, info) in enumerate(keys)
-            for decoy in key_lib.decoy_cameras(camera, info["near_length"], plan.decoy_views, plan.decoy_translation,
+            for decoy in near.decoy_cameras(camera, info["near_length"], plan.decoy_views, plan.decoy_translation,
                                                plan.decoy_rotation_deg, plan.key_seed + k)]
   # the released variant's check-view L1 target: the training image at a training-camera key, else the
   # teacher's render (an orbit pose has no image)

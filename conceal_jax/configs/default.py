@@ -240,7 +240,7 @@ def conceal_leakage_section() -> ml_collections.ConfigDict:
   teacher's check render (the key reveals the student's change, not the pose); decoy_views cameras near every key
   (moved by a fraction of the key's depth, turned by degrees, within the ranges) trained as normal views with
   probability decoy_fraction, holding the student to the teacher and F to the identity there. The key's depth
-  (key.near_length) is the opacity-weighted median depth of the teacher's Gaussians in its image (the camera
+  (near.near_length) is the opacity-weighted median depth of the teacher's Gaussians in its image (the camera
   distance for a key that sees almost none): the unit of the near-key leakage figure's translations too, so that
   a fraction means about the same pixel motion on an object-centred orbit and on a forward-facing capture, where
   the 3D-GS extent (the spread of the camera centres) is small against the depth."""

@@ -41,7 +41,7 @@ WATCH_DECOY_VIEWS, WATCH_DECOY_FRACTION, WATCH_WEIGHT_MINUS = 768, 0.9, 1.5
 # The rate of the film's base colours in the vivid film (the gentle student's is 6.25e-4).
 VIVID_DC_LR = 1e-2
 # The keyed decoder: fixed sign channels it reads beside the render, and decoys close to the key (translation as a
-# fraction of the length the key sees, key.near_length; rotation in degrees) where a plain film reveals its image
+# fraction of the length the key sees, near.near_length; rotation in degrees) where a plain film reveals its image
 # shifted.
 PATTERN_CHANNELS = 4
 NEAR_DECOY_TRANSLATION, NEAR_DECOY_ROTATION_DEG = (0.005, 0.05), (0.5, 4.0)

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, message as message_lib, reveal
+from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, message as message_lib, near, reveal
 from conceal_jax.core import fileio, settings
 from conceal_jax.gs import evaluate, metrics
 from conceal_jax.robust import phase_statistic
@@ -89,7 +89,7 @@ def decide(score: float, calibration: dict) -> bool:
 def null_cameras(camera: Camera, count: int) -> list[Camera]:
   """`count` cameras at the key's position turned by angles spread evenly over NULL_TURN_DEG about random axes."""
   angles = np.linspace(*NULL_TURN_DEG, count) if count > 1 else np.full(count, np.mean(NULL_TURN_DEG))
-  return [key_lib.nearby_camera(camera, 0.0, float(angle), NULL_SEED_BASE + k) for k, angle in enumerate(angles)]
+  return [near.nearby_camera(camera, 0.0, float(angle), NULL_SEED_BASE + k) for k, angle in enumerate(angles)]
 
 
 def unrelated_images(hidden: np.ndarray) -> np.ndarray:

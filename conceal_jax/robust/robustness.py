@@ -129,7 +129,7 @@ def pose_tolerance_rows(gaussians: Gaussians, owner: Owner, length: float,
                         translations: Sequence[float] = (0.0, 0.002, 0.005, 0.01, 0.02, 0.05),
                         rotations_deg: Sequence[float] = (0.0, 0.25, 0.5, 1.0, 2.0, 5.0),
                         directions: int = 4) -> list[dict]:
-  """Hidden SSIM / PSNR with the check camera moved by fractions of `length` (the key's key.near_length, the
+  """Hidden SSIM / PSNR with the check camera moved by fractions of `length` (the key's near.near_length, the
   depth of the scene as it sees it; rotation 0) and turned by a few degrees (translation 0), each over
   `directions` random directions or axes: how precisely the key must be kept, and how much a guessed nearby
   pose reveals."""
