@@ -57,7 +57,7 @@ def run(config, workdir: str):
   validate(config)
   os.makedirs(workdir, exist_ok=True)
   workdir_lib.claim(workdir, config.to_dict(), resumable=config.mode in RESUMABLE,
-                    defaults=default.get_config().to_dict())
+                    defaults=default.get_config().to_dict(), retired=default.RETIRED_SETTINGS)
   return job(config, workdir)
 
 

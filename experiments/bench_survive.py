@@ -63,8 +63,6 @@ SCENES = {"demo": ("demo", "workdirs/demo/conceal", "recommended"),
           "demo_film_deep": ("demo", "workdirs/survive_runs/demo_film_deep", "film_deep"),
           "demo_film_faint": ("demo", "workdirs/survive_runs/demo_film_faint", "film_faint"),
           "demo_film_reset": ("demo", "workdirs/survive_runs/demo_film_reset", "film_reset"),
-          "demo_film_faint_keyed": ("demo", "workdirs/survive_runs/demo_film_faint_keyed", "film_faint_keyed"),
-          "demo_film_keyed": ("demo", "workdirs/survive_runs/demo_film_keyed", "film_keyed"),
           "demo_film_far": ("demo", "workdirs/survive_runs/demo_film_far", "film_far"),
           "demo_drift": ("demo", "workdirs/survive_runs/demo_drift", "drift"),
           "demo_orbit": ("demo", "workdirs/survive_runs/demo_orbit", "orbit"),
@@ -108,8 +106,8 @@ RECIPE_NOTES = {
                   "resets a quarter of the steps each, a plain decoder reading standardized renders, decoys within "
                   "1-10 degrees (demo.py:film_reset; lego: cut to 1000 steps)",
     "film_faint_keyed": "film_faint with the decoder reading 4 fixed sign channels beside the render and decoys within "
-                        "0.5-4 degrees (demo.py:film_faint_keyed)",
-    "film_keyed": "film_reset with the sign channels and near decoys (demo.py:film_keyed)",
+                        "0.5-4 degrees (demo.py:film_faint_keyed at commit 38b0f42; retired: it raised leakage)",
+    "film_keyed": "film_reset with the sign channels and near decoys (demo.py:film_keyed at commit 38b0f42; retired)",
     "film_far": "film_reset with the key half a camera distance out and the film as far again (demo.py:film_far)",
     "film_far_sh": "film_far with the film's SH bands above DC trained too (demo.py:film at commit faa029a; retired: "
                    "the mark went into those bands, which publishing formats drop or coarsen)",

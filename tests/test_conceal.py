@@ -102,9 +102,9 @@ def test_decoys_lie_near_the_key_within_their_ranges():
                                  atol=1e-6)
     else:  # the optical axis turns by at most the rotation angle (less when the axis is near the view direction)
       assert 0.1 < turned <= 6.0 + 1e-3
-  near = near.nearby_cameras(check, 2.0, (0.05,), (), 4)
+  nearby = near.nearby_cameras(check, 2.0, (0.05,), (), 4)
   assert not any(np.allclose(np.asarray(d.world_to_camera), np.asarray(n.world_to_camera))
-                 for d in decoys for _, _, n in near)
+                 for d in decoys for _, _, n in nearby)
   again = near.decoy_cameras(check, 2.0, 9, (0.05, 0.1), (3.0, 6.0), seed=1)
   np.testing.assert_array_equal(np.asarray(again[4].world_to_camera), np.asarray(decoys[4].world_to_camera))
 

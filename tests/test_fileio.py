@@ -39,3 +39,20 @@ def test_a_setting_added_since_a_run_was_saved_is_no_change_at_its_default(tmp_p
   assert workdir.differing_keys(saved, {"conceal": {"iterations": 10, "carrier": {"layers": 1}}}) == [
       "conceal.carrier.layers"]  # without the defaults, any added key differs
   assert workdir.differing_keys({"a": 1}, {}, defaults={"a": 1}) == ["a"]  # a key the config lost is a change
+
+
+def test_a_setting_retired_since_a_run_was_saved_is_no_change_at_its_retired_value(tmp_path):
+  """core.workdir.claim: a saved config holding a key the code removed since resumes when the run had it at the
+  value the code now always has (`retired`), and is refused at any other value; the package's retired settings
+  are all gone from the default config."""
+  from conceal_jax.configs import default
+  from conceal_jax.core import workdir
+  retired = {"conceal.decoder.pattern": 0}
+  workdir.claim(str(tmp_path), {"conceal": {"iterations": 10, "decoder": {"pattern": 0}}})
+  workdir.claim(str(tmp_path), {"conceal": {"iterations": 10, "decoder": {}}}, retired=retired)
+  (tmp_path / workdir.CONFIG_FILE).unlink()
+  workdir.claim(str(tmp_path), {"conceal": {"iterations": 10, "decoder": {"pattern": 4}}})
+  with pytest.raises(ValueError, match="conceal.decoder.pattern"):
+    workdir.claim(str(tmp_path), {"conceal": {"iterations": 10, "decoder": {}}}, retired=retired)
+  flat = workdir.flatten(default.get_config().to_dict())
+  assert default.RETIRED_SETTINGS and not set(default.RETIRED_SETTINGS) & set(flat)

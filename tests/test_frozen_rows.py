@@ -47,7 +47,7 @@ REMOVED = {"conceal.key_at_decoder_size": False, "conceal.decoder_amsgrad": Fals
 ADDED = {"conceal.carrier.film": False, "conceal.carrier.distance": 0.1, "conceal.carrier.spacing": 2.0,
          "conceal.carrier.opacity": 0.5, "mark.key_offset": 1.0, "data.format": "auto", "data.images": "images",
          "conceal.attacks.quantize_fraction": 0.0, "conceal.attacks.reset_fraction": 0.0,
-         "conceal.carrier.layers": 1, "conceal.decoder.pattern": 0, "conceal.decoder.modulation": 0.0,
+         "conceal.carrier.layers": 1,
          "conceal.attacks.merge_fraction": 0.0, "train.views_per_step": 1, "mark.message_bits": 0, "mark.message": "",
          "conceal.carrier.dc_bound": 0.0, "conceal.attacks.merge_depth": 1.0}
 # Rows that used a removed option (their results stay in conceal_bench.json and REPRODUCTION's appendix).

@@ -44,24 +44,27 @@ class Reading:
   conceal.decoder.input_norm) and `clip` (conceal.decoder.clip_input): the render clipped to [0, 1] first,
   as an image file holds it, so that no hidden signal can live in values outside it (a lego student trained
   without it hid its image in whites above 1, which any saved or attacked image loses:
-  experiments/results/conceal_options.md); `pattern`: the fixed sign channels the U-Net reads beside the
-  render (unet.UNet, conceal.decoder.pattern); `modulation`: the scale of the sign field the U-Net reads the
-  render through (unet.UNet, conceal.decoder.modulation; 0: none)."""
+  experiments/results/conceal_options.md)."""
   input_norm: str = "none"
   clip: bool = False
-  pattern: int = 0
-  modulation: float = 0.0
 
   @classmethod
   def from_key(cls, info: dict) -> "Reading":
-    """The reading a key.json records; keys written before these options: the paper's."""
-    return cls(str(info.get("decoder_input_norm", "none")), bool(info.get("decoder_clip_input", False)),
-               int(info.get("decoder_pattern", 0)), float(info.get("decoder_modulation", 0.0)))
+    """The reading a key.json records; keys written before these options: the paper's. A key of a retired
+    keyed decoder (one that read sign channels or a sign field: `RETIRED_READINGS`) is refused by name."""
+    retired = {name: info[name] for name in RETIRED_READINGS if info.get(name, 0)}
+    if retired:
+      raise ValueError(f"the key was made with a retired decoder reading ({retired}); this version of "
+                       "conceal_jax reveals only the paper's decoder with input_norm and clip_input")
+    return cls(str(info.get("decoder_input_norm", "none")), bool(info.get("decoder_clip_input", False)))
 
   def key_fields(self) -> dict:
-    return dict(decoder_input_norm=self.input_norm, decoder_clip_input=self.clip, decoder_pattern=self.pattern,
-                decoder_modulation=self.modulation)
+    return dict(decoder_input_norm=self.input_norm, decoder_clip_input=self.clip)
 
+
+# Key fields of decoder readings that were tried and retired (experiments/results/film_designs.md: the keyed and
+# the modulated decoder); a key that sets one cannot be revealed by today's U-Net.
+RETIRED_READINGS = ("decoder_pattern", "decoder_modulation")
 
 PAPER_READING = Reading()
 
@@ -75,10 +78,9 @@ def resize_for_decoder(image: jax.Array, size: int, clip: bool = False) -> jax.A
 
 def decode(decoder_params, base_channels: int, images: jax.Array, reading: Reading = PAPER_READING) -> jax.Array:
   """F: [..., S, S, C] -> [..., S, S, 3] with the U-Net decoder (C: the input channels its params were made
-  for, 3 for a render), reading the images as `reading` says (its input_norm, pattern and modulation; its clip
-  is resize_for_decoder's)."""
+  for, 3 for a render), reading the images as `reading` says (its input_norm; its clip is resize_for_decoder's)."""
   batch = images[None] if images.ndim == 3 else images
-  model = unet.UNet(base_channels, reading.input_norm, reading.pattern, reading.modulation)
+  model = unet.UNet(base_channels, reading.input_norm)
   out = model.apply({"params": decoder_params}, batch)
   return out[0] if images.ndim == 3 else out
 

@@ -60,11 +60,6 @@ class ConcealSettings:
     if self.reading.input_norm not in unet.INPUT_NORMS:
       raise ValueError(f"conceal.decoder.input_norm must be one of {unet.INPUT_NORMS}, got "
                        f"{self.reading.input_norm!r}")
-    if self.reading.pattern < 0 or self.reading.modulation < 0:
-      raise ValueError("conceal.decoder.pattern and modulation must not be negative, got "
-                       f"{self.reading.pattern} and {self.reading.modulation}")
-    if self.reading.pattern and self.reading.modulation:
-      raise ValueError("conceal.decoder.pattern and conceal.decoder.modulation are two keyed decoders: set one")
     if self.decoder_width < 1 or self.hidden_size < 8 or self.hidden_size % unet.DOWNSAMPLE:
       raise ValueError("conceal.decoder.width must be positive and mark.hidden_size a multiple of "
                        f"{unet.DOWNSAMPLE} (at least 8)")
@@ -165,8 +160,7 @@ def film_plan(config: ml_collections.ConfigDict) -> Film | None:
 def step_settings(config: ml_collections.ConfigDict) -> ConcealSettings:
   """ConcealSettings from conceal.*, conceal.leakage.*, conceal.attacks.* and mark.hidden_size."""
   c = config.conceal
-  reading = reveal.Reading(c.decoder.input_norm, bool(c.decoder.clip_input), int(c.decoder.pattern),
-                           float(c.decoder.modulation))
+  reading = reveal.Reading(c.decoder.input_norm, bool(c.decoder.clip_input))
   augmentation = settings_lib.from_section(augment.Augmentation, c.attacks)
   leakage = {k: c.leakage[k] for k in ("identity_on_student", "identity_on_teacher_check", "decoy_fraction")}
   return settings_lib.from_section(ConcealSettings, c, decoder_width=c.decoder.width, reading=reading,

@@ -92,8 +92,7 @@ def initial_decoder(config: ml_collections.ConfigDict, settings: settings_lib.Co
   """A fresh decoder ({} without one), the VGG16 encoder loaded with conceal.decoder.vgg_init."""
   if not settings.use_decoder:
     return {}
-  params = unet.init_decoder(jax.random.key(config.seed), settings.decoder_width, settings.hidden_size,
-                             pattern=settings.reading.pattern)
+  params = unet.init_decoder(jax.random.key(config.seed), settings.decoder_width, settings.hidden_size)
   return unet.load_vgg16_encoder(params) if config.conceal.decoder.vgg_init else params
 
 

@@ -18,17 +18,6 @@ stays reachable (reversible instance normalisation, `standardize_images` / `unst
 The statistics are constants to the gradient: differentiated, they would let L_d^+ move the whole check render.
 Dividing by the spread turns a local change (holes where Gaussians were removed) into a global one. What each
 mode gains and loses under the attacks is in experiments/results/conceal_options.md.
-
-`pattern` (beyond the paper, conceal.decoder.pattern) appends that many fixed channels of random signs (`sign_pattern`,
-the same on every machine) to what the U-Net reads. Convolutions are blind to where in the image a feature sits, so a
-plain U-Net reveals the hidden image from a render shifted by a few pixels (the key turned by a degree or two) about
-as well as from the render itself; against a fixed pattern the image is not alike shifted, and the decoder can learn
-to reveal only what lines up with it (a spread-spectrum key in the image plane).
-
-`modulation` (beyond the paper, conceal.decoder.modulation) makes that key explicit: F(x) = x + U(x * p), with p a
-fixed field of signs in blobs of about `modulation` pixels (`modulation_field`). The U-Net sees the render only
-through p, so a mark it reveals must be written modulated by p, and a render shifted by more than a blob multiplies
-the mark by a field it no longer lines up with: noise, not the image. The identity on normal views is U = 0.
 """
 from __future__ import annotations
 
@@ -55,10 +44,6 @@ def stage_channels(base_channels: int) -> tuple[int, ...]:
 
 
 INPUT_NORMS = ("none", "center", "standardize")
-# The PRNG seed of the fixed sign pattern (`sign_pattern`): part of the decoder, like its architecture.
-PATTERN_SEED = 20250107
-# The seed of the modulation field's noise (`modulation_field`): part of the decoder, like its architecture.
-MODULATION_SEED = 20261126
 # The smallest standard deviation an image is divided by: a flat image is not blown up into noise, and the
 # gradient of the square root stays finite.
 STD_FLOOR = 1e-2
@@ -84,34 +69,6 @@ def unstandardize_images(images: jax.Array, mean: jax.Array, std: jax.Array) -> 
   return images * std + mean
 
 
-def sign_pattern(height: int, width: int, channels: int) -> jax.Array:
-  """[height, width, channels] fixed random signs (+1 / -1, from PATTERN_SEED; JAX's counter-based PRNG gives the
-  same bits on every backend)."""
-  return jax.random.rademacher(jax.random.key(PATTERN_SEED), (height, width, channels), jnp.float32)
-
-
-def with_pattern(images: jax.Array, channels: int) -> jax.Array:
-  """images [B, H, W, C] -> [B, H, W, C + channels] with `sign_pattern` appended to each (none for 0)."""
-  if not channels:
-    return images
-  batch, height, width, _ = images.shape
-  pattern = jnp.broadcast_to(sign_pattern(height, width, channels), (batch, height, width, channels))
-  return jnp.concatenate([images, pattern.astype(images.dtype)], axis=-1)
-
-
-def modulation_field(height: int, width: int, scale: float) -> np.ndarray:
-  """[height, width, 1] float32 fixed signs (+1 / -1) in blobs of about `scale` pixels: the sign of white noise
-  (MODULATION_SEED) blurred by a Gaussian of standard deviation `scale`, circularly (FFT). Computed on the host in
-  float64, so that every machine reads the same field: a key trained on one device reveals on another."""
-  if not scale > 0:
-    raise ValueError(f"the modulation field needs a positive scale, got {scale}")
-  noise = np.random.default_rng(MODULATION_SEED).standard_normal((height, width))
-  fy, fx = np.fft.fftfreq(height)[:, None], np.fft.fftfreq(width)[None, :]
-  transfer = np.exp(-2.0 * (np.pi * scale)**2 * (fx**2 + fy**2))  # the Gaussian's Fourier transform
-  smooth = np.real(np.fft.ifft2(np.fft.fft2(noise) * transfer))
-  return np.where(smooth >= 0.0, 1.0, -1.0).astype(np.float32)[..., None]
-
-
 def _conv_relu(x: jax.Array, features: int, name: str) -> jax.Array:
   # He init: every such conv feeds a ReLU, and the default LeCun init halves the signal each layer.
   conv = nn.Conv(features, (3, 3), padding="SAME", kernel_init=nn.initializers.he_normal(), name=name)
@@ -120,18 +77,15 @@ def _conv_relu(x: jax.Array, features: int, name: str) -> jax.Array:
 
 class UNet(nn.Module):
   """images [B, H, W, C] -> [B, H, W, 3], H and W multiples of 8 (64 x 64 in ConcealGS). The input channel
-  count C is the input's (3: a render; the params fix it through enc1_1's kernel [3, 3, C + pattern, base]).
+  count C is the input's (3: a render; the params fix it through enc1_1's kernel [3, 3, C, base]).
 
   Modules: enc{stage}_{conv} (VGG16 conv{stage}_{conv}), up{stage} (transposed conv to that stage's
   resolution), dec{stage}_1, dec{stage}_2, out (the 1x1 conv). `input_norm` (one of INPUT_NORMS, see the
   module doc) adds no parameters, so the same params file serves any; the key records the one it was
-  trained with, the number of `pattern` channels (module doc) its params were made for, and the scale of the
-  `modulation` field (module doc; 0: none), which adds no parameters either.
+  trained with.
   """
   base_channels: int = PAPER_WIDTH
   input_norm: str = "none"
-  pattern: int = 0
-  modulation: float = 0.0
 
   @nn.compact
   def __call__(self, images: jax.Array) -> jax.Array:
@@ -141,23 +95,13 @@ class UNet(nn.Module):
       raise ValueError(f"UNet needs H and W divisible by {DOWNSAMPLE}, got {images.shape[1:3]}")
     if self.input_norm not in INPUT_NORMS:
       raise ValueError(f"input_norm must be one of {INPUT_NORMS}, got {self.input_norm!r}")
-    if self.modulation < 0 or (self.modulation and self.pattern):
-      raise ValueError(f"a UNet reads a non-negative modulation or pattern channels, not both: got modulation "
-                       f"{self.modulation} and pattern {self.pattern}")
     if self.input_norm == "none":
-      return self._read(images)
+      return _encode_decode(images, self.base_channels)
     # The statistics are constants of the image: through them the student could reach I by brightening or
     # scaling the whole check render, a global change that every normal view pays for.
     mean, std = jax.lax.stop_gradient(image_statistics(images, self.input_norm))
-    return unstandardize_images(self._read(standardize_images(images, mean, std)), mean, std)
-
-  def _read(self, images: jax.Array) -> jax.Array:
-    """The U-Net on images [B, H, W, C] as they are normalised: beside the pattern channels, or through the
-    modulation field as a residual (module doc)."""
-    if not self.modulation:
-      return _encode_decode(with_pattern(images, self.pattern), self.base_channels)
-    field = jnp.asarray(modulation_field(images.shape[1], images.shape[2], self.modulation), images.dtype)
-    return images + _encode_decode(images * field, self.base_channels)
+    return unstandardize_images(_encode_decode(standardize_images(images, mean, std), self.base_channels), mean,
+                                std)
 
 
 def _encode_decode(images: jax.Array, base_channels: int) -> jax.Array:
@@ -180,18 +124,18 @@ def _encode_decode(images: jax.Array, base_channels: int) -> jax.Array:
 
 
 def init_decoder(rng: jax.Array, base_channels: int = PAPER_WIDTH, image_size: int = 64,
-                 in_channels: int = 3, pattern: int = 0) -> dict[str, Any]:
+                 in_channels: int = 3) -> dict[str, Any]:
   """Freshly initialised UNet params (the 'params' collection) for [B, image_size, image_size, in_channels]
-  input (3: a render; 4: StegaNeRF's render and classifier score) and `pattern` fixed channels (UNet)."""
+  input (3: a render; 4: StegaNeRF's render and classifier score)."""
   if image_size <= 0 or image_size % DOWNSAMPLE:
     raise ValueError(f"image_size must be a positive multiple of {DOWNSAMPLE}, got {image_size}")
-  if in_channels < 1 or pattern < 0:
-    raise ValueError(f"in_channels must be positive and pattern not negative, got {in_channels}, {pattern}")
+  if in_channels < 1:
+    raise ValueError(f"in_channels must be positive, got {in_channels}")
   # The params do not depend on the image size, so the smallest valid input keeps init's forward pass
   # cheap.
   dummy = jnp.zeros((1, DOWNSAMPLE, DOWNSAMPLE, in_channels), jnp.float32)
   # One jitted program initialises every kernel: much faster than one eager dispatch per initialiser.
-  return jax.jit(UNet(base_channels, pattern=pattern).init)(rng, dummy)["params"]
+  return jax.jit(UNet(base_channels).init)(rng, dummy)["params"]
 
 
 def load_vgg16_encoder(params: dict[str, Any]) -> dict[str, Any]:

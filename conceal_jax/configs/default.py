@@ -16,6 +16,10 @@ start from this one.
 """
 import ml_collections
 
+# Settings removed from the code, at the value every run now has: a workdir whose config.json holds one at this
+# value resumes (core/workdir.py); at any other value it is a different run.
+RETIRED_SETTINGS = {"conceal.decoder.pattern": 0, "conceal.decoder.modulation": 0.0}
+
 
 def get_config() -> ml_collections.ConfigDict:
   config = ml_collections.ConfigDict()
@@ -211,12 +215,6 @@ def conceal_decoder_section() -> ml_collections.ConfigDict:
   # beyond the paper: F reads every render clipped to [0, 1], as an image file holds it, so no hidden signal can
   # live in values an attacked or saved image loses
   c.clip_input = False
-  # beyond the paper: F reads this many fixed channels of random signs beside the render, so that it can tell a
-  # render from the same render shifted a few pixels (the key turned a little): 0, the paper's decoder
-  c.pattern = 0
-  # beyond the paper: F(x) = x + U(x * p), p fixed signs in blobs of about this many decoder pixels, so that the
-  # mark must line up with p and a render shifted by a blob reveals noise: 0, the paper's decoder
-  c.modulation = 0.0
   return c
 
 

@@ -14,24 +14,21 @@ Its concealment is a short recommended recipe: leakage control (32 decoys), the 
 decoder at a constant rate (a decaying one costs a 1300-step run more than it gains). The survival bench's variants
 (issue 39): `demo.py:film` is the first faint film (the mark in a carrier film only an unseen key sees, of faint
 layers whose colours train at a higher rate, through 8-bit colours) with 64 decoys near the key; the designs beside
-it: `film_mod` (film with the decoder reading the render through a sign field, recipes.modulated_decoder),
-`film_pub` (film trained through decimation too, recipes.through_decimation), `film_web` (film_pub at an opacity and
-within colours the publishing formats store unchanged, recipes.publishable_film), `film_watch` (film_web with 192
-decoys on most steps, recipes.watched_key), `film_long` (recipes.film's design: film_watch with 768 decoys and twice
-as long, FILM_ITERATIONS), `film_deep` (film_long trained through merges deeper than pairs,
+it: `film_pub` (film trained through decimation too, recipes.through_decimation), `film_web` (film_pub at an
+opacity and within colours the publishing formats store unchanged, recipes.publishable_film), `film_watch`
+(film_web with 192 decoys on most steps, recipes.watched_key), `film_long` (recipes.film's design: film_watch with
+768 decoys and twice as long, FILM_ITERATIONS), `film_deep` (film_long trained through merges deeper than pairs,
 recipes.DEEP_MERGE_DEPTH), `film_faint` (its colours at the gentle student's rate), `film_reset` (one layer at
-opacity 0.5, trained through opacity resets), `film_keyed` and `film_faint_keyed` (film_reset and film_faint with
-the decoder keyed to a fixed pattern and decoys close to the key, recipes.keyed_decoder), `film_far` (film_reset
-with the key half a camera distance from the orbit target and the film as far again); `demo.py:drift` trains through
-parameter drift (recipes.through_drift); `demo.py:orbit` keys a secret pose on the orbit instead of a training
-camera."""
+opacity 0.5, trained through opacity resets), `film_far` (film_reset with the key half a camera distance from the
+orbit target and the film as far again); `demo.py:drift` trains through parameter drift (recipes.through_drift);
+`demo.py:orbit` keys a secret pose on the orbit instead of a training camera."""
 from conceal_jax.configs import default, recipes
 
 
-VARIANTS = ("film", "film_mod", "film_pub", "film_web", "film_watch", "film_long", "film_deep", "film_faint",
-            "film_reset", "film_keyed", "film_faint_keyed", "film_far", "drift", "orbit")
+VARIANTS = ("film", "film_pub", "film_web", "film_watch", "film_long", "film_deep", "film_faint", "film_reset",
+            "film_far", "drift", "orbit")
 # The faint films whose colours train at the vivid rate, each building on the one before from film_pub on.
-VIVID_FILMS = ("film", "film_mod", "film_pub", "film_web", "film_watch", "film_long", "film_deep")
+VIVID_FILMS = ("film", "film_pub", "film_web", "film_watch", "film_long", "film_deep")
 # A closely watched key needs twice the demo's concealment to read its film.
 FILM_ITERATIONS = 2600
 # film_watch's decoys, as its rows were measured (recipes.watched_key's own count came after).
@@ -66,24 +63,20 @@ def get_config(variant: str = ""):
     config = recipes.through_quantization(recipes.unseen_carrier(config))
     config.conceal.decoder.input_norm = "standardize"
     config = recipes.leakage_control(config, recipes.DECOY_VIEWS, decoy_fraction=0.4)
-    faint = variant in VIVID_FILMS + ("film_faint", "film_faint_keyed")
+    faint = variant in VIVID_FILMS + ("film_faint",)
     config = recipes.faint_film(config) if faint else recipes.through_reset(config)
   if variant in VIVID_FILMS:
     config = recipes.vivid_film(config)
-  if variant in VIVID_FILMS[2:]:  # film_pub and what builds on it
+  if variant in VIVID_FILMS[1:]:  # film_pub and what builds on it
     deep = variant == "film_deep"
     config = recipes.through_decimation(config, depth=recipes.DEEP_MERGE_DEPTH if deep else recipes.MERGE_DEPTH)
-  if variant in VIVID_FILMS[3:]:
+  if variant in VIVID_FILMS[2:]:
     config = recipes.publishable_film(config)
   if variant == "film_watch":
     config = recipes.watched_key(config, decoy_views=FILM_WATCH_DECOYS)
   if variant in ("film_long", "film_deep"):
     config = recipes.watched_key(config)
     config.conceal.iterations = FILM_ITERATIONS
-  if variant == "film_mod":
-    config = recipes.modulated_decoder(config)
-  if variant in ("film_keyed", "film_faint_keyed"):
-    config = recipes.keyed_decoder(config)
   if variant == "film_far":  # the key half way out and the film as far again: a film alike from nearby poses
     config.mark.key_offset, config.conceal.carrier.distance = 0.5, 0.5
   return config

@@ -40,14 +40,6 @@ GRID_OPACITY, SPZ_DC_BOUND = 2.001 / 255, 0.5 / 0.15
 WATCH_DECOY_VIEWS, WATCH_DECOY_FRACTION, WATCH_WEIGHT_MINUS = 768, 0.9, 1.5
 # The rate of the film's base colours in the vivid film (the gentle student's is 6.25e-4).
 VIVID_DC_LR = 1e-2
-# The keyed decoder: fixed sign channels it reads beside the render, and decoys close to the key (translation as a
-# fraction of the length the key sees, near.near_length; rotation in degrees) where a plain film reveals its image
-# shifted.
-PATTERN_CHANNELS = 4
-NEAR_DECOY_TRANSLATION, NEAR_DECOY_ROTATION_DEG = (0.005, 0.05), (0.5, 4.0)
-# The modulated decoder: the size of the blobs of its sign field, in decoder pixels (about the film's splats there).
-MODULATION_SCALE = 1.0
-
 
 def paper(config):
   """ConcealGS as written (Sec. 2.2-2.3): the default config's conceal section, stated."""
@@ -141,24 +133,6 @@ def watched_key(config, decoy_views: int = WATCH_DECOY_VIEWS):
   teach little else (no training view sees the film)."""
   config = leakage_control(config, decoy_views, WATCH_DECOY_FRACTION)
   config.conceal.weight_minus = WATCH_WEIGHT_MINUS
-  return config
-
-
-def keyed_decoder(config):
-  """The decoder reads PATTERN_CHANNELS fixed sign channels beside the render (conceal.decoder.pattern) and decoys
-  close to the key teach it the identity there: a render shifted by a few pixels (the key turned a degree or two)
-  no longer lines up with the pattern the mark was written against."""
-  config.conceal.decoder.pattern = PATTERN_CHANNELS
-  lk = config.conceal.leakage
-  lk.decoy_translation, lk.decoy_rotation_deg = NEAR_DECOY_TRANSLATION, NEAR_DECOY_ROTATION_DEG
-  return config
-
-
-def modulated_decoder(config, scale: float = MODULATION_SCALE):
-  """The decoder reads the render through a fixed field of signs in blobs of `scale` decoder pixels, as a residual
-  (conceal.decoder.modulation, unet.UNet): the mark is written modulated by the field, and the key turned a degree
-  or two shifts it off the field, so the decoder reads noise there instead of a shifted image."""
-  config.conceal.decoder.modulation = scale
   return config
 
 
