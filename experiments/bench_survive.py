@@ -61,6 +61,7 @@ SCENES = {"demo": ("demo", "workdirs/demo/conceal", "recommended"),
           "demo_film_watch768_2600": ("demo", "workdirs/survive_runs/demo_film_watch768_2600", "film_watch768_2600"),
           "demo_film_long": ("demo", "workdirs/survive_runs/demo_film_long", "film_long"),
           "demo_film_deep": ("demo", "workdirs/survive_runs/demo_film_deep", "film_deep"),
+          "demo_film_stack": ("demo", "workdirs/survive_runs/demo_film_stack", "film_stack"),
           "demo_film_faint": ("demo", "workdirs/survive_runs/demo_film_faint", "film_faint"),
           "demo_film_reset": ("demo", "workdirs/survive_runs/demo_film_reset", "film_reset"),
           "demo_film_far": ("demo", "workdirs/survive_runs/demo_film_far", "film_far"),
@@ -100,6 +101,8 @@ RECIPE_NOTES = {
     "film_long": "recipes.film's design on the demo: film_watch with 768 decoys for 2600 steps, the check render's "
                  "8-bit grids including .compressed.ply's of the higher SH bands (demo.py:film_long)",
     "film_deep": "film_long trained through merges up to 1.5 rounds deep (recipes.DEEP_MERGE_DEPTH; demo.py:film_deep)",
+    "film_stack": "film_long with the film's splats in stacks of two at each grid position, their colours trained as "
+                  "one, and half as many grids (recipes.stacked_film; demo.py:film_stack)",
     "film_faint": "film with its colours at the gentle student's rate, 6.25e-4 (demo.py:film_faint; concealed on an "
                   "H200, attacked on the CPU)",
     "film_reset": "the first film: one grid of splats at opacity 0.5, trained through 8-bit colours and opacity "

@@ -102,30 +102,32 @@ def test_an_unseen_film_changes_no_normal_view():
     carrier.unseen_film(teacher, cameras[0], cameras, OPTIONS, 2.0, 2.0, 0.5)
 
 
-def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_path):
-  """Concealing into the film (through 8-bit colours and opacity resets, as the film recipe does) trains its
-  base colours only, within conceal.carrier.dc_bound (below the white start's 1.77, so every step clips);
-  3D-GS fine-tuning of the shared student on its training views then moves the teacher's
-  Gaussians and leaves the film exactly as it was."""
+def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_path, stack=2):
+  """Concealing into the film (through 8-bit colours, opacity resets and decimation, as the film recipe does)
+  trains its base colours only, within conceal.carrier.dc_bound (below the white start's 1.77, so every step
+  clips), each stack's splats (conceal.carrier.stack) to one colour, bit for bit; 3D-GS fine-tuning of the shared
+  student on its training views then moves the teacher's Gaussians and leaves the film exactly as it was."""
   config = tiny_config(tiny, iterations=4, key_kind="unseen", **{"carrier.film": True, "carrier.spacing": 4.0,
                                                                   "attacks.quantize_fraction": 0.5,
                                                                   "attacks.reset_fraction": 0.5,
                                                                   "attacks.merge_fraction": 0.5,
-                                                                  "carrier.dc_bound": 1.0})
+                                                                  "carrier.dc_bound": 1.0, "carrier.stack": stack})
   conceal_train.train_and_evaluate(config, str(tmp_path))
   teacher, student = ply.load_ply(str(tiny[1])), ply.load_ply(str(tmp_path / "student.ply"))
   n = teacher.num
-  assert student.num == n + 8 * 8
+  assert student.num == n + 8 * 8 * stack
   for field in ("means", "log_scales", "quats", "opacity_logits", "sh"):
     np.testing.assert_array_equal(getattr(student, field)[:n], getattr(teacher, field)[:n])
   train_cameras = evaluate.load_scene_data(config).train_cameras
   film_start = carrier.film(key_lib.unseen_camera(train_cameras, 1), 0.1 * key_lib.camera_distance(train_cameras),
-                            4.0, 0.5, (1.0, 1.0, 1.0), 1)
+                            4.0, 0.5, (1.0, 1.0, 1.0), 1, stack=stack)
   for field in ("means", "log_scales", "quats", "opacity_logits"):
     np.testing.assert_allclose(getattr(student, field)[n:], getattr(film_start, field), atol=1e-6)
   assert not np.allclose(student.sh[n:, 0], film_start.sh[:, 0])
   assert np.abs(student.sh[n:, 0]).max() <= 1.0 + 1e-6
   np.testing.assert_array_equal(student.sh[n:, 1:], 0.0)  # the bands above DC stay empty
+  stacks = np.asarray(student.sh[n:, 0]).reshape(-1, stack, 3)
+  np.testing.assert_array_equal(stacks, np.broadcast_to(stacks[:, :1], stacks.shape))
 
   scene = evaluate.load_scene_data(config)
   options = dataclasses.replace(evaluate.render_options(config, scene.background), pair_capacity=1 << 16)
@@ -140,6 +142,47 @@ def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_p
   assert not np.allclose(tuned.sh[:n], student.sh[:n])
   for field in ("means", "log_scales", "quats", "opacity_logits", "sh"):
     np.testing.assert_array_equal(getattr(tuned, field)[n:], getattr(student, field)[n:])
+
+
+def test_a_stacked_film_puts_its_stacks_at_one_place_each_splat_at_its_own_depth():
+  camera = Camera.from_intrinsics(look_at([0.3, -2.0, 1.0], [0.0, 0.5, 0.2]), 30.0, 34.0, 11.0, 9.0, 24, 20)
+  one = carrier.film(camera, distance=1.7, spacing=4.0, opacity=0.3, color=(0.2, 0.5, 0.9), sh_degree=0, layers=2)
+  three = carrier.film(camera, distance=1.7, spacing=4.0, opacity=0.3, color=(0.2, 0.5, 0.9), sh_degree=0, layers=2,
+                       stack=3)
+  assert three.num == 3 * one.num
+  w2c = np.asarray(camera.world_to_camera, np.float64)
+  in_camera = np.asarray(three.means, np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+  pixels = in_camera[:, :2] / in_camera[:, 2:]
+  np.testing.assert_allclose(pixels.reshape(-1, 3, 2), np.broadcast_to(pixels[::3, None], (one.num, 3, 2)), atol=1e-6)
+  one_pixels = np.asarray(one.means, np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+  np.testing.assert_allclose(pixels[::3], one_pixels[:, :2] / one_pixels[:, 2:], atol=1e-6)
+  assert len(np.unique(in_camera[:, 2].astype(np.float32))) == three.num
+
+
+def test_unseen_film_keeps_whole_stacks():
+  """A film the other cameras see in part: the stacked film keeps whole stacks."""
+  cameras = hemisphere_cameras()
+  points, colors = init.random_box_points(np.random.default_rng(1), 400, 1.0)
+  teacher = jax.tree.map(jnp.asarray, init.gaussians_from_points(points, colors, sh_degree=1, opacity=0.5))
+  others = cameras[:1] + cameras[2:]
+  stacked = carrier.unseen_film(teacher, cameras[1], others, OPTIONS, 1.0, 2.0, 0.5, stack=2)
+  assert 0 < stacked.num < 2 * 16 * 16 and stacked.num % 2 == 0
+  np.testing.assert_array_equal(stacked.log_scales[::2], stacked.log_scales[1::2])
+  np.testing.assert_allclose(stacked.means[::2], stacked.means[1::2], atol=1e-4)
+
+
+def test_tie_replaces_each_row_by_its_group_mean():
+  """carrier.tie against a float64 loop: the teacher's rows alone, the film's in stacks of three."""
+  groups = carrier.tied_rows(4, 9, 3)
+  np.testing.assert_array_equal(groups, [0, 1, 2, 3, 4, 4, 4, 5, 5, 5, 6, 6, 6])
+  grads = helpers.random_gaussians(1, 13, degree=1)
+  tied = carrier.tie(grads, groups)
+  for field in ("means", "sh", "opacity_logits"):
+    g, want = np.asarray(getattr(grads, field), np.float64), np.asarray(getattr(grads, field), np.float64).copy()
+    for start in (4, 7, 10):
+      want[start:start + 3] = g[start:start + 3].mean(axis=0)
+    np.testing.assert_allclose(getattr(tied, field), want, rtol=1e-6, atol=1e-7)
+    np.testing.assert_array_equal(np.asarray(getattr(tied, field))[4], np.asarray(getattr(tied, field))[6])
 
 
 def test_bound_colours_clips_the_trained_base_colours_only():

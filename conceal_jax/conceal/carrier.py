@@ -40,15 +40,18 @@ def layer_offsets(layers: int) -> np.ndarray:
 
 
 def film(camera: Camera, distance: float, spacing: float, opacity: float, color: Sequence[float],
-         sh_degree: int, layers: int = 1) -> Gaussians:
+         sh_degree: int, layers: int = 1, stack: int = 1) -> Gaussians:
   """[F] flat Gaussians `distance` in front of `camera` (each STAGGER-deeper than the last), `layers` grids of one
-  every `spacing` pixels of its image (F ~ layers * W * H / spacing^2), each grid shifted within a cell
-  (`layer_offsets`), facing it, each of `opacity` and `color` (RGB in [0, 1]) seen from any direction (SH of
-  `sh_degree`, bands above DC zero). Many layers of faint splats make a film as opaque as one layer of dense
-  ones, out of splats each below an opacity ceiling (3D-GS's opacity reset)."""
+  position every `spacing` pixels of its image, each grid shifted within a cell (`layer_offsets`), `stack`
+  consecutive splats at each position (F ~ stack * layers * W * H / spacing^2), facing it, each of `opacity` and
+  `color` (RGB in [0, 1]) seen from any direction (SH of `sh_degree`, bands above DC zero). Many layers of faint
+  splats make a film as opaque as one layer of dense ones, out of splats each below an opacity ceiling (3D-GS's
+  opacity reset). A stack is the cheapest merge a decimating converter finds (the same place, and with tied colours,
+  `tied_rows`, the same colour), so decimation down to 1/stack of the film merges stacks, and a merged stack renders
+  as its splats did."""
   grids = [np.meshgrid(np.arange(du * spacing, camera.width, spacing), np.arange(dv * spacing, camera.height, spacing))
            for du, dv in layer_offsets(layers)]
-  u, v = (np.concatenate([grid[axis].ravel() for grid in grids]) for axis in (0, 1))
+  u, v = (np.repeat(np.concatenate([grid[axis].ravel() for grid in grids]), stack) for axis in (0, 1))
   fx, fy, cx, cy = (float(x) for x in (camera.fx, camera.fy, camera.cx, camera.cy))
   depth = distance * (1.0 + STAGGER * np.arange(len(u)) / len(u))
   in_camera = np.stack([(u - cx) / fx * depth, (v - cy) / fy * depth, depth], -1)
@@ -87,14 +90,15 @@ def _colour_gradient(extra_dc, scene, extra, camera, options):
 
 
 def unseen_film(teacher: Gaussians, key: Camera, cameras: Sequence[Camera], options: RenderOptions, distance: float,
-                spacing: float, opacity: float, layers: int = 1) -> Gaussians:
-  """The film before `key` (film's arguments; the background's colour) less every splat a pixel of `cameras`
-  (the scene's training and test views) depends on, or that the key does not see. Dropping a splat can only
-  uncover splats behind it, so the test repeats until nothing seen is left. ValueError if nothing is left."""
-  carrier = film(key, distance, spacing, opacity, options.background, teacher.sh_degree, layers)
+                spacing: float, opacity: float, layers: int = 1, stack: int = 1) -> Gaussians:
+  """The film before `key` (film's arguments; the background's colour) less every stack with a splat a pixel of
+  `cameras` (the scene's training and test views) depends on, or that the key does not see. Dropping a splat can
+  only uncover splats behind it, so the test repeats until nothing seen is left. ValueError if nothing is left."""
+  carrier = film(key, distance, spacing, opacity, options.background, teacher.sh_degree, layers, stack)
   while carrier.num:
     keep = ~contributing(teacher, carrier, cameras, options)
     keep &= contributing(teacher, carrier, [key], options)
+    keep = np.repeat(keep.reshape(-1, stack).all(axis=1), stack)  # whole stacks, so tied_rows' groups stay whole
     if keep.all():
       return carrier
     carrier = jax.tree.map(lambda x: x[keep], carrier)
@@ -117,6 +121,24 @@ def trainable_fields(num_teacher: int, carrier: Gaussians) -> Gaussians:
   return Gaussians(means=mask(carrier.means, 0.0), log_scales=mask(carrier.log_scales, 0.0),
                    quats=mask(carrier.quats, 0.0), opacity_logits=mask(carrier.opacity_logits, 0.0),
                    sh=mask(carrier.sh, dc_only))
+
+
+def tied_rows(num_teacher: int, film_num: int, stack: int) -> jax.Array:
+  """[num_teacher + film_num] int32 group of each student row: the teacher's rows alone, the film's in its stacks
+  of `stack` consecutive rows (`film`). Rows of a group train as one (`tie`)."""
+  rows = np.arange(num_teacher + film_num)
+  return jnp.asarray(np.where(rows < num_teacher, rows, num_teacher + (rows - num_teacher) // stack), jnp.int32)
+
+
+def tie(grads: Gaussians, groups: jax.Array) -> Gaussians:
+  """grads with each row replaced by the mean over its group (`tied_rows`): rows that start alike and take the
+  same gradient take the same (elementwise) optimiser update, so a stack keeps one colour through training."""
+  count = jax.ops.segment_sum(jnp.ones_like(groups, jnp.float32), groups, num_segments=groups.shape[0])
+
+  def mean(g):
+    total = jax.ops.segment_sum(g, groups, num_segments=groups.shape[0])
+    return (total / count.reshape((-1,) + (1,) * (g.ndim - 1)).clip(1.0))[groups]
+  return jax.tree.map(mean, grads)
 
 
 def bound_colours(student: Gaussians, trainable: Gaussians, bound: float) -> Gaussians:

@@ -85,6 +85,8 @@ def make_step(settings: ConcealSettings, options: RenderOptions, student_tx, dec
       student_grads = grads["student"]
       if data.trainable is not None:  # what is not trained gets a zero gradient, so Adam leaves it exactly
         student_grads = jax.tree.map(jnp.multiply, student_grads, data.trainable)
+      if data.ties is not None:  # a film's stacks take one gradient, so they keep one colour
+        student_grads = carrier.tie(student_grads, data.ties)
       updates, student_opt = student_tx.update(student_grads, state.student_opt, state.student)
       student = optax.apply_updates(state.student, updates)
       if s.film_dc_bound > 0:

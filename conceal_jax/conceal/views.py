@@ -36,7 +36,8 @@ class ConcealData:
   [V + D, S, S, 3]: the teacher's renders of the normal views (training views, then decoys) at the render's
   and the decoder's size; cameras: Camera [V + D]; keys: Key [K]; trainable: None (the whole student trains)
   or a 0/1 Gaussians [N] mask of what does (carrier.trainable_fields); merges: None or the rounds of the carrier
-  film's pairs a decimation merges (decimate.film_merges, for conceal.attacks.merge_fraction)."""
+  film's pairs a decimation merges (decimate.film_merges, for conceal.attacks.merge_fraction); ties: None or the
+  int32 [N] group of each student row, rows of a group training as one (carrier.tied_rows: the film's stacks)."""
   images: jax.Array
   teacher: jax.Array
   teacher_small: jax.Array
@@ -44,15 +45,16 @@ class ConcealData:
   keys: Key
   trainable: Any = None
   merges: Any = None
+  ties: Any = None
 
 
 def build_data(train_images, teacher, options: RenderOptions, normal_cameras: list[Camera], key_cameras, hiddens,
-               size: int, clip: bool = False, key_images=None, trainable=None, merges=None) -> ConcealData:
+               size: int, clip: bool = False, key_images=None, trainable=None, merges=None,
+               ties=None) -> ConcealData:
   """The device-resident inputs of the concealment step. `normal_cameras`: the training cameras then the
   decoys; `key_cameras` and `hiddens` [S, S, 3]: one of each per key; `key_images` [H, W, 3] per key: the
-  released variant's check-view targets (None: the teacher's renders there); `trainable`, `merges`: ConcealData's.
-  The teacher renders at the
-  decoder size are clipped to [0, 1] first with `clip` (reveal.Reading)."""
+  released variant's check-view targets (None: the teacher's renders there); `trainable`, `merges`, `ties`:
+  ConcealData's. The teacher renders at the decoder size are clipped to [0, 1] first with `clip` (reveal.Reading)."""
   teacher_renders = evaluate.render_images(teacher, normal_cameras, options)
   key_stack = camera_lib.stack(list(key_cameras))
   teacher_keys = render_batch(teacher, key_stack, options).rgb
@@ -60,7 +62,8 @@ def build_data(train_images, teacher, options: RenderOptions, normal_cameras: li
                             reveal.resize_for_decoder(teacher_keys, size, clip))
   return ConcealData(images=jnp.asarray(np.stack(train_images)), teacher=teacher_renders,
                      teacher_small=reveal.resize_for_decoder(teacher_renders, size, clip),
-                     cameras=camera_lib.stack(list(normal_cameras)), keys=keys, trainable=trainable, merges=merges)
+                     cameras=camera_lib.stack(list(normal_cameras)), keys=keys, trainable=trainable, merges=merges,
+                     ties=ties)
 
 
 def identity_weights(settings: ConcealSettings) -> dict:

@@ -286,7 +286,9 @@ def conceal_carrier_section() -> ml_collections.ConfigDict:
   of `opacity`, in the space only the key sees; only the film's base colours train, so the normal views are the
   teacher's and fine-tuning on them leaves the mark as it is. Splats at opacity 0.01 or less, as many layers as
   make the film opaque enough, outlive 3D-GS's opacity reset (it lowers every opacity to at most 0.01). dc_bound > 0
-  clips the film's base colours (SH DC) to [-dc_bound, dc_bound] after each update (a format's range; 0: none)."""
+  clips the film's base colours (SH DC) to [-dc_bound, dc_bound] after each update (a format's range; 0: none).
+  stack > 1 puts that many splats at each position of the grids, their colours trained as one: a converter's
+  decimation down to 1/stack of the film merges stacks, which render as their splats did."""
   c = ml_collections.ConfigDict()
   c.film = False
   c.distance = 0.1
@@ -294,6 +296,7 @@ def conceal_carrier_section() -> ml_collections.ConfigDict:
   c.opacity = 0.5
   c.layers = 1
   c.dc_bound = 0.0
+  c.stack = 1
   return c
 
 

@@ -18,17 +18,18 @@ it: `film_pub` (film trained through decimation too, recipes.through_decimation)
 opacity and within colours the publishing formats store unchanged, recipes.publishable_film), `film_watch`
 (film_web with 192 decoys on most steps, recipes.watched_key), `film_long` (recipes.film's design: film_watch with
 768 decoys and twice as long, FILM_ITERATIONS), `film_deep` (film_long trained through merges deeper than pairs,
-recipes.DEEP_MERGE_DEPTH), `film_faint` (its colours at the gentle student's rate), `film_reset` (one layer at
-opacity 0.5, trained through opacity resets), `film_far` (film_reset with the key half a camera distance from the
-orbit target and the film as far again); `demo.py:drift` trains through parameter drift (recipes.through_drift);
-`demo.py:orbit` keys a secret pose on the orbit instead of a training camera."""
+recipes.DEEP_MERGE_DEPTH), `film_stack` (film_long's splats in colour-tied stacks of two, recipes.stacked_film),
+`film_faint` (its colours at the gentle student's rate), `film_reset` (one layer at opacity 0.5, trained through
+opacity resets), `film_far` (film_reset with the key half a camera distance from the orbit target and the film as
+far again); `demo.py:drift` trains through parameter drift (recipes.through_drift); `demo.py:orbit` keys a secret
+pose on the orbit instead of a training camera."""
 from conceal_jax.configs import default, recipes
 
 
-VARIANTS = ("film", "film_pub", "film_web", "film_watch", "film_long", "film_deep", "film_faint", "film_reset",
-            "film_far", "drift", "orbit")
+VARIANTS = ("film", "film_pub", "film_web", "film_watch", "film_long", "film_deep", "film_stack", "film_faint",
+            "film_reset", "film_far", "drift", "orbit")
 # The faint films whose colours train at the vivid rate, each building on the one before from film_pub on.
-VIVID_FILMS = ("film", "film_pub", "film_web", "film_watch", "film_long", "film_deep")
+VIVID_FILMS = ("film", "film_pub", "film_web", "film_watch", "film_long", "film_deep", "film_stack")
 # A closely watched key needs twice the demo's concealment to read its film.
 FILM_ITERATIONS = 2600
 # film_watch's decoys, as its rows were measured (recipes.watched_key's own count came after).
@@ -74,9 +75,11 @@ def get_config(variant: str = ""):
     config = recipes.publishable_film(config)
   if variant == "film_watch":
     config = recipes.watched_key(config, decoy_views=FILM_WATCH_DECOYS)
-  if variant in ("film_long", "film_deep"):
+  if variant in ("film_long", "film_deep", "film_stack"):
     config = recipes.watched_key(config)
     config.conceal.iterations = FILM_ITERATIONS
+  if variant == "film_stack":
+    config = recipes.stacked_film(config)
   if variant == "film_far":  # the key half way out and the film as far again: a film alike from nearby poses
     config.mark.key_offset, config.conceal.carrier.distance = 0.5, 0.5
   return config

@@ -36,6 +36,9 @@ FAINT_OPACITY, FAINT_SPACING, FAINT_LAYERS = 0.01, 4.0, 22
 # little more, below the reset's ceiling), and base colours within .spz's range (it stores 0.15 * dc + 0.5 in
 # 8 bits, so |dc| beyond 0.5 / 0.15 is cut off).
 GRID_OPACITY, SPZ_DC_BOUND = 2.001 / 255, 0.5 / 0.15
+# The stacked film: splats per grid position, their colours trained as one (a converter's decimation to 50% merges
+# each stack, which renders as its splats did).
+FILM_STACK = 2
 # The watched key: decoys near the key on most steps, many of them, and L_d^- weighted above L_d^+.
 WATCH_DECOY_VIEWS, WATCH_DECOY_FRACTION, WATCH_WEIGHT_MINUS = 768, 0.9, 1.5
 # The rate of the film's base colours in the vivid film (the gentle student's is 6.25e-4).
@@ -123,6 +126,16 @@ def publishable_film(config):
   for 8-bit rounding of its colours."""
   c = config.conceal.carrier
   c.opacity, c.dc_bound = GRID_OPACITY, SPZ_DC_BOUND
+  return config
+
+
+def stacked_film(config, stack: int = FILM_STACK):
+  """The film's grids with `stack` splats at each position, their colours trained as one (conceal.carrier.stack),
+  and 1/stack as many grids, so the film keeps its splat count and its opacity: a converter decimating the scene
+  merges the cheapest pairs first, a stack (the same place, the same colour), and a merged stack renders as its
+  splats did, so decimation down to 1/stack of the film leaves its image as it was."""
+  c = config.conceal.carrier
+  c.stack, c.layers = stack, max(1, c.layers // stack)
   return config
 
 
