@@ -140,6 +140,7 @@ def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
   assert np.isfinite(metrics["hidden"]["psnr"]) and "VGG16" in metrics["lpips_net"]
   windows = [h for h in straight["history"] if "loss" in h]
   assert all(np.isfinite(h["loss"]) and 0 < h["mean_guidance_weight"] < 1 for h in windows)
+  assert all(0 < h["decoder_step_norm"] < np.inf and 0 < h["decoder_grad_norm"] < np.inf for h in windows)
   curve = [h for h in straight["history"] if "hidden_psnr" in h]
   assert [h["step"] for h in curve] == [20, 40] and all(np.isfinite(h["test_psnr"]) for h in curve)
   np.testing.assert_allclose(curve[-1]["hidden_psnr"], metrics["hidden"]["psnr"], rtol=1e-4)

@@ -100,6 +100,8 @@ def make_step(settings: ConcealSettings, options: RenderOptions, student_tx, dec
       if weights is not None:
         stats["mean_guidance_weight"] = jnp.mean(jnp.stack(jax.tree.leaves(weights)))
       updates, decoder_opt = decoder_tx.update(direction, state.decoder_opt, state.decoder)
+      # the sizes of the decoder's gradient and step: a run whose L_d^+ jumps back to its start shows its burst here
+      stats["decoder_grad_norm"], stats["decoder_step_norm"] = optax.global_norm(direction), optax.global_norm(updates)
       new = new.replace(decoder=optax.apply_updates(state.decoder, updates), decoder_opt=decoder_opt)
     return capacity.keep_unless_overflowed(jnp.max(terms.overflowed) > 0, new, state), stats
 
