@@ -102,7 +102,7 @@ RECIPE_NOTES = {
                  "8-bit grids including .compressed.ply's of the higher SH bands (demo.py:film_long)",
     "film_deep": "film_long trained through merges up to 1.5 rounds deep (recipes.DEEP_MERGE_DEPTH; demo.py:film_deep)",
     "film_stack": "film_long with the film's splats in stacks of two at each grid position, their colours trained as "
-                  "one, and half as many grids (recipes.stacked_film; demo.py:film_stack)",
+                  "one at half the rate, and half as many grids (recipes.stacked_film; demo.py:film_stack)",
     "film_faint": "film with its colours at the gentle student's rate, 6.25e-4 (demo.py:film_faint; concealed on an "
                   "H200, attacked on the CPU)",
     "film_reset": "the first film: one grid of splats at opacity 0.5, trained through 8-bit colours and opacity "
