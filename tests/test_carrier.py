@@ -102,11 +102,12 @@ def test_an_unseen_film_changes_no_normal_view():
     carrier.unseen_film(teacher, cameras[0], cameras, OPTIONS, 2.0, 2.0, 0.5)
 
 
-def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_path, stack=2):
+def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_path):
   """Concealing into the film (through 8-bit colours, opacity resets and decimation, as the film recipe does)
   trains its base colours only, within conceal.carrier.dc_bound (below the white start's 1.77, so every step
   clips), each stack's splats (conceal.carrier.stack) to one colour, bit for bit; 3D-GS fine-tuning of the shared
   student on its training views then moves the teacher's Gaussians and leaves the film exactly as it was."""
+  stack = 2
   config = tiny_config(tiny, iterations=4, key_kind="unseen", **{"carrier.film": True, "carrier.spacing": 4.0,
                                                                   "attacks.quantize_fraction": 0.5,
                                                                   "attacks.reset_fraction": 0.5,
