@@ -98,7 +98,7 @@ def unseen_film(teacher: Gaussians, key: Camera, cameras: Sequence[Camera], opti
   while carrier.num:
     keep = ~contributing(teacher, carrier, cameras, options)
     keep &= contributing(teacher, carrier, [key], options)
-    keep = np.repeat(keep.reshape(-1, stack).all(axis=1), stack)  # whole stacks, so tied_rows' groups stay whole
+    keep = np.repeat(keep.reshape(-1, stack).all(axis=1), stack)  # whole stacks, so tied_rows' stacks stay whole
     if keep.all():
       return carrier
     carrier = jax.tree.map(lambda x: x[keep], carrier)
@@ -124,20 +124,18 @@ def trainable_fields(num_teacher: int, carrier: Gaussians) -> Gaussians:
 
 
 def tied_rows(num_teacher: int, film_num: int, stack: int) -> jax.Array:
-  """[num_teacher + film_num] int32 group of each student row: the teacher's rows alone, the film's in its stacks
-  of `stack` consecutive rows (`film`). Rows of a group train as one (`tie`)."""
-  rows = np.arange(num_teacher + film_num)
-  return jnp.asarray(np.where(rows < num_teacher, rows, num_teacher + (rows - num_teacher) // stack), jnp.int32)
+  """[film_num / stack, stack] int32 student rows of each of the film's stacks: `stack` consecutive rows (`film`)
+  after the teacher's `num_teacher`. The rows of a stack train as one (`tie`)."""
+  return jnp.asarray(num_teacher + np.arange(film_num).reshape(-1, stack), jnp.int32)
 
 
-def tie(grads: Gaussians, groups: jax.Array) -> Gaussians:
-  """grads with each row replaced by the mean over its group (`tied_rows`): rows that start alike and take the
-  same gradient take the same (elementwise) optimiser update, so a stack keeps one colour through training."""
-  count = jax.ops.segment_sum(jnp.ones_like(groups, jnp.float32), groups, num_segments=groups.shape[0])
-
+def tie(grads: Gaussians, stacks: jax.Array) -> Gaussians:
+  """grads with each stack's rows (`tied_rows`, [S, stack]) replaced by their mean, every other row as it is: rows
+  that start alike and take the same gradient take the same (elementwise) optimiser update, so a stack keeps one
+  colour through training."""
   def mean(g):
-    total = jax.ops.segment_sum(g, groups, num_segments=groups.shape[0])
-    return (total / count.reshape((-1,) + (1,) * (g.ndim - 1)).clip(1.0))[groups]
+    stacked = g[stacks]  # [S, stack, ...]
+    return g.at[stacks].set(jnp.broadcast_to(jnp.mean(stacked, axis=1, keepdims=True), stacked.shape))
   return jax.tree.map(mean, grads)
 
 

@@ -37,7 +37,7 @@ class ConcealData:
   and the decoder's size; cameras: Camera [V + D]; keys: Key [K]; trainable: None (the whole student trains)
   or a 0/1 Gaussians [N] mask of what does (carrier.trainable_fields); merges: None or the rounds of the carrier
   film's pairs a decimation merges (decimate.film_merges, for conceal.attacks.merge_fraction); ties: None or the
-  int32 [N] group of each student row, rows of a group training as one (carrier.tied_rows: the film's stacks)."""
+  int32 [S, stack] student rows of each of the film's stacks, each training as one (carrier.tied_rows)."""
   images: jax.Array
   teacher: jax.Array
   teacher_small: jax.Array

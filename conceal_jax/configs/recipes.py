@@ -44,6 +44,7 @@ WATCH_DECOY_VIEWS, WATCH_DECOY_FRACTION, WATCH_WEIGHT_MINUS = 768, 0.9, 1.5
 # The rate of the film's base colours in the vivid film (the gentle student's is 6.25e-4).
 VIVID_DC_LR = 1e-2
 
+
 def paper(config):
   """ConcealGS as written (Sec. 2.2-2.3): the default config's conceal section, stated."""
   c = config.conceal
