@@ -28,9 +28,10 @@ def _toy(traces: loop.TraceCounter, blow_up_at: int = 0):
   return step, fresh
 
 
-def _run(tmp_path, traces, max_steps=None, blow_up_at=0, iterations=10):
+def _run(tmp_path, traces, max_steps=None, blow_up_at=0, iterations=10, time_limit_min=0.0):
   step, fresh = _toy(traces, blow_up_at)
-  settings = loop.LoopSettings(iterations=iterations, log_every=3, checkpoint_every=4, progress_bar=False)
+  settings = loop.LoopSettings(iterations=iterations, log_every=3, checkpoint_every=4, progress_bar=False,
+                               time_limit_min=time_limit_min)
   return loop.run("toy", settings, str(tmp_path), init_state=fresh, restore_template=lambda meta: fresh(),
                   step=step, max_steps=max_steps)
 
@@ -52,6 +53,18 @@ def test_resumed_run_equals_an_uninterrupted_one(tmp_path):
   elapsed = [h["elapsed_s"] for h in straight.history]
   assert elapsed == sorted(elapsed) and elapsed[0] > 0
   assert traces.counts == {"toy_step": 1}, "one trace for the whole run: no silent re-traces"
+
+
+def test_a_time_limit_stops_at_the_next_checkpoint_and_the_run_resumes(tmp_path, monkeypatch):
+  clock = iter(range(0, 10_000, 30))  # every reading of the clock is 30 s after the last
+  monkeypatch.setattr(loop.time, "perf_counter", lambda: float(next(clock)))
+  stopped = _run(tmp_path, loop.TraceCounter(), time_limit_min=1.0)
+  # steps 1-3 and 4 are two log windows (4 readings, 2 min): the limit has passed at the checkpoint of step 4
+  assert stopped.timed_out and not stopped.finished and int(stopped.state.step) == 4
+  resumed = _run(tmp_path, loop.TraceCounter(), time_limit_min=1.0)  # the limit counts from the resume
+  assert resumed.start == 4 and int(resumed.state.step) == 8 and resumed.timed_out
+  done = _run(tmp_path, loop.TraceCounter(), time_limit_min=1.0)
+  assert done.finished and not done.timed_out and float(done.state.x) == sum(range(1, 11))
 
 
 def test_step_devices_name_each_machine_that_ran_steps_once(tmp_path, monkeypatch):
@@ -82,3 +95,6 @@ def test_bad_loop_settings_are_rejected():
   for bad in (dict(iterations=0), dict(iterations=5, log_every=0), dict(iterations=5, checkpoint_every=-1)):
     with pytest.raises(ValueError, match="iterations and log_every"):
       loop.LoopSettings(**bad)
+  for bad in (dict(time_limit_min=-1.0), dict(time_limit_min=5.0, checkpoint_every=0)):
+    with pytest.raises(ValueError, match="time_limit_min"):
+      loop.LoopSettings(iterations=5, **bad)

@@ -55,6 +55,17 @@ def test_train_writes_scene_metrics_and_resumes_exactly(tiny_scene, tmp_path):
   jax.tree.map(np.testing.assert_array_equal, a, b)
   assert [h["loss"] for h in straight["history"] if "loss" in h] == \
       [h["loss"] for h in resumed["history"] if "loss" in h]
+  # a time limit stops at the first checkpoint past it, saves and scores the scene there, and resumes to the end
+  config.train.time_limit_min = 1e-9
+  timed = train.train_and_evaluate(config, str(tmp_path / "c"))
+  assert (timed["iterations"], timed["planned_iterations"], timed["time_limit_reached"]) == (4, 8, True)
+  assert np.isfinite(timed["test"]["psnr"])
+  jax.tree.map(np.testing.assert_array_equal, ply.load_ply(tmp_path / "c" / "point_cloud.ply"),
+               ply.load_ply(tmp_path / "a" / train.snapshot_name(4)))
+  config.train.time_limit_min = 0.0
+  finished = train.train_and_evaluate(config, str(tmp_path / "c"))
+  assert (finished["iterations"], finished["time_limit_reached"]) == (8, False)
+  jax.tree.map(np.testing.assert_array_equal, a, ply.load_ply(tmp_path / "c" / "point_cloud.ply"))
 
   metrics = json.loads((tmp_path / "a" / "metrics.json").read_text())
   assert "VGG16" in metrics["lpips_net"] and metrics["num_views"] == 1

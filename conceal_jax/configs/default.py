@@ -134,6 +134,9 @@ def train_section() -> ml_collections.ConfigDict:
   # processes) splits them. 1: 3D-GS's one view per step
   c.views_per_step = 1
   c.checkpoint_every = 1000  # 0: no checkpoints
+  # > 0: stop at the first checkpoint after this many minutes and score the scene there (a machine lent for
+  # a fixed time); train.json records the step reached, and the same command resumes the run
+  c.time_limit_min = 0.0
   c.snapshots = ()        # steps after which point_cloud_<step>.ply is also written
   c.progress_bar = True
   return c

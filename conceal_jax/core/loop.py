@@ -28,15 +28,20 @@ State = Any  # a pytree with an int32 `step` field (a flax.struct dataclass)
 @dataclasses.dataclass(frozen=True)
 class LoopSettings:
   """iterations: total steps of the run; log_every: steps per log window (stats read, timing taken);
-  checkpoint_every: steps between checkpoints (0: none); progress_bar: show tqdm."""
+  checkpoint_every: steps between checkpoints (0: none); progress_bar: show tqdm;
+  time_limit_min: stop at the first checkpoint after this many minutes of this process's loop (0: no limit),
+    for a machine lent for a fixed time; running again resumes there."""
   iterations: int
   log_every: int = 10
   checkpoint_every: int = 1000
   progress_bar: bool = True
+  time_limit_min: float = 0.0
 
   def __post_init__(self):
     if self.iterations < 1 or self.log_every < 1 or self.checkpoint_every < 0:
       raise ValueError(f"iterations and log_every must be >= 1 and checkpoint_every >= 0, got {self}")
+    if self.time_limit_min < 0 or (self.time_limit_min and not self.checkpoint_every):
+      raise ValueError(f"time_limit_min must be >= 0 and needs checkpoints (checkpoint_every > 0), got {self}")
 
 
 @dataclasses.dataclass
@@ -44,6 +49,7 @@ class LoopResult:
   """state: after the last step run; history: one dict per log window (and per hook result), each with
   the step and `elapsed_s`, the step time up to it;
   start: the step the run resumed from; finished: whether all iterations are done;
+  timed_out: whether it stopped at a checkpoint because time_limit_min had passed;
   windows: [(steps, seconds)] of every log window, over resumes too;
   step_devices: the devices that ran steps, in order, over resumes too (`device_name`; a run resumed on another
     machine has two), so a wall time is read against the device that took it."""
@@ -53,6 +59,7 @@ class LoopResult:
   finished: bool
   windows: list[tuple[int, float]]
   step_devices: list[str] = dataclasses.field(default_factory=list)
+  timed_out: bool = False
 
   def timing(self) -> dict:
     """Timed steps, wall time of the steps, the median over log windows of the mean step time, and the
@@ -122,9 +129,11 @@ def run(name: str, settings: LoopSettings, workdir: str, *, init_state: Callable
     step_devices.append(device_name())
   bar = tqdm(total=settings.iterations, initial=start, desc=name, dynamic_ncols=True,
              disable=not settings.progress_bar)
-  window_start, window_steps = time.perf_counter(), 0
+  began = window_start = time.perf_counter()
+  window_steps, timed_out, last = 0, False, start
   for iteration in range(start + 1, end + 1):
     state, stats = step(state, iteration)
+    last = iteration
     window_steps += 1
     bar.update(1)
     checkpoint_now = settings.checkpoint_every and (iteration % settings.checkpoint_every == 0 or iteration == end)
@@ -145,8 +154,17 @@ def run(name: str, settings: LoopSettings, workdir: str, *, init_state: Callable
       meta = dict(history=history, windows=windows, step_devices=step_devices,
                   **(checkpoint_meta(state) if checkpoint_meta else {}))
       checkpoint.save(ckpt_dir, iteration, state, meta)
+      timed_out = iteration < end and time_up(settings, began)
+      if timed_out:
+        logging.info("%s: time limit of %g min reached at step %d", name, settings.time_limit_min, iteration)
+        break
     window_start, window_steps = time.perf_counter(), 0
   bar.close()
-  return LoopResult(state=state, history=history, start=start, finished=end == settings.iterations,
-                    windows=windows, step_devices=step_devices)
+  return LoopResult(state=state, history=history, start=start, finished=last == settings.iterations, windows=windows,
+                    step_devices=step_devices, timed_out=timed_out)
+
+
+def time_up(settings: LoopSettings, began: float) -> bool:
+  """Whether the loop has run past settings.time_limit_min since `began` (a perf_counter reading)."""
+  return bool(settings.time_limit_min) and time.perf_counter() - began > 60.0 * settings.time_limit_min
 

@@ -13,8 +13,9 @@ import os
 from conceal_jax.core import fileio
 
 CONFIG_FILE = "config.json"
-# Leaf names of settings that leave a run's result unchanged: logging, progress bars, checkpoint cadence.
-PRESENTATION_KEYS = frozenset({"progress_bar", "log_every", "checkpoint_every"})
+# Leaf names of settings that leave a run's result unchanged: logging, progress bars, checkpoint cadence, and a
+# time limit (where one process stops; the finished run is the same).
+PRESENTATION_KEYS = frozenset({"progress_bar", "log_every", "checkpoint_every", "time_limit_min"})
 
 
 def flatten(tree: dict, prefix: str = "") -> dict:

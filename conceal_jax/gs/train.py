@@ -292,6 +292,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   point_cloud.ply, train.json, and the test metrics (metrics.json, test_renders/).
 
   max_steps: stop after this many steps (as if killed there), leaving the checkpoint to resume from.
+  A run stopped by train.time_limit_min is saved and scored at the step it reached (train.json's
+  `iterations`, with `planned_iterations` and `time_limit_reached`); the same call resumes it.
   scene: train on this scene instead of loading config.data (None), e.g. a baseline's containers: the
     training views with a hidden image in them (baselines.containers.container_scene). Its test split is
     the one scored. A resumed run must be given the same scene.
@@ -353,12 +355,14 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
                     step=step, after_window=after_window, postfix_keys=("num_gaussians",),
                     checkpoint_meta=lambda state: dict(capacity=int(state.alive.shape[0]),
                                                        pair_capacity=steps.capacity), max_steps=max_steps)
-  if not result.finished:
+  if not (result.finished or result.timed_out):
     return dict(stopped_at=int(result.state.step))
 
   gaussians = live_gaussians(result.state)
   ply.save_ply(os.path.join(workdir, evaluate.SCENE_FILE), gaussians)
-  summary = dict(iterations=config.train.iterations, resumed_from=result.start, num_gaussians=int(gaussians.num),
+  reached = int(jax.device_get(result.state.step))
+  summary = dict(iterations=reached, planned_iterations=config.train.iterations, time_limit_reached=result.timed_out,
+                 resumed_from=result.start, num_gaussians=int(gaussians.num),
                  **result.timing(), compiled_step_variants=sorted(variants), traces=dict(traces.counts),
                  pair_capacity=steps.capacity, capacity_reruns=steps.reruns, capacity_shrinks=steps.shrinks,
                  history=result.history)
