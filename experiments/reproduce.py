@@ -29,7 +29,7 @@ import numpy as np
 
 from conceal_jax.configs import default, recipes
 from conceal_jax.core import fileio
-from experiments import bench_conceal, results_io, tradeoff
+from experiments import bench_conceal, bench_full, results_io, tradeoff
 
 # (render PSNR, SSIM, LPIPS, hidden PSNR, hidden SSIM); None where the paper has no number.
 PAPER_TABLE1 = {  # NeRF-Synthetic
@@ -362,6 +362,14 @@ def survival_table(survive_bench: dict) -> list[str]:
                   "[survive_bench.md](survive_bench.md).", ""]
 
 
+def full_resolution_section(full_bench: dict) -> list[str]:
+  """bench-full's rows: lego at the full size of the shared copy with the unmodified 3D-GS recipe, on the
+  accelerator each row names."""
+  lines = ["### Full resolution: lego at 400x400 with the 3D-GS recipe (bench-full; the paper trains at 1/4)", ""]
+  rows = full_bench.get("rows", [])
+  return lines + ([bench_full.table(rows)] if rows else [NOT_RUN, ""])
+
+
 def appendix_conceal_table(conceal_bench: dict) -> list[str]:
   """Every bench-conceal run, recipes and retired rows included, with what the row is."""
   lines = [f"### {APPENDIX} A: every bench-conceal run", "",
@@ -467,6 +475,7 @@ def report(results: pathlib.Path, workdir: pathlib.Path) -> str:
                         baseline_bench)
   lines += method_table("Table 2: real scenes (paper: T&T/DB; ours: beer)", PAPER_TABLE2, "beer", train_bench,
                         conceal_bench, baseline_bench)
+  lines += full_resolution_section(load(results, "full_bench.json"))
   lines += ablation_table(conceal_bench) + leakage_table(conceal_bench)
   recipe_means = recipe_points("lego", conceal_bench, baseline_bench)
   lines += tradeoff.recipe_table("lego", recipe_means)

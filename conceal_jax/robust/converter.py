@@ -78,24 +78,26 @@ def actions(decimate: float | None = None, sh_degree: int | None = None) -> list
 
 
 def round_trip(gaussians: Gaussians, fmt: str = "ply", *, decimate: float | None = None,
-               sh_degree: int | None = None, workdir: str | os.PathLike | None = None) -> Gaussians:
+               sh_degree: int | None = None, workdir: str | os.PathLike | None = None,
+               timeout_s: float = _TIMEOUT_S) -> Gaussians:
   """`gaussians` written as .ply, converted to `fmt` with the actions (see `actions`), read back.
 
   workdir: where the intermediate files go (kept there); None: a temporary folder, removed after.
+  timeout_s: per converter call (.sog's clustering of a scene of 100k Gaussians takes many minutes on a CPU).
   ValueError for an unknown format or bad action; ConverterError when splat-transform fails."""
   if fmt not in FORMATS:
     raise ValueError(f"unknown format {fmt!r}; choose from {', '.join(FORMATS)}")
   steps = actions(decimate, sh_degree)
   if workdir is None:
     with tempfile.TemporaryDirectory(prefix="splat_transform_") as tmp:
-      return round_trip(gaussians, fmt, decimate=decimate, sh_degree=sh_degree, workdir=tmp)
+      return round_trip(gaussians, fmt, decimate=decimate, sh_degree=sh_degree, workdir=tmp, timeout_s=timeout_s)
   folder = pathlib.Path(workdir)
   folder.mkdir(parents=True, exist_ok=True)
   source, converted = folder / "in.ply", folder / f"out.{fmt}"
   ply.save_ply(source, gaussians)
-  run([source, *steps, converted])
+  run([source, *steps, converted], timeout_s)
   if fmt == "ply":
     return ply.load_ply(converted)
   back = folder / "back.ply"
-  run([converted, back])
+  run([converted, back], timeout_s)
   return ply.load_ply(back)
