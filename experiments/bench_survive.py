@@ -155,6 +155,9 @@ class Scene:
 
 def load_scene(name: str, run: pathlib.Path, recipe: str, test_views: int, calibration: dict,
                cache: pathlib.Path) -> Scene:
+  """The conceal run in `run` under test, its attacked scenes cached in `cache` (claimed for this run: ValueError if
+  another run's attacks are there)."""
+  claim_cache(cache, run)
   config, student, owner = bench_robust.load_run(run)
   cameras, targets, _ = evaluate.held_out_views(evaluate.load_scene_data(config), test_views)
   summary = json.loads((run / "conceal.json").read_text()) if (run / "conceal.json").is_file() else {}
@@ -203,6 +206,28 @@ def aligned(scene: Scene, suspect, applied: sim.Similarity | None = None) -> dic
                                           registration["owner_radius"]))
   return dict(hidden_psnr=scores["hidden_psnr"], hidden_ssim=scores["hidden_ssim"], hidden_z=scores["hidden_z"],
               decided=ownership.decide(scores["hidden_ssim"], scene.calibration), registration=registration)
+
+
+CACHE_SOURCE = "source.json"
+
+
+def claim_cache(cache: pathlib.Path, run: pathlib.Path) -> None:
+  """Records in `cache` which run's student its attacked scenes come from (the student's path, size and
+  modification time); ValueError naming both when it holds another's, so that a cache never mixes two runs."""
+  student = run / "student.ply"
+  stat = student.stat()
+  source = dict(student=str(student.resolve()), size=stat.st_size, mtime_ns=stat.st_mtime_ns)
+  path = cache / CACHE_SOURCE
+  if path.is_file():
+    held = json.loads(path.read_text())
+    if held != source:
+      raise ValueError(f"{cache} holds the attacks of {held['student']} (size {held['size']}), not of {student}: "
+                       "give this run another label, or remove the folder")
+    return
+  if cache.is_dir() and any(cache.iterdir()):  # attacks cached before the source was recorded
+    print(f"note: {cache} has no {CACHE_SOURCE}; its cached attacks are taken to be {student}'s")
+  cache.mkdir(parents=True, exist_ok=True)
+  fileio.write_json(path, source)
 
 
 def cached_ply(path: pathlib.Path, make):
@@ -505,7 +530,9 @@ def main(argv=None):
     if not all((run / f).is_file() for f in ("student.ply", "decoder.msgpack", "key.json", "config.json")):
       print(f"skipping {label}: no finished conceal run in {run}")
       continue
-    scene = load_scene(name, run, recipe, args.test_views, calibration, workdir / label)
+    # a run given by path caches under its own folder's name: a label alone would share a named scene's cache
+    cache = workdir / (f"{label}_{run.name}" if path else label)
+    scene = load_scene(name, run, recipe, args.test_views, calibration, cache)
     missing = lambda attack, level, steps=None: (name, recipe, attack, json.dumps(level), steps) not in done
     if "none" in groups and missing("none", None):
       save([scene.row("none", None, scores_of(scene, scene.student), render_loss_db=render_loss(run))])

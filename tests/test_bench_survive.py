@@ -150,3 +150,20 @@ def test_falloff_rows_start_at_the_key_and_skip_missing_runs(run, tmp_path, caps
   assert all(r["directions"] == 2 and r["max_ssim"] >= r["mean_ssim"] for r in rows[1:])
   assert "skipping gone" in capsys.readouterr().out
   assert (out / "falloff_bench.md").read_text().count("| tiny |") == 1 and (out / "falloff_bench.png").is_file()
+
+
+def test_a_cache_of_attacked_scenes_belongs_to_one_run(tmp_path, capsys):
+  """A run's attacked scenes are cached for that run only: another student in the same cache is refused by name."""
+  for name, size in (("a", 10), ("b", 20)):
+    (tmp_path / name).mkdir()
+    (tmp_path / name / "student.ply").write_bytes(b"x" * size)
+  cache = tmp_path / "cache"
+  bench_survive.claim_cache(cache, tmp_path / "a")
+  bench_survive.claim_cache(cache, tmp_path / "a")  # the same run again: fine
+  with pytest.raises(ValueError, match="holds the attacks of .*a/student.ply"):
+    bench_survive.claim_cache(cache, tmp_path / "b")
+  old = tmp_path / "old_cache"  # cached before runs were recorded: taken to be the run's, with a note
+  (old / "sog_None").mkdir(parents=True)
+  bench_survive.claim_cache(old, tmp_path / "b")
+  assert "no source.json" in capsys.readouterr().out
+  assert json.loads((old / bench_survive.CACHE_SOURCE).read_text())["size"] == 20

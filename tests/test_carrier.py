@@ -67,6 +67,13 @@ def test_the_film_lies_on_the_key_grid_facing_it():
   np.testing.assert_allclose(peak / peak[2], np.array([0.2, 0.5, 0.9]) / 0.9, rtol=1e-4)
   assert 0.25 < peak[2] / 0.9 <= 0.3
   np.testing.assert_allclose(float(jax.nn.sigmoid(layer.opacity_logits[0])), 0.3, rtol=1e-5)
+  # in-plane sigma: `spread` grid spacings at the film's depth (4 pixels of focal length 30 at depth 1.7 here)
+  sigma = np.exp(np.asarray(layer.log_scales[:, 0], np.float64))
+  np.testing.assert_allclose(sigma, carrier.SPREAD * 4.0 * 1.7 / 30.0, rtol=1e-5)
+  tight = carrier.film(camera, distance=1.7, spacing=4.0, opacity=0.3, color=(0.2, 0.5, 0.9), sh_degree=2,
+                       spread=0.15)
+  np.testing.assert_allclose(np.exp(np.asarray(tight.log_scales, np.float64)),
+                             np.exp(np.asarray(layer.log_scales, np.float64)) * 0.15 / carrier.SPREAD, rtol=1e-5)
 
 
 def test_contributing_is_what_the_renderer_lets_through():
@@ -204,9 +211,10 @@ def test_a_film_needs_an_unseen_key(tiny, tmp_path):
     conceal_train.train_and_evaluate(tiny_config(tiny, **{"carrier.film": True}), str(tmp_path))
   with pytest.raises(ValueError, match="conceal.carrier.dc_bound bounds the carrier film's colours"):
     conceal_train.train_and_evaluate(tiny_config(tiny, **{"carrier.dc_bound": 3.0}), str(tmp_path))
-  with pytest.raises(ValueError, match="conceal.carrier.distance and spacing"):
-    conceal_train.train_and_evaluate(tiny_config(tiny, key_kind="unseen", **{"carrier.film": True,
-                                                                             "carrier.opacity": 1.0}), str(tmp_path))
+  for bad in ({"carrier.opacity": 1.0}, {"carrier.spread": 0.0}):
+    with pytest.raises(ValueError, match="conceal.carrier.distance, spacing and spread"):
+      conceal_train.train_and_evaluate(tiny_config(tiny, key_kind="unseen", **{"carrier.film": True, **bad}),
+                                       str(tmp_path))
 
 
 def test_layers_are_grids_shifted_within_a_cell_each_splat_at_its_own_depth():

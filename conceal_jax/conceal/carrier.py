@@ -24,7 +24,8 @@ from conceal_jax.splat.render import RenderOptions, render
 
 # The film's thickness along the key's axis, as a fraction of its in-plane spread: a flat splat.
 THICKNESS = 0.01
-# Film splats overlap their neighbours: in-plane sigma as a fraction of the grid spacing.
+# Film splats overlap their neighbours: in-plane sigma as a fraction of the grid spacing (conceal.carrier.spread's
+# default).
 SPREAD = 0.6
 # Each splat a little deeper than the one before (this fraction of the distance across the film), so that no two
 # are at the same depth: the renderer would blend a tie in storage order, which a reordering of the file changes.
@@ -40,15 +41,15 @@ def layer_offsets(layers: int) -> np.ndarray:
 
 
 def film(camera: Camera, distance: float, spacing: float, opacity: float, color: Sequence[float],
-         sh_degree: int, layers: int = 1, stack: int = 1) -> Gaussians:
+         sh_degree: int, layers: int = 1, stack: int = 1, spread: float = SPREAD) -> Gaussians:
   """[F] flat Gaussians `distance` in front of `camera` (each STAGGER-deeper than the last), `layers` grids of one
   position every `spacing` pixels of its image, each grid shifted within a cell (`layer_offsets`), `stack`
   consecutive splats at each position (F ~ stack * layers * W * H / spacing^2), facing it, each of `opacity` and
-  `color` (RGB in [0, 1]) seen from any direction (SH of `sh_degree`, bands above DC zero). Many layers of faint
-  splats make a film as opaque as one layer of dense ones, out of splats each below an opacity ceiling (3D-GS's
-  opacity reset). A stack is the cheapest merge a decimating converter finds (the same place, and with tied colours,
-  `tied_rows`, the same colour), so decimation down to 1/stack of the film merges stacks, and a merged stack renders
-  as its splats did."""
+  `color` (RGB in [0, 1]) seen from any direction (SH of `sh_degree`, bands above DC zero), of in-plane sigma
+  `spread` grid spacings. Many layers of faint splats make a film as opaque as one layer of dense ones, out of
+  splats each below an opacity ceiling (3D-GS's opacity reset). A stack of splats small against their neighbours'
+  distance (`spread`) is the cheapest merge a decimating converter finds (the same place, and with tied colours,
+  `tied_rows`, the same colour), so decimation down to 1/stack of the film merges stacks."""
   grids = [np.meshgrid(np.arange(du * spacing, camera.width, spacing), np.arange(dv * spacing, camera.height, spacing))
            for du, dv in layer_offsets(layers)]
   u, v = (np.repeat(np.concatenate([grid[axis].ravel() for grid in grids]), stack) for axis in (0, 1))
@@ -58,7 +59,7 @@ def film(camera: Camera, distance: float, spacing: float, opacity: float, color:
   w2c = np.asarray(camera.world_to_camera, np.float64)
   rotation = w2c[:3, :3].T  # camera axes in the world
   means = (in_camera - w2c[:3, 3]) @ w2c[:3, :3]  # x_world = R^T (x_cam - t)
-  sigma = SPREAD * spacing * distance / min(fx, fy)  # the stagger's 1% aside, `spacing` pixels apart
+  sigma = spread * spacing * distance / min(fx, fy)  # the stagger's 1% aside, `spacing` pixels apart
   count = len(u)
   sh = np.zeros((count, (sh_degree + 1) ** 2, 3))
   sh[:, 0] = sh_lib.rgb_to_sh_dc(np.asarray(color, np.float64))
@@ -90,11 +91,11 @@ def _colour_gradient(extra_dc, scene, extra, camera, options):
 
 
 def unseen_film(teacher: Gaussians, key: Camera, cameras: Sequence[Camera], options: RenderOptions, distance: float,
-                spacing: float, opacity: float, layers: int = 1, stack: int = 1) -> Gaussians:
+                spacing: float, opacity: float, layers: int = 1, stack: int = 1, spread: float = SPREAD) -> Gaussians:
   """The film before `key` (film's arguments; the background's colour) less every stack with a splat a pixel of
   `cameras` (the scene's training and test views) depends on, or that the key does not see. Dropping a splat can
   only uncover splats behind it, so the test repeats until nothing seen is left. ValueError if nothing is left."""
-  carrier = film(key, distance, spacing, opacity, options.background, teacher.sh_degree, layers, stack)
+  carrier = film(key, distance, spacing, opacity, options.background, teacher.sh_degree, layers, stack, spread)
   while carrier.num:
     keep = ~contributing(teacher, carrier, cameras, options)
     keep &= contributing(teacher, carrier, [key], options)

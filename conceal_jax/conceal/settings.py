@@ -129,11 +129,12 @@ class RunPlan:
 @dataclasses.dataclass(frozen=True)
 class Film:
   """conceal.carrier with film on: the carrier film's distance from the key (in median camera distances from the
-  orbit target, key.camera_distance), grid spacing (pixels of the key's image), opacity, number of grids and
-  splats stacked at each grid position (carrier.film)."""
+  orbit target, key.camera_distance), grid spacing (pixels of the key's image), opacity, in-plane sigma in grid
+  spacings, number of grids and splats stacked at each grid position (carrier.film)."""
   distance: float
   spacing: float
   opacity: float
+  spread: float
   layers: int = 1
   stack: int = 1
 
@@ -153,10 +154,11 @@ def film_plan(config: ml_collections.ConfigDict) -> Film | None:
     return None
   if config.mark.key_kind != "unseen":
     raise ValueError(f"conceal.carrier.film needs mark.key_kind='unseen', got {config.mark.key_kind!r}")
-  if not (c.distance > 0 and c.spacing > 0 and 0 < c.opacity < 1 and c.layers >= 1 and c.stack >= 1):
-    raise ValueError("conceal.carrier.distance and spacing must be positive, opacity in (0, 1), layers and stack at "
-                     f"least 1, got {c.distance}, {c.spacing}, {c.opacity}, {c.layers}, {c.stack}")
-  return Film(float(c.distance), float(c.spacing), float(c.opacity), int(c.layers), int(c.stack))
+  if not (c.distance > 0 and c.spacing > 0 and c.spread > 0 and 0 < c.opacity < 1 and c.layers >= 1 and c.stack >= 1):
+    raise ValueError("conceal.carrier.distance, spacing and spread must be positive, opacity in (0, 1), layers and "
+                     f"stack at least 1, got {c.distance}, {c.spacing}, {c.spread}, {c.opacity}, {c.layers}, {c.stack}")
+  return Film(distance=float(c.distance), spacing=float(c.spacing), opacity=float(c.opacity), spread=float(c.spread),
+              layers=int(c.layers), stack=int(c.stack))
 
 
 def step_settings(config: ml_collections.ConfigDict) -> ConcealSettings:

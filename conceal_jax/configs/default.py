@@ -291,7 +291,10 @@ def conceal_carrier_section() -> ml_collections.ConfigDict:
   make the film opaque enough, outlive 3D-GS's opacity reset (it lowers every opacity to at most 0.01). dc_bound > 0
   clips the film's base colours (SH DC) to [-dc_bound, dc_bound] after each update (a format's range; 0: none).
   stack > 1 puts that many splats at each position of the grids, their colours trained as one: a converter's
-  decimation down to 1/stack of the film merges stacks, which render as their splats did."""
+  decimation down to 1/stack of the film merges stacks, provided the splats are small against the distance between
+  neighbouring positions (spread: in-plane sigma in grid spacings; splat-transform's merge cost can favour an
+  overlapping neighbour over an identical stack partner). A merged stack renders a little larger than its splats
+  (the renderer's 1/255 alpha cut): attacks.merge_fraction trains through it."""
   c = ml_collections.ConfigDict()
   c.film = False
   c.distance = 0.1
@@ -300,6 +303,7 @@ def conceal_carrier_section() -> ml_collections.ConfigDict:
   c.layers = 1
   c.dc_bound = 0.0
   c.stack = 1
+  c.spread = 0.6
   return c
 
 
