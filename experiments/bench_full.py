@@ -29,7 +29,6 @@ from conceal_jax.configs import lego_full
 from conceal_jax.core import checkpoint, fileio, loop
 from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, train
-from conceal_jax.splat import camera as camera_lib
 from experiments import bench_render, bench_train, results_io
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
@@ -55,13 +54,6 @@ def teacher_row(data: pathlib.Path, workdir: pathlib.Path, minutes: float, lpips
               time_limit_reached=result["time_limit_reached"], lpips_net=lpips_net, targets=TARGETS)
 
 
-def scaled(camera, factor: int):
-  """The camera at `factor` times its size: the same field of view, intrinsics scaled."""
-  return camera_lib.Camera.from_intrinsics(np.asarray(camera.world_to_camera), float(camera.fx) * factor,
-                                           float(camera.fy) * factor, float(camera.cx) * factor,
-                                           float(camera.cy) * factor, camera.width * factor, camera.height * factor)
-
-
 def render_rows(config, scene_ply: pathlib.Path, repeats: int) -> list[dict]:
   """Render timings of the teacher on the first test view, at its size and at twice its size."""
   scene = evaluate.load_scene_data(config)
@@ -69,7 +61,8 @@ def render_rows(config, scene_ply: pathlib.Path, repeats: int) -> list[dict]:
   options = dataclasses.replace(evaluate.eval_options(config, scene.background), sh_degree=gaussians.sh_degree)
   rows = []
   for factor in (1, 2):
-    camera = scaled(scene.test_cameras[0], factor)
+    first = scene.test_cameras[0]
+    camera = first.resized(first.width * factor, first.height * factor)
     timing, _ = bench_render.measure(gaussians, camera, options, repeats)
     rows.append(dict(kind="render", scene="lego_full", size=f"{camera.width}x{camera.height}",
                      num_gaussians=int(gaussians.num), tile_size=options.tile_size,
@@ -86,8 +79,7 @@ def conceal_row(data: pathlib.Path, scene_ply: pathlib.Path, workdir: pathlib.Pa
   workdir.mkdir(parents=True, exist_ok=True)
   conceal_train.train_and_evaluate(config, str(workdir), max_steps=steps)
   _, meta, _ = checkpoint.load_latest(str(workdir / loop.CHECKPOINT_DIR))
-  windows = meta["windows"][1:] or meta["windows"]  # the first window holds the compilation
-  median = float(np.median([s / n for n, s in windows if n]))
+  median = loop.median_step_s(meta["windows"])
   teacher = json.loads((scene_ply.parent / train.TRAIN_FILE).read_text())
   return dict(kind="conceal", scene="lego_full", recipe="recommended", steps=sum(n for n, _ in meta["windows"]),
               teacher_iterations=teacher["iterations"], teacher_gaussians=teacher["num_gaussians"],

@@ -133,9 +133,9 @@ def publishable_film(config):
 def stacked_film(config, stack: int = FILM_STACK):
   """The film's grids with `stack` splats at each position, their colours trained as one (conceal.carrier.stack),
   and 1/stack as many grids, so the film keeps its splat count and its opacity; the film's colour rate divided by
-  `stack`, as a stack's colour step moves its image `stack` times as far as one splat's. Meant for a converter that
-  merges the cheapest pairs first (a stack: one place, one colour) and a merged stack rendering as its splats did;
-  splat-transform still merges part of the film across stacks (experiments/results/film_designs.md)."""
+  `stack`, as a stack's colour step moves its image `stack` times as far as one splat's. splat-transform merges
+  each stack with itself only with splats small against their neighbours' distance (conceal.carrier.spread), and a
+  merged stack renders larger than its pair (experiments/results/film_designs.md)."""
   c = config.conceal.carrier
   c.stack, c.layers = stack, max(1, c.layers // stack)
   config.conceal.lr.sh_dc /= stack

@@ -65,9 +65,15 @@ class LoopResult:
     """Timed steps, wall time of the steps, the median over log windows of the mean step time, and the
     devices that took them."""
     steps = sum(n for n, _ in self.windows)
-    per_step = [s / n for n, s in self.windows if n]
     return dict(timed_steps=steps, wall_time_s=float(sum(s for _, s in self.windows)),
-                median_step_s=float(np.median(per_step)) if per_step else None, step_devices=self.step_devices)
+                median_step_s=median_step_s(self.windows), step_devices=self.step_devices)
+
+
+def median_step_s(windows) -> float | None:
+  """The median over log windows [(steps, seconds)] (LoopResult.windows, a checkpoint's meta) of the mean step
+  time; None without a timed step."""
+  per_step = [s / n for n, s in windows if n]
+  return float(np.median(per_step)) if per_step else None
 
 
 def device_name() -> str:
