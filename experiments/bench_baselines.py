@@ -48,7 +48,7 @@ ROWS.update({f"steganerf_{p}": {"method": "steganerf", "steganerf.protocol": p,
                                 "steganerf.decoder_lr": STEGANERF_NETWORKS_LR,
                                 "steganerf.classifier_lr": STEGANERF_NETWORKS_LR}
              for p in ("all_views", "check_view")})
-# ... the check-view row at 12k steps: bench-conceal's ours_robust_clip_dec03_clip_polish trains its decoder 2000
+# ... the check-view row at 12k steps: bench-conceal's recommended_polished trains its decoder 2000
 # steps past the 10k joint ones, so this is StegaNeRF given as long (its rates decay over the 12k)
 ROWS["steganerf_check_view_12k"] = dict(ROWS["steganerf_check_view"], iterations=12_000)
 # ... and the 10k check-view row again from another seed (its networks' start and its order of views): the 10k
@@ -57,7 +57,7 @@ ROWS["steganerf_check_view_seed1"] = dict(ROWS["steganerf_check_view"], seed=1)
 # row keys of the config's top level; the others are the baseline section's
 TOP_LEVEL_KEYS = ("seed",)
 # LSB and DeepStega train 3D-GS from the teacher on their containers with the rates of the ConcealGS row they
-# sit beside (bench-conceal's `ours`: configs/recipes.gentle_student); StegaNeRF trains SH colour only,
+# sit beside (bench-conceal's `leakage_control`: configs/recipes.gentle_student); StegaNeRF trains SH colour only,
 # with the 3D-GS rates, as its own recipe does.
 CONTAINER_METHODS = ("lsb", "deepstega")
 # The baselines issue's targets: like the paper, neither LSB nor DeepStega survives 3D-GS training;

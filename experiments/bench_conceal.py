@@ -3,7 +3,7 @@ hidden image astronaut at 64x64: the paper's method, its ablations (paper Table 
 choices and the leakage control, at one or more decoder widths.
 
   make bench-conceal                                            # every row, 10k steps, widths 16 and 64
-  make bench-conceal BENCH_ARGS="--rows=full,ours --widths=16"
+  make bench-conceal BENCH_ARGS="--rows=full,leakage_control --widths=16"
   make bench-conceal BENCH_ARGS="--iterations=1000 --widths=16 --rows=full --eval-views=20"
   make bench-conceal BENCH_ARGS=--reuse                         # rebuild the JSON, table and plot
 
@@ -27,14 +27,26 @@ from conceal_jax.gs import evaluate
 from experiments import results_io
 from experiments.bench_train import scene_config
 
+
+def leakage_control(config):
+  """The paper with leakage control and the gentle student: the recommended recipe's first steps."""
+  return recipes.gentle_student(recipes.leakage_control(recipes.paper(config), recipes.DECOY_VIEWS))
+
+
+def through_attacks(clip_input: bool):
+  """leakage_control trained through attacks, the decoder reading renders clipped to [0, 1] (`clip_input`) or as
+  they are. With the clip it is the recommended recipe before its decoder schedule (the rate decaying to 0.3x, each
+  tensor's step clipped to RMS 1)."""
+  return lambda config: recipes.through_attacks(leakage_control(config), clip_input=clip_input)
+
+
 # A row: the recipe it starts from (configs/recipes.py, or a function of the config) and dotted overrides below
 # the config (conceal.*, seed). What each row is, what it measured and why it was tried:
 # experiments/results/conceal_bench_rows.md; its figures: conceal_bench.md and REPRODUCTION.md.
-OURS = lambda config: recipes.gentle_student(recipes.leakage_control(recipes.paper(config), recipes.DECOY_VIEWS))
-OURS_ROBUST = lambda config, clip: recipes.through_attacks(OURS(config), clip_input=clip)
-DEC03 = {"conceal.decoder_opt.lr_final_ratio": 0.3}
-CLIP = {"conceal.decoder_opt.update_clip": 1.0}
-POLISH = {"conceal.decoder_opt.polish_steps": 2000}
+DECODER_DECAY = "conceal.decoder_opt.lr_final_ratio"  # the decoder's rate decays to this share of its start
+UPDATE_CLIP = {"conceal.decoder_opt.update_clip": 1.0}
+POLISHED = {"conceal.decoder_opt.polish_steps": 2000}
+PLUS_WEIGHT2 = {"conceal.weight_plus": 2.0}
 ROWS = {
     "full": ("paper", {}),
     "no_decoder": ("paper", {"conceal.use_decoder": False}),
@@ -42,36 +54,36 @@ ROWS = {
     "no_guidance": ("paper", {"conceal.guidance": False}),
     "released": ("released", {}),
     "tensor": ("paper", {"conceal.granularity": "tensor"}),
-    "ours": (OURS, {"conceal.decoder_opt.lr_final_ratio": 0.1}),
-    "ours_robust": (lambda c: OURS_ROBUST(c, False), {"conceal.decoder_opt.lr_final_ratio": 0.1}),
-    "ours_robust_center": (lambda c: OURS_ROBUST(c, False), {"conceal.decoder_opt.lr_final_ratio": 0.1,
-                                                              "conceal.decoder.input_norm": "center"}),
-    "ours_robust_clip": (lambda c: OURS_ROBUST(c, True), {"conceal.decoder_opt.lr_final_ratio": 0.1}),
-    "ours_robust_clip_fastdec": (lambda c: OURS_ROBUST(c, True), {"conceal.decoder_opt.lr_final_ratio": 0.1,
-                                                                   "conceal.decoder_opt.lr": 1e-3,
-                                                                   "conceal.decoder_opt.adam_eps": 1e-8}),
-    "ours_robust_clip_dec03": (lambda c: OURS_ROBUST(c, True), DEC03),
-    "ours_robust_clip_dec05": (lambda c: OURS_ROBUST(c, True), {"conceal.decoder_opt.lr_final_ratio": 0.5}),
-    "ours_robust_clip_dec03_clip": ("recommended", {}),
-    "ours_robust_clip_dec05_clip": ("recommended", {"conceal.decoder_opt.lr_final_ratio": 0.5}),
-    "ours_robust_clip_dec03_clip_polish": ("recommended", POLISH),
-    "ours_robust_clip_dec03_clip_lr3": ("recommended", {"conceal.decoder_opt.lr": 3e-4}),
-    "ours_robust_clip_dec03_seed1": (lambda c: OURS_ROBUST(c, True), dict(DEC03, seed=1)),
-    "ours_robust_clip_dec03_seed1_polish": (lambda c: OURS_ROBUST(c, True), dict(DEC03, seed=1, **POLISH)),
-    "released_polish": ("released", POLISH),
+    "leakage_control": (leakage_control, {DECODER_DECAY: 0.1}),
+    "leakage_control_through_attacks": (through_attacks(False), {DECODER_DECAY: 0.1}),
+    "leakage_control_through_attacks_centered_input": (through_attacks(False),
+                                                       {DECODER_DECAY: 0.1, "conceal.decoder.input_norm": "center"}),
+    "leakage_control_through_attacks_clipped_input": (through_attacks(True), {DECODER_DECAY: 0.1}),
+    "recommended_steganerf_decoder_schedule": (through_attacks(True), {DECODER_DECAY: 0.1,
+                                                                       "conceal.decoder_opt.lr": 1e-3,
+                                                                       "conceal.decoder_opt.adam_eps": 1e-8}),
+    "recommended_no_update_clip": (through_attacks(True), {DECODER_DECAY: 0.3}),
+    "recommended_no_update_clip_decoder_decay05": (through_attacks(True), {DECODER_DECAY: 0.5}),
+    "recommended": ("recommended", {}),
+    "recommended_decoder_decay05": ("recommended", {DECODER_DECAY: 0.5}),
+    "recommended_polished": ("recommended", POLISHED),
+    "recommended_decoder_lr3e4": ("recommended", {"conceal.decoder_opt.lr": 3e-4}),
+    "recommended_no_update_clip_seed1": (through_attacks(True), {DECODER_DECAY: 0.3, "seed": 1}),
+    "recommended_no_update_clip_seed1_polished": (through_attacks(True), {DECODER_DECAY: 0.3, "seed": 1, **POLISHED}),
+    "released_polished": ("released", POLISHED),
     "released_seed1": ("released", {"seed": 1}),
-    "released_dec03_clip": ("released", dict(DEC03, **CLIP)),
-    "released_12k": ("released", {"conceal.iterations": 12_000}),
-    "released_plus2": ("released", {"conceal.weight_plus": 2.0}),
-    "released_dec03_clip_seed1": ("released", dict(DEC03, seed=1, **CLIP)),
-    "released_plus2_seed1": ("released", {"conceal.weight_plus": 2.0, "seed": 1}),
-    "released_plus2_clip": ("released", dict(CLIP, **{"conceal.weight_plus": 2.0})),
-    "released_plus2_clip_seed1": ("released", dict(CLIP, seed=1, **{"conceal.weight_plus": 2.0})),
+    "released_decoder_decay03_update_clip": ("released", {DECODER_DECAY: 0.3, **UPDATE_CLIP}),
+    "released_12k_steps": ("released", {"conceal.iterations": 12_000}),
+    "released_plus_weight2": ("released", PLUS_WEIGHT2),
+    "released_decoder_decay03_update_clip_seed1": ("released", {DECODER_DECAY: 0.3, "seed": 1, **UPDATE_CLIP}),
+    "released_plus_weight2_seed1": ("released", {**PLUS_WEIGHT2, "seed": 1}),
+    "released_plus_weight2_update_clip": ("released", {**UPDATE_CLIP, **PLUS_WEIGHT2}),
+    "released_plus_weight2_update_clip_seed1": ("released", {**UPDATE_CLIP, "seed": 1, **PLUS_WEIGHT2}),
 }
 # A row that continues another's run starts from that run's checkpoint at the end of its joint steps, where its
 # config is the other's up to the continuation (the polish steps), so it costs only its extra steps.
-CONTINUES = dict(released_polish="released", ours_robust_clip_dec03_seed1_polish="ours_robust_clip_dec03_seed1",
-                 ours_robust_clip_dec03_clip_polish="ours_robust_clip_dec03_clip")
+CONTINUES = dict(released_polished="released", recommended_polished="recommended",
+                 recommended_no_update_clip_seed1_polished="recommended_no_update_clip_seed1")
 CONTINUATION_KEY = "conceal.decoder_opt.polish_steps"
 # The released decoder (width 64) starts from VGG16 with lr 1e-4; a narrow one starts from scratch at
 # recipes.NARROW_DECODER_LR.

@@ -67,7 +67,7 @@ SCENES = {"demo": ("demo", "workdirs/demo/conceal", "recommended"),
           "demo_film_far": ("demo", "workdirs/survive_runs/demo_film_far", "film_far"),
           "demo_drift": ("demo", "workdirs/survive_runs/demo_drift", "drift"),
           "demo_orbit": ("demo", "workdirs/survive_runs/demo_orbit", "orbit"),
-          "lego": ("lego", "workdirs/bench/lego/conceal_ours_robust_clip_dec03_clip_w16", "recommended"),
+          "lego": ("lego", "workdirs/bench/lego/conceal_recommended_w16", "recommended"),
           "lego_film": ("lego", "workdirs/survive_runs/lego_film", "film"),
           "lego_film_reset": ("lego", "workdirs/survive_runs/lego_film_reset", "film_reset")}
 TRANSFORMS = ([("rotate", d) for d in (1.0, 5.0, 45.0, 180.0)] + [("translate", f) for f in (0.026, 1.0)]

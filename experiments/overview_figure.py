@@ -12,7 +12,7 @@ import pathlib
 
 from conceal_jax.core import fileio
 
-RUN = "conceal_ours_robust_clip_dec03_clip_w16"  # bench-conceal's row of the recommended recipe, decoder width 16
+RUN = "conceal_recommended_w16"  # bench-conceal's row of the recommended recipe, decoder width 16
 SCENES = ("lego", "beer")
 PANELS = (("hidden.png", "hidden image"), ("normal_revealed.png", "decoder on a student\ntest view: the scene"),
           ("revealed.png", "decoder at the secret key:\nthe image revealed"),

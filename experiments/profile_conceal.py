@@ -125,7 +125,7 @@ def main():
   parser.add_argument("--teacher", default="", help="the teacher .ply (default: bench-train's for --scene)")
   parser.add_argument("--widths", default="16,64")
   parser.add_argument("--repeats", type=int, default=7)
-  parser.add_argument("--row", default="ours_robust_clip_dec03_clip", choices=sorted(ROWS),
+  parser.add_argument("--row", default="recommended", choices=sorted(ROWS),
                       help="a bench-conceal row's settings")
   parser.add_argument("--host_devices", type=int, default=min(2, os.cpu_count() or 1))
   args = parser.parse_args()

@@ -145,7 +145,7 @@ def recipe_runs(conceal_bench: dict, scene: str) -> dict[str, list[dict]]:
 
 
 def recipe_note(name: str, runs: list[dict]) -> str:
-  """'recommended (ours_robust_clip_dec03_clip), width 16, 10000 steps, 1 seed (0)' for a recipe's runs."""
+  """'recommended (recommended), width 16, 10000 steps, 1 seed (0)' for a recipe's runs."""
   rows = recipe_of_row()
   names = ", ".join(dict.fromkeys(r["row"] for r in runs))
   devices = "".join(dict.fromkeys(results_io.on_device(r) for r in runs))

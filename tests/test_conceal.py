@@ -201,7 +201,7 @@ def test_bench_reads_a_finished_run_and_keeps_its_images_beside_the_json(tiny, j
   shutil.copytree(joint_run[1], run)
   (bench / "lego" / "teacher").mkdir()
   shutil.copy(tiny[1], bench / "lego" / "teacher" / "point_cloud.ply")
-  [row] = bench_conceal.run("lego", ["full", "ours"], [16], 0, 0, bench, out, reuse=True)
+  [row] = bench_conceal.run("lego", ["full", "leakage_control"], [16], 0, 0, bench, out, reuse=True)
   assert row["row"] == "full" and set(row["images"]) == set(results_io.CONCEAL_IMAGES)
   for label, name in results_io.CONCEAL_IMAGES.items():
     assert (out / row["images"][label]).read_bytes() == (run / name).read_bytes(), label
@@ -220,10 +220,10 @@ def test_a_bench_row_may_set_the_seed_beside_its_conceal_overrides(tmp_path):
 def test_the_12k_released_row_is_released_trained_longer(tmp_path):
   teacher = tmp_path / "point_cloud.ply"
   released, longer = (bench_conceal.run_config("lego", teacher, row, 16, 0, 0).conceal.to_dict()
-                      for row in ("released", "released_12k"))
+                      for row in ("released", "released_12k_steps"))
   assert longer.pop("iterations") == 12_000 and released.pop("iterations") == 10_000
   assert longer == released
-  assert bench_conceal.run_config("lego", teacher, "released_12k", 16, 100, 0).conceal.iterations == 100
+  assert bench_conceal.run_config("lego", teacher, "released_12k_steps", 16, 100, 0).conceal.iterations == 100
 
 
 def test_a_bench_row_from_another_seed_is_named_for_it(tmp_path):

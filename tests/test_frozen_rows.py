@@ -52,8 +52,8 @@ ADDED = {"conceal.carrier.film": False, "conceal.carrier.distance": 0.1, "concea
          "conceal.carrier.dc_bound": 0.0, "conceal.attacks.merge_depth": 1.0,
          "conceal.carrier.stack": 1, "conceal.carrier.spread": 0.6, "train.time_limit_min": 0.0}
 # Rows that used a removed option (their results stay in conceal_bench.json and REPRODUCTION's appendix).
-RETIRED_ROWS = {"ours_robust_clip_dec03_amsgrad", "ours_robust_clip_dec03_clip_polish_avg",
-                "ours_robust_clip_dec03_clip_sh", "ours_robust_clip_dec03_clip_sh_polish"}
+RETIRED_ROWS = {"recommended_no_update_clip_decoder_amsgrad", "recommended_polished_running_average",
+                "recommended_colour_only_student", "recommended_colour_only_student_polished"}
 SECTIONS = ("seed", "mode", "data", "render", "eval", "conceal", "mark", "baseline", "train", "init")
 
 
@@ -111,10 +111,10 @@ def test_dataset_configs_resolve_as_frozen(name):
 
 
 def test_recipes_are_the_rows_they_are_measured_by():
-  """configs/lego_conceal.py's recipes are bench-conceal's rows at width 16: recommended is
-  ours_robust_clip_dec03_clip, paper is full, released is released (the decoder's width and rate aside)."""
+  """configs/lego_conceal.py's recipes are bench-conceal's rows at width 16: recommended and released are the rows
+  of their names, paper is full (the decoder's width and rate aside)."""
   lego_conceal = importlib.import_module("conceal_jax.configs.lego_conceal")
-  for recipe, row in (("recommended", "ours_robust_clip_dec03_clip"), ("paper", "full"), ("released", "released")):
+  for recipe, row in (("recommended", "recommended"), ("paper", "full"), ("released", "released")):
     config = lego_conceal.get_config(recipe)
     expected = bench_conceal.run_config("lego", TEACHER, row, 16 if recipe == "recommended" else 64, 0, 0)
     # the bench's paths are absolute and it scores every test view

@@ -67,23 +67,23 @@ def test_rows_run_on_an_accelerator_say_so_and_leakage_shows_its_floor(tmp_path)
   gpu = ["gpu: NVIDIA H100 80GB HBM3"]
   floor = dict(leakage_floor=dict(max_ssim_teacher_test_views=0.101, ssim_teacher_at_worst_test_view=0.1))
   wide = dict(_conceal_row("full", 64, 32.9, 45.1), step_devices=gpu, **floor)
-  recommended = dict(_conceal_row("ours_robust_clip_dec03_clip", 16, 33.0, 40.0), step_devices=gpu, **floor)
-  rows = [wide, recommended, _conceal_row("ours", 16, 32.9, 40.0)]
+  recommended = dict(_conceal_row("recommended", 16, 33.0, 40.0), step_devices=gpu, **floor)
+  rows = [wide, recommended, _conceal_row("leakage_control", 16, 32.9, 40.0)]
   fileio.write_json(results / "conceal_bench.json", dict(rows=rows))
   fileio.write_json(results / "train_bench.json", dict(rows=[dict(scene="lego", test=dict(psnr=33.1, ssim=0.98,
                                                                                           lpips=0.02),
                                                                   step_devices=["cpu: cpu"])]))
   text = reproduce.report(results, tmp_path / "bench")
   body, appendix = text[:text.index("## Appendix")], text[text.index("## Appendix"):]
-  assert ("recommended (ours_robust_clip_dec03_clip), width 16, 10000 steps, 1 seed (0) (NVIDIA H100 80GB HBM3) |"
+  assert ("recommended (recommended), width 16, 10000 steps, 1 seed (0) (NVIDIA H100 80GB HBM3) |"
           in body)
   assert "teacher (bench-train) |" in body
   # a recipe's run at another decoder width, and a row that is no recipe, are in the appendix only
-  assert "paper: not run yet" in body and "| lego | ours |" not in body and "| paper (full)" not in body
-  assert "| lego | recommended (ours_robust_clip_dec03_clip) | 1 seed (0) | 0.110 | 0.120 | 0.130 | 0.101 |" in body
+  assert "paper: not run yet" in body and "| lego | leakage_control |" not in body and "| paper (full)" not in body
+  assert "| lego | recommended (recommended) | 1 seed (0) | 0.110 | 0.120 | 0.130 | 0.101 |" in body
   assert ("| lego | full | recipe: paper | 64 | 10000 | 32.90 / 0.9700 / 0.0300 | 45.10 / 0.9950 | 0.110 / 0.120 / "
           "0.130 | 0.101 | 50.0 (NVIDIA H100 80GB HBM3) |") in appendix
-  assert "| lego | ours | experiment | 16 |" in appendix
+  assert "| lego | leakage_control | experiment | 16 |" in appendix
   assert results_io.on_device(dict(step_devices=["gpu: elsewhere", "cpu: cpu"])) == " (elsewhere)"
 
 
@@ -104,7 +104,8 @@ def test_figure_reads_the_images_kept_beside_the_json_when_the_workdir_is_gone(t
   assert results_io.row_images(results, _conceal_row("full", 16, 32.95, 35.25), run, results_io.CONCEAL_IMAGES) == []
   assert "![lego](reproduction_lego.png)" in reproduce.report(results, workdir)
   # a run without images keeps none, and without any, the baselines' images make the figure alone
-  assert results_io.keep_images(results, workdir / "lego" / "conceal_ours_w16", results_io.CONCEAL_IMAGES) == {}
+  no_images = workdir / "lego" / "conceal_leakage_control_w16"
+  assert results_io.keep_images(results, no_images, results_io.CONCEAL_IMAGES) == {}
   assert reproduce.figure_grid("lego", dict(rows=[]), dict(rows=[]), results, workdir) is None
   baseline = dict(scene="lego", method="LSB", row="lsb4", label="LSB 4 bits", images=dict(revealed=images["hidden"]))
   assert reproduce.figure_grid("lego", dict(rows=[_conceal_row("full", 16, 32.95, 35.25)]), dict(rows=[baseline]),
@@ -203,11 +204,11 @@ def test_recipes_from_several_seeds_are_compared_on_their_means():
 def test_each_recipe_is_one_row_over_its_seeds_and_every_other_run_is_in_the_appendix(tmp_path):
   assert reproduce.recipe_of_row() == {"full": ("paper", 0), "released": ("released", 0),
                                        "released_seed1": ("released", 1),
-                                       "ours_robust_clip_dec03_clip": ("recommended", 0)}
+                                       "recommended": ("recommended", 0)}
   conceal_rows = [_conceal_row("released", 16, 33.4, 42.5), _conceal_row("released_seed1", 16, 33.3, 39.0),
-                  _conceal_row("ours_robust_clip_dec03_clip", 16, 33.0, 40.4),
-                  _conceal_row("released_plus2", 16, 33.3, 42.9),
-                  _conceal_row("ours_robust_clip_dec03_amsgrad", 16, 32.9, 37.1)]  # retired: not in ROWS
+                  _conceal_row("recommended", 16, 33.0, 40.4),
+                  _conceal_row("released_plus_weight2", 16, 33.3, 42.9),
+                  _conceal_row("recommended_no_update_clip_decoder_amsgrad", 16, 32.9, 37.1)]  # retired: not in ROWS
   baseline_rows = [_steganerf_row("steganerf_check_view", 10_000, 32.5, 41.7),
                    _steganerf_row("steganerf_check_view_seed1", 10_000, 32.8, 41.0),
                    _steganerf_row("steganerf_check_view_12k", 12_000, 32.8, 45.3)]
@@ -218,23 +219,23 @@ def test_each_recipe_is_one_row_over_its_seeds_and_every_other_run_is_in_the_app
   body, appendix = text[:text.index("## Appendix")], text[text.index("## Appendix"):]
   table1 = body[body.index("Table 1"):body.index("Table 2")]
   assert ("| ConcealGS | 33.14 / 0.9717 / 0.0240 | 33.98 / 0.9942 | 33.00 / 0.9700 / 0.0300 | 40.40 / 0.9950 | "
-          "recommended (ours_robust_clip_dec03_clip), width 16, 10000 steps, 1 seed (0) |") in table1
+          "recommended (recommended), width 16, 10000 steps, 1 seed (0) |") in table1
   assert ("| ConcealGS | |  | 33.35 (33.30-33.40) / 0.9700 / 0.0300 | 40.75 (39.00-42.50) / 0.9950 | "
           "released (released, released_seed1), width 16, 10000 steps, 2 seeds (0, 1) |") in table1
   assert ("| StegaNeRF | 30.33 / 0.9381 / 0.0787 | 24.60 / 0.9026 | 32.65 (32.50-32.80) / 0.9700 / 0.0300 | "
           "41.35 (41.00-41.70) / 0.9950 | check_view, 10000 steps, 2 seeds (0, 1) |") in table1
-  for other in ("released_plus2", "ours_robust_clip_dec03_amsgrad", "steganerf_check_view_12k"):
+  for other in ("released_plus_weight2", "recommended_no_update_clip_decoder_amsgrad", "steganerf_check_view_12k"):
     assert other not in body and f"| {other} |" in appendix
-  assert "| lego | released_plus2 | experiment | 16 |" in appendix
-  assert "| lego | ours_robust_clip_dec03_amsgrad | retired | 16 |" in appendix
+  assert "| lego | released_plus_weight2 | experiment | 16 |" in appendix
+  assert "| lego | recommended_no_update_clip_decoder_amsgrad | retired | 16 |" in appendix
   leakage = body[body.index("### Leakage"):]
   assert ("| lego | released (released, released_seed1) | 2 seeds (0, 1) | 0.110 (0.110-0.110) | 0.120 (0.120-0.120) "
           "| 0.130 (0.130-0.130) | - |") in leakage
   # the recipes beside StegaNeRF, on their means; the figure's points are those means
   means = {m["run"]: m for m in reproduce.recipe_points("lego", dict(rows=conceal_rows), dict(rows=baseline_rows))}
-  assert sorted(means) == ["recommended (ours_robust_clip_dec03_clip)", "released (released)", "steganerf_check_view"]
+  assert sorted(means) == ["recommended (recommended)", "released (released)", "steganerf_check_view"]
   assert means["released (released)"]["seeds"] == [0, 1]
-  assert ("| ConcealGS | recommended (ours_robust_clip_dec03_clip) | 16 | 10000 | 0 | 33.00 (-0.10) | 40.40 | 0.130 "
+  assert ("| ConcealGS | recommended (recommended) | 16 | 10000 | 0 | 33.00 (-0.10) | 40.40 | 0.130 "
           "|  |") in body
   assert ("| StegaNeRF | steganerf_check_view | 16 | 10000 | 0, 1 | 32.65 (-0.45) | 41.35 (41.00-41.70) | 0.130 "
           "| none |") in body
