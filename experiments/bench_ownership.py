@@ -20,13 +20,13 @@ check render, model attacks on the scene), each with the null verify would draw 
 Each (decoder, scene) pair's trials are kept in --cache (an .npz per pair, keyed by the settings), so a run
 stopped part way resumes where it was.
 
-Message mode: each finished message-mode run of --message-runs (conceal/message.py) gives, per message length, the
-raw bit accuracy, whether the corrected message is exact, the render PSNR beside the teacher's, and verify on the
-student and on a clean scene read with the same key.
+Message mode: each finished message-mode run of --message-runs (conceal/message.py) gives, per scene and message
+length, the raw bit accuracy, whether the corrected message is exact, the render PSNR beside the teacher's, and
+verify on the student and on a clean scene (its own teacher) read with the same key.
 
 Writes ownership_bench.json (clean_trials, false_positives, alpha, tpr_at_alpha per marked run, message rows per
-length, the rows behind them) and ownership_bench.png (the clean trials' p-values against the uniform, log scale;
-their z against N(0, 1); the marked trials' z against the threshold) to --out.
+scene and length, the rows behind them) and ownership_bench.png (the clean trials' p-values against the uniform,
+log scale; their z against N(0, 1); the marked trials' z against the threshold) to --out.
 """
 from __future__ import annotations
 
@@ -55,11 +55,14 @@ DEFAULT_RUNS = ("workdirs/demo/conceal,workdirs/survive_runs/demo_film,workdirs/
 DEFAULT_MARKED = ("workdirs/demo/conceal,workdirs/survive_runs/lego_film,"
                   "workdirs/bench/lego/conceal_recommended_w16")
 DEFAULT_CLEAN = "workdirs/demo/teacher,workdirs/demo_seed1/teacher,workdirs/bench/lego/teacher"
-# message mode (mark.message_bits): demo concealments of 32 and 48 bits, e.g.
+# message mode (mark.message_bits): demo concealments of 32 and 48 bits and lego's of 48, e.g.
 #   python -m conceal_jax.main --config=conceal_jax/configs/demo.py --workdir=workdirs/message/demo_32 \
 #     --config.mode=conceal --config.mark.teacher=workdirs/demo/teacher/point_cloud.ply --config.mark.message_bits=32
-DEFAULT_MESSAGE_RUNS = "workdirs/message/demo_32,workdirs/message/demo_48"
-DEFAULT_MESSAGE_CLEAN = "workdirs/demo_seed1/teacher/point_cloud.ply"
+#   python -m conceal_jax.main --config=conceal_jax/configs/lego_conceal.py --workdir=workdirs/message/lego_48 \
+#     --config.mark.teacher=workdirs/bench/lego/teacher/point_cloud.ply --config.mark.message_bits=48 \
+#     --config.conceal.iterations=3000
+DEFAULT_MESSAGE_RUNS = ("workdirs/message/demo_32,workdirs/message/demo_48,workdirs/message/lego_32,"
+                        "workdirs/message/lego_48")
 MARKED_SEVERITIES = bench_robust.MARKED_SEVERITIES
 SHIFTS = 16  # circular shifts of each decoder's I among the hidden images of its clean trials
 CROPS = 16  # crops of each scikit-image picture among them
@@ -207,14 +210,17 @@ def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict
   return rows
 
 
-def message_row(run: pathlib.Path, clean_ply: str, alpha: float, scratch: pathlib.Path) -> dict:
+def message_row(run: pathlib.Path, clean_ply: str | None, alpha: float, scratch: pathlib.Path) -> dict:
   """A message-mode concealment: the message read from the student at the key (message.json), the render against
   the teacher's (metrics.json), the message read under each mild and medium attack (attacked_reveals), and verify
-  (ownership test + message) on the student and on the clean scene `clean_ply` read with the same key and
-  decoder."""
+  (ownership test + message) on the student and on a clean scene read with the same key and decoder: `clean_ply`,
+  or the run's own teacher, which was never marked."""
   metrics = json.loads((run / "metrics.json").read_text())
   read = json.loads((run / "message.json").read_text())
-  row = dict(run=str(run), bits=read["bits"], code=read["code"], corrects=read["corrects"],
+  config = saved_config(run)
+  clean_ply = clean_ply or config.mark.teacher
+  row = dict(run=str(run), scene=pathlib.Path(config.data.path).name, bits=read["bits"], code=read["code"],
+             corrects=read["corrects"],
              bit_accuracy=read["raw_bit_accuracy"], message_exact=read["message_exact"],
              errors_corrected=read["errors_corrected"], log10_p_binomial=read["log10_p_binomial"],
              render_psnr=metrics["student_vs_ground_truth"]["psnr"],
@@ -314,8 +320,9 @@ def main():
                       help="where each (decoder, scene) pair's trials are kept, to resume")
   parser.add_argument("--message-runs", default=DEFAULT_MESSAGE_RUNS,
                       help="comma-separated conceal workdirs of message mode")
-  parser.add_argument("--message-clean", default=DEFAULT_MESSAGE_CLEAN,
-                      help="a clean scene's .ply the message runs' keys are also read from")
+  parser.add_argument("--message-clean", default="",
+                      help="a clean scene's .ply the message runs' keys are also read from (default: each run's "
+                           "own teacher, never marked)")
   parser.add_argument("--messages-only", action="store_true",
                       help="refresh only the message rows of --out's ownership_bench.json (the message runs finish "
                            "apart from the clean trials)")
@@ -327,9 +334,10 @@ def main():
   def message_rows() -> dict:
     runs = [pathlib.Path(p) for p in args.message_runs.split(",")
             if p and (pathlib.Path(p) / "message.json").is_file()]
-    return {str(row["bits"]): row for row in (message_row(run, args.message_clean, args.alpha,
-                                                          pathlib.Path(args.cache) / "message_verify")
-                                              for run in runs)}
+    rows = [message_row(run, args.message_clean or None, args.alpha, pathlib.Path(args.cache) / "message_verify")
+            for run in runs]
+    return {scene: {str(row["bits"]): row for row in rows if row["scene"] == scene}
+            for scene in sorted({row["scene"] for row in rows})}
 
   if args.messages_only:
     result = json.loads((out / "ownership_bench.json").read_text())

@@ -283,6 +283,12 @@ def ownership_table(calibration: dict) -> list[str]:
 MESSAGE_PAPERS = {32: "GuardSplat 99.04% (39.40 dB); 3D-GSW 97.37% (35.08 dB)", 48: "MarkSplatter 94.41%"}
 
 
+def message_rows(ownership_bench: dict) -> list[tuple[str, int, dict]]:
+  """(scene, bits, row) of bench-ownership's message mode ({scene: {bits: row}}), by scene and length."""
+  return sorted((scene, int(bits), row) for scene, by_bits in (ownership_bench.get("message") or {}).items()
+                for bits, row in by_bits.items())
+
+
 def ownership_test_table(ownership_bench: dict) -> list[str]:
   """verify's decision as a statistical test (bench-ownership's ownership_bench.json): false positives measured over
   the clean trials at alpha beside the rate the null predicts (and with the random-phase model's p-value alone),
@@ -311,23 +317,24 @@ def ownership_test_table(ownership_bench: dict) -> list[str]:
                f"{top['scene']}, {top['view']}, hidden image '{top['hidden']}'." if top else ""), "",
             "Message mode (BCH-coded bits laid out as the hidden image; raw bit accuracy before correction, render "
             "PSNR of the student on the test views beside the teacher's; runs: "
-            + (", ".join(row["run"] for row in (ownership_bench.get("message") or {}).values()) or "none")
+            + (", ".join(row["run"] for _, _, row in message_rows(ownership_bench)) or "none")
             + "; the papers' figures are on their own scenes):", "",
-            "| bits | code | raw bit accuracy | message after correction | exact under the mild and medium attacks "
-            "(lowest raw bit accuracy) | render PSNR (teacher) | clean scene: bit accuracy, decided | papers |",
-            "|---|---|---|---|---|---|---|---|"]
-  messages = ownership_bench.get("message") or {}
+            "| scene | bits | code | raw bit accuracy | message after correction | exact under the mild and medium "
+            "attacks (lowest raw bit accuracy) | render PSNR (teacher) | clean scene: bit accuracy, decided "
+            "| papers |",
+            "|---|---|---|---|---|---|---|---|---|"]
+  messages = message_rows(ownership_bench)
   if not messages:
-    lines.append(f"| {NOT_RUN} | | | | | | | |")
-  for bits, row in sorted(messages.items(), key=lambda item: int(item[0])):
+    lines.append(f"| {NOT_RUN} | | | | | | | | |")
+  for scene, bits, row in messages:
     clean = row.get("verify_clean")
     clean_text = (f"{100 * clean['bit_accuracy']:.1f}%, {'owned' if clean['owned'] else 'not owned'}" if clean
                   else "-")
-    lines.append(f"| {bits} | {row['code']} | {100 * row['bit_accuracy']:.2f}% | "
+    lines.append(f"| {scene} | {bits} | {row['code']} | {100 * row['bit_accuracy']:.2f}% | "
                  f"{'exact' if row['message_exact'] else 'wrong'} ({row['errors_corrected']} corrected) | "
                  f"{row.get('attacked_exact', '-')} ({100 * row.get('attacked_min_bit_accuracy', float('nan')):.1f}%)"
                  f" | {row['render_psnr']:.2f} ({row['teacher_psnr']:.2f}) | {clean_text} | "
-                 f"{MESSAGE_PAPERS.get(int(bits), '-')} |")
+                 f"{MESSAGE_PAPERS.get(bits, '-')} |")
   return lines + [""]
 
 
