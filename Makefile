@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 WORKDIR ?= workdirs/demo
 JOBS ?= 2
 
-.PHONY: venv demo own-scene chromium test test-slow bench-render bench-train bench-full profile-train bench-conceal profile-conceal \
+.PHONY: venv demo own-scene chromium test test-slow bench-render bench-train bench-start bench-full profile-train bench-conceal profile-conceal \
         bench-baselines bench-robust bench-survive bench-falloff survive-runs bench-ownership reproduce clean
 
 venv: $(STAMP)
@@ -83,6 +83,10 @@ bench-render: $(STAMP)
 
 bench-train: $(STAMP)
 	$(PY) -m experiments.bench_train --out=experiments/results --workdir=workdirs/bench $(BENCH_ARGS)
+
+# the first 1000 teacher steps of lego and of beer read through its LLFF poses: the step time per pixel side by side
+bench-start: $(STAMP)
+	$(PY) -m experiments.bench_start --out=experiments/results --workdir=workdirs/bench_start $(BENCH_ARGS)
 
 # lego at the 400x400 the shared copy holds, 3D-GS's 30k-step recipe: for an accelerator (BENCH_ARGS=--minutes=N stops
 # the teacher at a checkpoint after N minutes and scores it there; the same command resumes)
