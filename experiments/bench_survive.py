@@ -495,7 +495,8 @@ def main(argv=None):
   parser.add_argument("--scenes", default=",".join(SCENES), help=f"comma-separated labels of {sorted(SCENES)}, "
                       "or scene=conceal_workdir[@recipe] (recipe: recommended unless given)")
   parser.add_argument("--attacks", default=",".join(CHEAP_ATTACKS),
-                      help=f"comma-separated groups of {CHEAP_ATTACKS + ('extraction',)}")
+                      help=f"comma-separated groups of {CHEAP_ATTACKS + ('extraction',)}, or round trips of the "
+                           f"converter group by name ({', '.join(sorted({c[0] for c in CONVERSIONS}))})")
   parser.add_argument("--finetune-steps", default="30,100,300,1000", help="fine-tuning lengths (3000, 10000 too)")
   parser.add_argument("--extraction", action="store_true", help="also run model extraction (long)")
   parser.add_argument("--extraction-views", default="200", help="comma-separated numbers of rendered views")
@@ -538,9 +539,10 @@ def main(argv=None):
       save([scene.row("none", None, scores_of(scene, scene.student), render_loss_db=render_loss(run))])
     if "transforms" in groups:
       save(transform_rows(scene, [(a, l) for a, l in TRANSFORMS if missing(a, l)]))
-    if "converter" in groups:
+    conversions = [c for c in CONVERSIONS if "converter" in groups or c[0] in groups]
+    if conversions:
       if converter.available():
-        save(converter_rows(scene, [c for c in CONVERSIONS if missing(c[0], c[1])]))
+        save(converter_rows(scene, [c for c in conversions if missing(c[0], c[1])]))
       else:
         print("skipping the round trips: splat-transform is not installed (make node_modules)")
     for attack in ("finetune", "finetune_densify"):

@@ -167,3 +167,15 @@ def test_a_cache_of_attacked_scenes_belongs_to_one_run(tmp_path, capsys):
   bench_survive.claim_cache(old, tmp_path / "b")
   assert "no source.json" in capsys.readouterr().out
   assert json.loads((old / bench_survive.CACHE_SOURCE).read_text())["size"] == 20
+
+
+def test_round_trips_can_be_asked_for_by_name(run, monkeypatch, tmp_path):
+  """--attacks=decimate runs the converter group's decimations only (a scene's .sog can take the CPU an hour)."""
+  asked = []
+  monkeypatch.setattr(converter, "available", lambda: True)
+  monkeypatch.setattr(bench_survive, "converter_rows", lambda scene, todo: asked.extend(todo) or [])
+  monkeypatch.setattr(bench_survive, "CONVERSIONS", [("sog", None, dict(fmt="sog")),
+                                                     ("decimate", 0.5, dict(fmt="ply", decimate=0.5))])
+  bench_survive.main([f"--out={tmp_path / 'out'}", f"--workdir={tmp_path / 'work'}", f"--scenes=tiny={run / 'run'}",
+                      f"--calibration={run / 'cal.json'}", "--test-views=1", "--attacks=decimate"])
+  assert [(attack, level) for attack, level, _ in asked] == [("decimate", 0.5)]
