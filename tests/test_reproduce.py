@@ -243,16 +243,17 @@ def test_each_recipe_is_one_row_over_its_seeds_and_every_other_run_is_in_the_app
 
 
 def test_the_ownership_test_table_counts_pairs_and_shows_message_mode():
-  bench = dict(alpha=1e-6, clean_trials=190620, false_positives=1, false_positives_model=12,
-               independent_pairs=dict(decoder_scene_pairs=15), tpr_at_alpha={"workdirs/demo/conceal": 1.0},
-               message={"48": dict(run="w/demo_48", code="BCH(125, 48), shortened from BCH(127, 50)",
-                                   bit_accuracy=0.992,
+  row = lambda run, accuracy: dict(run=run, code="BCH(125, 48), shortened from BCH(127, 50)", bit_accuracy=accuracy,
                                    message_exact=True, errors_corrected=1, render_psnr=30.1, teacher_psnr=30.5,
                                    attacked_exact="30 of 32", attacked_min_bit_accuracy=0.52,
-                                   verify_clean=dict(bit_accuracy=0.48, owned=False))})
+                                   verify_clean=dict(bit_accuracy=0.48, owned=False))
+  bench = dict(alpha=1e-6, clean_trials=190620, false_positives=1, false_positives_model=12,
+               independent_pairs=dict(decoder_scene_pairs=15), tpr_at_alpha={"workdirs/demo/conceal": 1.0},
+               message={"lego": {"48": row("w/lego_48", 1.0)}, "demo": {"48": row("w/demo_48", 0.992)}})
   text = "\n".join(reproduce.ownership_test_table(bench))
   assert "| 1e-06 | 190620 (15) | 1 (0.19; 12) | workdirs/demo/conceal | 100.0% |" in text
-  assert ("| 48 | BCH(125, 48), shortened from BCH(127, 50) | 99.20% | exact (1 corrected) | 30 of 32 (52.0%) | "
+  assert ("| demo | 48 | BCH(125, 48), shortened from BCH(127, 50) | 99.20% | exact (1 corrected) | 30 of 32 (52.0%) | "
           "30.10 (30.50) | 48.0%, not owned | MarkSplatter 94.41% |") in text
-  assert "runs: w/demo_48;" in text
+  assert text.index("| demo | 48 |") < text.index("| lego | 48 | BCH(125, 48), shortened from BCH(127, 50) | 100.00%")
+  assert "runs: w/demo_48, w/lego_48;" in text
   assert reproduce.NOT_RUN in "\n".join(reproduce.ownership_test_table(dict(bench, message={})))
