@@ -58,11 +58,12 @@ DEFAULT_CLEAN = "workdirs/demo/teacher,workdirs/demo_seed1/teacher,workdirs/benc
 # message mode (mark.message_bits): demo concealments of 32 and 48 bits and lego's of 48, e.g.
 #   python -m conceal_jax.main --config=conceal_jax/configs/demo.py --workdir=workdirs/message/demo_32 \
 #     --config.mode=conceal --config.mark.teacher=workdirs/demo/teacher/point_cloud.ply --config.mark.message_bits=32
-#   python -m conceal_jax.main --config=conceal_jax/configs/lego_conceal.py --workdir=workdirs/message/lego_48 \
-#     --config.mark.teacher=workdirs/bench/lego/teacher/point_cloud.ply --config.mark.message_bits=48 \
-#     --config.conceal.iterations=3000
+#   python -m conceal_jax.main --config=conceal_jax/configs/lego_conceal.py --workdir=workdirs/message/lego_48_10k \
+#     --config.mark.teacher=workdirs/bench/lego/teacher/point_cloud.ply --config.mark.message_bits=48
+# (lego_48: the same shortened to --config.conceal.iterations=3000). Of two runs of one scene and length, the later
+# in the list gives the row.
 DEFAULT_MESSAGE_RUNS = ("workdirs/message/demo_32,workdirs/message/demo_48,workdirs/message/lego_32,"
-                        "workdirs/message/lego_48")
+                        "workdirs/message/lego_48,workdirs/message/lego_32_10k,workdirs/message/lego_48_10k")
 MARKED_SEVERITIES = bench_robust.MARKED_SEVERITIES
 SHIFTS = 16  # circular shifts of each decoder's I among the hidden images of its clean trials
 CROPS = 16  # crops of each scikit-image picture among them
