@@ -7,16 +7,16 @@ real capture "beer" read through its LLFF poses (poses_bounds.npy, no points: ra
 A forward-facing capture starts from random Gaussians in its bounds box, which cover many more tiles than an
 object's, so its first steps cost more per pixel than lego's. Each scene trains its config (lego.py; beer.py
 with data.format=llff and lego's random start count) for --steps iterations into <workdir>/first<steps>/<scene>
-(resumable), then scores 5 test views. Writes start_bench.json (per scene: image size, median step and step time
-per pixel over the run's log windows, the first window's, pairs and Gaussians; the ratio of beer's time per pixel
-to lego's against the target), start_bench.md and start_bench.png (time per pixel and pairs against the step) to
---out. Scenes whose data is missing are skipped with a note. A run of N steps uses N as its schedule's length
-(learning-rate decay, densification stop), so its first steps are those of an N-step teacher.
+(resumable), then scores 5 test views. Merges its rows into start_bench.json (per scene and length: image size,
+median step and step time per pixel over the run's log windows, the first window's, pairs and Gaussians; beer's
+time per pixel over lego's of as many steps, against the target) and rewrites start_bench.md and start_bench.png
+(time per pixel and pairs against the step) in --out. Scenes whose data is missing are skipped with a note. A run
+of N steps uses N as its schedule's length (learning-rate decay, densification stop), so its first steps are those
+of an N-step teacher.
 """
 from __future__ import annotations
 
 import argparse
-import json
 import pathlib
 
 import numpy as np
@@ -24,12 +24,13 @@ import numpy as np
 from conceal_jax.configs import lego
 from conceal_jax.core import fileio
 from conceal_jax.gs import evaluate, train
-from experiments import bench_train, results_io
+from experiments import bench_conceal, bench_train, results_io
 
 # The scenes: bench_train's config of each, beer read through its LLFF poses. Without points beer starts at random
 # in its bounds from as many points as lego's CPU config starts from (lego.py; 3D-GS's 100k otherwise).
 LEGO_START = lego.get_config().init.num_random_points
 SCENES = {"lego": ("lego", {}), "beer_llff": ("beer", {"data.format": "llff", "init.num_random_points": LEGO_START})}
+NAME = "start_bench"
 REFERENCE = "lego"
 TARGET_RATIO = 2.0  # the capture issue's bound: a step on beer costs at most 2x lego's per pixel
 EVAL_VIEWS = 5
@@ -39,8 +40,7 @@ def scene_config(name: str, steps: int):
   base, overrides = SCENES[name]
   config = bench_train.scene_config(base, steps, EVAL_VIEWS)
   for dotted, value in overrides.items():
-    section, key = dotted.split(".")
-    config[section][key] = value
+    bench_conceal.set_dotted(config, dotted, value)
   config.train.eval_every = 0
   return config
 
@@ -79,20 +79,30 @@ def run_scene(name: str, steps: int, workdir: pathlib.Path) -> dict | None:
               test_psnr=result["test"]["psnr"], windows=windows)
 
 
-def summary(rows: list[dict]) -> dict:
-  by_scene = {row["scene"]: row for row in rows}
-  ratios = {name: row["step_us_per_pixel"] / by_scene[REFERENCE]["step_us_per_pixel"]
-            for name, row in by_scene.items() if name != REFERENCE and REFERENCE in by_scene}
-  return dict(rows=rows, reference=REFERENCE, ratio_per_pixel=ratios, target_ratio=TARGET_RATIO,
-              target_met={name: ratio <= TARGET_RATIO for name, ratio in ratios.items()})
+def row_key(row: dict) -> tuple:
+  return row["scene"], row["steps"]
 
 
-def table(result: dict) -> str:
+def with_ratios(rows: list[dict]) -> list[dict]:
+  """The rows, each but the reference's with `ratio_per_pixel` (its step time per pixel over the reference
+  scene's of as many steps) and `target_met` (that ratio at most TARGET_RATIO) where that reference row exists."""
+  reference = {r["steps"]: r["step_us_per_pixel"] for r in rows if r["scene"] == REFERENCE}
+  out = []
+  for r in rows:
+    r = {k: v for k, v in r.items() if k not in ("ratio_per_pixel", "target_met")}
+    if r["scene"] != REFERENCE and r["steps"] in reference:
+      r["ratio_per_pixel"] = r["step_us_per_pixel"] / reference[r["steps"]]
+      r["target_met"] = r["ratio_per_pixel"] <= TARGET_RATIO
+    out.append(r)
+  return out
+
+
+def table(rows: list[dict]) -> str:
   lines = ["| scene | format | image | steps | median step (ms) | step per pixel (us) | first window step (ms) | "
            "median pairs | Gaussians at the end | test PSNR (5 views) | per pixel / lego's |",
            "|---|---|---|---|---|---|---|---|---|---|---|"]
-  for r in result["rows"]:
-    ratio = result["ratio_per_pixel"].get(r["scene"])
+  for r in rows:
+    ratio = r.get("ratio_per_pixel")
     first = "-" if r["first_window_step_s"] is None else f"{1e3 * r['first_window_step_s']:.0f}"
     pairs = "-" if r["median_pairs"] is None else f"{r['median_pairs']:.0f}"
     lines.append(f"| {r['scene']} | {r['format']} | {r['width']}x{r['height']} | {r['steps']} | "
@@ -102,12 +112,12 @@ def table(result: dict) -> str:
   return "\n".join(lines) + "\n"
 
 
-def plot(result: dict, path: pathlib.Path):
+def plot(rows: list[dict], path: pathlib.Path):
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
   fig, (left, right) = plt.subplots(1, 2, figsize=(11, 4))
-  for r in result["rows"]:
+  for r in rows:
     steps = [s for s, _, _ in r["windows"]]
     left.plot(steps, [1e6 * t / r["pixels"] for _, t, _ in r["windows"]], label=f"{r['scene']} ({r['width']}x"
               f"{r['height']})")
@@ -137,13 +147,10 @@ def main():
                           for n in names) if row]
   if not rows:
     return
-  result = summary(rows)
   out = pathlib.Path(args.out)
-  fileio.write_json(out / "start_bench.json", result)
-  fileio.write_text(out / "start_bench.md", table(result))
-  plot(result, out / "start_bench.png")
-  print(table(result))
-  print(json.dumps(result["ratio_per_pixel"]))
+  rows = with_ratios(results_io.merged_rows(out / f"{NAME}.json", rows, row_key))
+  print(table(results_io.write_results(out, NAME, rows, row_key, table, plot, reference=REFERENCE,
+                                       target_ratio=TARGET_RATIO)))
 
 
 if __name__ == "__main__":

@@ -144,13 +144,19 @@ def recipe_runs(conceal_bench: dict, scene: str) -> dict[str, list[dict]]:
   return runs
 
 
+def recipe_label(name: str, row_names) -> str:
+  """'released (released, released_seed1)': a recipe and the bench rows that ran it; the recipe's name alone where
+  its one row bears that name."""
+  rows = list(dict.fromkeys(row_names))
+  return name if rows == [name] else f"{name} ({', '.join(rows)})"
+
+
 def recipe_note(name: str, runs: list[dict]) -> str:
-  """'recommended (recommended), width 16, 10000 steps, 1 seed (0)' for a recipe's runs."""
+  """'paper (full), width 16, 10000 steps, 1 seed (0)' for a recipe's runs."""
   rows = recipe_of_row()
-  names = ", ".join(dict.fromkeys(r["row"] for r in runs))
   devices = "".join(dict.fromkeys(results_io.on_device(r) for r in runs))
-  return (f"{name} ({names}), width {runs[0]['decoder_width']}, {results_io.conceal_steps(runs[0])} steps, "
-          f"{seed_words([rows[r['row']][1] for r in runs])}{devices}")
+  return (f"{recipe_label(name, (r['row'] for r in runs))}, width {runs[0]['decoder_width']}, "
+          f"{results_io.conceal_steps(runs[0])} steps, {seed_words([rows[r['row']][1] for r in runs])}{devices}")
 
 
 def baseline_groups(baseline_bench: dict, scene: str, method: str) -> list[list[dict]]:
@@ -216,7 +222,7 @@ def leakage_table(conceal_bench: dict) -> list[str]:
            "floor: clean teacher's test views |", "|---|---|---|---|---|---|---|"]
   rows = recipe_of_row()
   for scene in dict.fromkeys(r.get("scene", "lego") for r in conceal_bench.get("rows", [])):
-    groups = [(f"{name} ({', '.join(dict.fromkeys(r['row'] for r in runs))})", runs,
+    groups = [(recipe_label(name, (r["row"] for r in runs)), runs,
                [rows[r["row"]][1] for r in runs]) for name, runs in recipe_runs(conceal_bench, scene).items() if runs]
     groups += [(r["row"], [r], [0]) for r in conceal_rows(conceal_bench, scene)
                if r["row"] in PAPER_TABLE3 and r["row"] != "full" and r["decoder_width"] == RECIPE_WIDTH]
@@ -240,7 +246,7 @@ def tradeoff_points(scene: str, conceal_bench: dict, baseline_bench: dict) -> li
 
 def recipe_points(scene: str, conceal_bench: dict, baseline_bench: dict) -> list[dict]:
   """The recipes and StegaNeRF's rows at RECIPE_STEPS on `scene`, each the mean over its seeds
-  (tradeoff.over_seeds, one seed enough); a recipe's run is named 'recipe (its bench row)'."""
+  (tradeoff.over_seeds, one seed enough); a recipe's run is named by recipe_label."""
   runs = recipe_runs(conceal_bench, scene)
   label = {r["row"]: name for name, group in runs.items() for r in group}
   ours = tradeoff.points([r for group in runs.values() for r in group],
@@ -248,7 +254,7 @@ def recipe_points(scene: str, conceal_bench: dict, baseline_bench: dict) -> list
                           and r.get("iterations") == RECIPE_STEPS])
   for p in ours:
     if p["method"] == "ConcealGS":
-      p["recipe"] = f"{label[p['recipe']]} ({p['recipe']})"
+      p["recipe"] = recipe_label(label[p["recipe"]], [p["recipe"]])
   return tradeoff.over_seeds(ours, min_seeds=1)
 
 

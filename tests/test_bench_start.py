@@ -10,11 +10,14 @@ def test_window_times_divide_each_window_by_its_steps():
   assert bench_start.window_times(history) == [(10, 0.5, 100), (20, 0.1, 80), (40, 0.2, 60)]
 
 
-def test_the_ratio_is_per_pixel_against_lego():
-  rows = [dict(scene="lego", step_us_per_pixel=4.0), dict(scene="beer_llff", step_us_per_pixel=9.0)]
-  result = bench_start.summary(rows)
-  assert result["ratio_per_pixel"] == {"beer_llff": pytest.approx(2.25)}
-  assert result["target_met"] == {"beer_llff": False}
+def test_the_ratio_is_per_pixel_against_lego_of_as_many_steps():
+  rows = [dict(scene="lego", steps=1000, step_us_per_pixel=4.0),
+          dict(scene="beer_llff", steps=1000, step_us_per_pixel=9.0),
+          dict(scene="beer_llff", steps=300, step_us_per_pixel=5.0, ratio_per_pixel=1.0, target_met=True)]
+  lego, beer, beer_short = bench_start.with_ratios(rows)
+  assert "ratio_per_pixel" not in lego
+  assert beer["ratio_per_pixel"] == pytest.approx(2.25) and beer["target_met"] is False
+  assert "ratio_per_pixel" not in beer_short and "target_met" not in beer_short  # no lego row of 300 steps
 
 
 def test_beer_is_read_through_its_llff_poses_with_the_steps_asked():

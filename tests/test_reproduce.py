@@ -75,12 +75,12 @@ def test_rows_run_on_an_accelerator_say_so_and_leakage_shows_its_floor(tmp_path)
                                                                   step_devices=["cpu: cpu"])]))
   text = reproduce.report(results, tmp_path / "bench")
   body, appendix = text[:text.index("## Appendix")], text[text.index("## Appendix"):]
-  assert ("recommended (recommended), width 16, 10000 steps, 1 seed (0) (NVIDIA H100 80GB HBM3) |"
+  assert ("recommended, width 16, 10000 steps, 1 seed (0) (NVIDIA H100 80GB HBM3) |"
           in body)
   assert "teacher (bench-train) |" in body
   # a recipe's run at another decoder width, and a row that is no recipe, are in the appendix only
   assert "paper: not run yet" in body and "| lego | leakage_control |" not in body and "| paper (full)" not in body
-  assert "| lego | recommended (recommended) | 1 seed (0) | 0.110 | 0.120 | 0.130 | 0.101 |" in body
+  assert "| lego | recommended | 1 seed (0) | 0.110 | 0.120 | 0.130 | 0.101 |" in body
   assert ("| lego | full | recipe: paper | 64 | 10000 | 32.90 / 0.9700 / 0.0300 | 45.10 / 0.9950 | 0.110 / 0.120 / "
           "0.130 | 0.101 | 50.0 (NVIDIA H100 80GB HBM3) |") in appendix
   assert "| lego | leakage_control | experiment | 16 |" in appendix
@@ -219,7 +219,7 @@ def test_each_recipe_is_one_row_over_its_seeds_and_every_other_run_is_in_the_app
   body, appendix = text[:text.index("## Appendix")], text[text.index("## Appendix"):]
   table1 = body[body.index("Table 1"):body.index("Table 2")]
   assert ("| ConcealGS | 33.14 / 0.9717 / 0.0240 | 33.98 / 0.9942 | 33.00 / 0.9700 / 0.0300 | 40.40 / 0.9950 | "
-          "recommended (recommended), width 16, 10000 steps, 1 seed (0) |") in table1
+          "recommended, width 16, 10000 steps, 1 seed (0) |") in table1
   assert ("| ConcealGS | |  | 33.35 (33.30-33.40) / 0.9700 / 0.0300 | 40.75 (39.00-42.50) / 0.9950 | "
           "released (released, released_seed1), width 16, 10000 steps, 2 seeds (0, 1) |") in table1
   assert ("| StegaNeRF | 30.33 / 0.9381 / 0.0787 | 24.60 / 0.9026 | 32.65 (32.50-32.80) / 0.9700 / 0.0300 | "
@@ -233,9 +233,9 @@ def test_each_recipe_is_one_row_over_its_seeds_and_every_other_run_is_in_the_app
           "| 0.130 (0.130-0.130) | - |") in leakage
   # the recipes beside StegaNeRF, on their means; the figure's points are those means
   means = {m["run"]: m for m in reproduce.recipe_points("lego", dict(rows=conceal_rows), dict(rows=baseline_rows))}
-  assert sorted(means) == ["recommended (recommended)", "released (released)", "steganerf_check_view"]
-  assert means["released (released)"]["seeds"] == [0, 1]
-  assert ("| ConcealGS | recommended (recommended) | 16 | 10000 | 0 | 33.00 (-0.10) | 40.40 | 0.130 "
+  assert sorted(means) == ["recommended", "released", "steganerf_check_view"]
+  assert means["released"]["seeds"] == [0, 1]
+  assert ("| ConcealGS | recommended | 16 | 10000 | 0 | 33.00 (-0.10) | 40.40 | 0.130 "
           "|  |") in body
   assert ("| StegaNeRF | steganerf_check_view | 16 | 10000 | 0, 1 | 32.65 (-0.45) | 41.35 (41.00-41.70) | 0.130 "
           "| none |") in body
