@@ -1,11 +1,13 @@
 """How a capture starts: the time of a 3D-GS step over the first steps of a teacher, per pixel, lego against the
-real capture "beer" read through its LLFF poses (poses_bounds.npy, no points: random start in its bounds).
+real capture "beer" read through its LLFF poses (poses_bounds.npy, no points: random start in its
+cameras' frustums).
 
   make bench-start                                   # the first 1000 steps of each, then the table and plot
   make bench-start BENCH_ARGS="--steps=300"
 
-A forward-facing capture starts from random Gaussians in its bounds box, which cover many more tiles than an
-object's, so its first steps cost more per pixel than lego's. Each scene trains its config (lego.py; beer.py
+A forward-facing capture's background fills every image, so its splats cover more tiles than an object's and its
+first steps cost more per pixel than lego's; the start (random points in the cameras' frustums, splats of a few
+pixels) sets how many more. Each scene trains its config (lego.py; beer.py
 with data.format=llff and lego's random start count) for --steps iterations into <workdir>/first<steps>/<scene>
 (resumable), then scores 5 test views. Merges its rows into start_bench.json (per scene and length: image size,
 median step and step time per pixel over the run's log windows, the first window's, pairs and Gaussians; beer's
@@ -27,7 +29,7 @@ from conceal_jax.gs import evaluate, train
 from experiments import bench_conceal, bench_train, results_io
 
 # The scenes: bench_train's config of each, beer read through its LLFF poses. Without points beer starts at random
-# in its bounds from as many points as lego's CPU config starts from (lego.py; 3D-GS's 100k otherwise).
+# in its cameras' frustums from as many points as lego's CPU config starts from (lego.py; 3D-GS's 100k otherwise).
 LEGO_START = lego.get_config().init.num_random_points
 SCENES = {"lego": ("lego", {}), "beer_llff": ("beer", {"data.format": "llff", "init.num_random_points": LEGO_START})}
 NAME = "start_bench"

@@ -8,13 +8,14 @@ import re
 import imageio.v3 as iio
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 from conceal_jax.configs import colmap as colmap_config
 from conceal_jax.configs import default
 from conceal_jax.data import datasets
 from conceal_jax.data.datasets import DatasetError
-from conceal_jax.data.llff import llff_bounds_box, load_llff
-from conceal_jax.gs import evaluate, train
+from conceal_jax.data.llff import llff_frustum_points, load_llff
+from conceal_jax.gs import evaluate, init, train
 from conceal_jax.splat.camera import camera_centers, look_at
 from tests.helpers import DATA_DIR
 
@@ -119,38 +120,61 @@ def test_every_eighth_image_is_held_out(llff_root):
   assert load_llff(llff_root, test_every=0).test_names == []
 
 
-def _frustum_points(index):
-  """[9, 3] camera centre and the image corners at the near and far bounds, unprojected through the
-  OpenCV camera that generated the row."""
-  w2c, f, (near, far) = _w2c(index), _focal(index), _bounds(index)
-  c2w = np.linalg.inv(w2c)
-  corners = [((u - WIDTH / 2) / f * d, (v - HEIGHT / 2) / f * d, d)
-             for d in (near, far) for u in (0, WIDTH) for v in (0, HEIGHT)]
-  return np.array([c2w[:3, 3]] + [c2w[:3, :3] @ p + c2w[:3, 3] for p in corners])
+def _image_coordinates(points, w2c, focal):
+  """[M, 3] world points -> [M] u, v (pixels) and depth through the OpenCV camera that generated a row."""
+  camera = points @ w2c[:3, :3].T + w2c[:3, 3]
+  depth = camera[:, 2]
+  return focal * camera[:, 0] / depth + WIDTH / 2, focal * camera[:, 1] / depth + HEIGHT / 2, depth
 
 
-def test_bounds_box_holds_the_frustum_segments_tightly(llff_root):
-  lo, hi = llff_bounds_box(llff_root)
-  points = np.concatenate([_frustum_points(i) for i in range(COUNT)])
-  assert lo.shape == hi.shape == (3,)
-  np.testing.assert_allclose(lo, points.min(0), atol=1e-9)
-  np.testing.assert_allclose(hi, points.max(0), atol=1e-9)
-  centres = camera_centers(_all_cameras(load_llff(llff_root))[1])
-  on_axis = [np.linalg.inv(_w2c(i))[:3] @ np.r_[0, 0, d, 1] for i in range(COUNT) for d in _bounds(i)]
-  for point in np.concatenate([centres, on_axis, TARGET[None]]):
-    assert (lo - 1e-6 <= point).all() and (point <= hi + 1e-6).all()
+def _seen(points, index, slack=1e-6):
+  """[M] bool: the points inside camera `index`'s image between its near and far bounds."""
+  u, v, depth = _image_coordinates(points, _w2c(index), _focal(index))
+  near, far = _bounds(index)
+  return ((-slack <= u) & (u <= WIDTH + slack) & (-slack <= v) & (v <= HEIGHT + slack)
+          & (near - slack <= depth) & (depth <= far + slack))
 
 
-def test_random_init_fills_the_bounds_box(llff_root):
-  """Without a point cloud the teacher starts from random points in the box around the frustums."""
+def test_frustum_points_fill_one_cameras_frustum_uniformly_in_disparity(tmp_path):
+  """One camera: every point lies in its image between near and far, uniform across the image and in
+  disparity, with the image's world width at its depth as its footprint."""
+  np.save(tmp_path / "poses_bounds.npy", _llff_row(4)[None])
+  points, footprints = llff_frustum_points(tmp_path, 4000, np.random.default_rng(0))
+  assert points.shape == (4000, 3) and footprints.shape == (4000,)
+  assert _seen(points, 4).all()
+  u, v, depth = _image_coordinates(points, _w2c(4), _focal(4))
+  np.testing.assert_allclose(footprints, depth * WIDTH / _focal(4), rtol=1e-9)
+  near, far = _bounds(4)
+  disparity = (1 / depth - 1 / far) / (1 / near - 1 / far)  # uniform on [0, 1]
+  for values in (disparity, u / WIDTH, v / HEIGHT):
+    np.testing.assert_allclose(np.quantile(values, [0.1, 0.5, 0.9]), [0.1, 0.5, 0.9], atol=0.03)
+
+
+def test_frustum_points_spread_over_every_camera(llff_root):
+  points, _ = llff_frustum_points(llff_root, 900, np.random.default_rng(1))
+  seen = np.stack([_seen(points, i) for i in range(COUNT)])  # [cameras, points]
+  assert seen.any(0).all()
+  # each camera's own draws (about 100) are all in its frustum; its frustum holds more, the others' overlap
+  assert (seen.sum(1) >= 60).all()
+
+
+def test_random_init_starts_in_the_frustums_with_splats_of_a_few_pixels(llff_root):
+  """Without a point cloud the teacher starts from random points in the cameras' frustums, each splat at most
+  gs.init.FRUSTUM_START_SCREEN_FRACTION of the image wide at its depth in the camera whose frustum holds it."""
   config = default.get_config()
   config.data.path, config.init.num_random_points = str(llff_root), 500
   scene = datasets.load_scene(llff_root)
-  means = np.asarray(train.initial_gaussians(config, scene, np.random.default_rng(0)).means)
-  lo, hi = datasets.llff_bounds_box(llff_root)
-  assert means.shape == (500, 3) and np.all(means >= lo - 1e-6) and np.all(means <= hi + 1e-6)
-  np.testing.assert_allclose(means.min(0), lo, atol=0.1 * np.max(hi - lo))
-  np.testing.assert_allclose(means.max(0), hi, atol=0.1 * np.max(hi - lo))
+  gaussians = train.initial_gaussians(config, scene, np.random.default_rng(0))
+  means, scales = np.asarray(gaussians.means, np.float64), np.exp(np.asarray(gaussians.log_scales, np.float64))
+  seen = np.stack([_seen(means, i, slack=1e-4) for i in range(COUNT)])
+  assert means.shape == (500, 3) and seen.any(0).all()
+  width_in_pixels = []  # each splat's scale in image widths, in the cameras whose frustum holds it
+  for i in range(COUNT):
+    depth = _image_coordinates(means, _w2c(i), _focal(i))[2]
+    width_in_pixels.append(np.where(seen[i], scales[:, 0] * _focal(i) / (depth * WIDTH), np.inf))
+  smallest = np.min(width_in_pixels, 0)
+  assert smallest.max() <= init.FRUSTUM_START_SCREEN_FRACTION * 1.2  # the cameras' focal lengths differ by 4%
+  assert smallest.max() >= init.FRUSTUM_START_SCREEN_FRACTION * 0.8  # sparse points: the cap holds
 
 
 def test_detect_format_prefers_a_complete_colmap_model(llff_root):
@@ -166,6 +190,10 @@ def test_detect_format_prefers_a_complete_colmap_model(llff_root):
   assert datasets.detect_format(llff_root) == "colmap"
 
 
+def _start(root):
+  return llff_frustum_points(root, 10, np.random.default_rng(0))
+
+
 def test_errors_name_the_file(llff_root, tmp_path):
   poses = llff_root / "poses_bounds.npy"
   rows = np.load(poses)
@@ -175,11 +203,11 @@ def test_errors_name_the_file(llff_root, tmp_path):
   with pytest.raises(DatasetError, match=r"images has 8 images but .*poses_bounds.npy has 9"):
     load_llff(llff_root)
   np.save(poses, rows[:, :16])
-  for call in (load_llff, llff_bounds_box):
+  for call in (load_llff, _start):
     with pytest.raises(DatasetError, match=r"poses_bounds.npy must hold a numeric \[N, 17\] array.*\[9, 16\]"):
       call(llff_root)
   poses.unlink()
-  for call in (load_llff, llff_bounds_box):
+  for call in (load_llff, _start):
     with pytest.raises(DatasetError, match="poses_bounds.npy"):
       call(llff_root)
 
@@ -195,8 +223,8 @@ def test_bad_rows_name_the_row(llff_root):
   swapped = rows.copy()
   swapped[2, 15:] = swapped[2, 15:][::-1]
   np.save(poses, swapped)
-  with pytest.raises(DatasetError, match="row 2 has near bound"):
-    llff_bounds_box(llff_root)
+  with pytest.raises(DatasetError, match="row 2 has bounds near .*0 < near <= far"):
+    _start(llff_root)
 
 
 def test_image_of_another_aspect_ratio_names_the_image(llff_root):
@@ -288,9 +316,9 @@ def test_bad_data_keys_are_named(key, value, message):
       call(config)
 
 
-def test_points_init_on_a_capture_without_points_starts_in_its_bounds(shared_llff, caplog):
-  """configs/colmap.py asks for SfM points; an LLFF capture has none, so it starts randomly in the box
-  around its frustums, with a note."""
+def test_points_init_on_a_capture_without_points_starts_in_its_frustums(shared_llff, caplog):
+  """configs/colmap.py asks for SfM points; an LLFF capture has none, so it starts randomly in its cameras'
+  frustums, with a note."""
   config = colmap_config.get_config()
   config.data.path, config.data.images, config.data.downscale = str(shared_llff), "images_8", 1.0
   config.init.num_random_points = 300
@@ -298,8 +326,7 @@ def test_points_init_on_a_capture_without_points_starts_in_its_bounds(shared_llf
   caplog.set_level(logging.WARNING, logger="absl")
   means = np.asarray(train.initial_gaussians(config, evaluate.load_scene_data(config),
                                              np.random.default_rng(0)).means)
-  lo, hi = datasets.llff_bounds_box(shared_llff)
-  assert means.shape == (300, 3) and np.all(means >= lo - 1e-6) and np.all(means <= hi + 1e-6)
+  assert means.shape == (300, 3) and np.stack([_seen(means, i, slack=1e-4) for i in range(COUNT)]).any(0).all()
   assert "init.kind='points' but" in caplog.text and "has no point cloud" in caplog.text
 
 
@@ -342,7 +369,10 @@ def test_beer_llff_cameras_are_the_colmap_cameras():
     # model has a camera per image, whose focal lengths spread by ~5%.
     assert float(llff_camera.fx) == pytest.approx(float(colmap_camera.fx), rel=0.05)
 
-  # The bounds came from the depths of the SfM points, so the box holds those points.
-  lo, hi = llff_bounds_box(BEER)
+  # The bounds came from the depths of the SfM points, so the frustums the random start fills hold those points:
+  # nearly every SfM point has a start point close by, as close as start points are to each other.
+  start, _ = llff_frustum_points(BEER, 20_000, np.random.default_rng(0))
   points = (scale * colmap.points @ rotation.T + translation)
-  assert ((points >= lo) & (points <= hi)).all(1).mean() > 0.99
+  to_start = cKDTree(start).query(points)[0]
+  spacing = cKDTree(start).query(start, k=2)[0][:, 1]
+  assert np.mean(to_start <= np.quantile(spacing, 0.99)) > 0.99

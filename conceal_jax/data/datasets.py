@@ -22,13 +22,13 @@ from conceal_jax.data import colmap
 from conceal_jax.data.blender import load_blender
 from conceal_jax.data.colmap import load_colmap
 from conceal_jax.data.frames import image_folders, require_dir
-from conceal_jax.data.llff import POSES_FILE, llff_bounds_box, load_llff
+from conceal_jax.data.llff import POSES_FILE, llff_frustum_points, load_llff
 from conceal_jax.data.scene import BLACK, WHITE, DatasetError, PathLike, SceneData
 from conceal_jax.data.transforms import load_transforms
 
 __all__ = ["AUTO", "BLACK", "DEFAULT_IMAGES", "FOLDER_FORMATS", "FORMATS", "WHITE", "DatasetError", "FormatCheck",
            "FormatChoice", "LOADERS", "SceneData", "choose_format", "detect_format", "format_check",
-           "images_folder_problem", "llff_bounds_box", "load_blender", "load_colmap", "load_llff", "load_scene",
+           "images_folder_problem", "llff_frustum_points", "load_blender", "load_colmap", "load_llff", "load_scene",
            "load_transforms", "log_choice"]
 
 LOADERS: dict[str, Callable[..., SceneData]] = {

@@ -33,7 +33,7 @@ def load_llff(root: PathLike, downscale: float = 1, background: Sequence[float] 
   size against the full-resolution hwf, so the folder name is never trusted. `downscale` shrinks
   further, as in the other loaders. Every `test_every`-th image (index % test_every == 0) in file-name
   order is a test image (0: none). points stay None even when a COLMAP model sits beside the file
-  (`load_colmap` reads that); `llff_bounds_box` gives a box for random initialisation instead.
+  (`load_colmap` reads that); `llff_frustum_points` gives random points for initialisation instead.
   """
   root = Path(root)
   frames_lib.require_dir(root, "LLFF scene")
@@ -109,30 +109,37 @@ def _llff_frame(path: Path, source: Path, index: int, pose: np.ndarray) -> Frame
   return Frame(path, source, camera, name=path.name)
 
 
-def llff_bounds_box(root: PathLike) -> tuple[np.ndarray, np.ndarray]:
-  """(lo [3], hi [3]) float64: the axis-aligned world box holding every camera centre and each camera's
-  view frustum between its near and far bounds, for random initialisation where LLFF has no points.
+def llff_frustum_points(root: PathLike, num: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+  """Random points inside the cameras' view frustums between their near and far bounds, for random
+  initialisation where LLFF has no points: (points [num, 3], footprints [num]) float64.
 
-  The frustum segment is the convex hull of its 8 corners (image corners at the near and far depths),
-  so the box of those corners and the centres is the smallest box holding it all; near, far are depths
-  along the view axis, as LLFF's save_poses measures them (z of the SfM points in camera space).
+  Each point picks a camera at random, a direction through a uniform point of its image, and a depth uniform
+  in disparity between the camera's near and far bounds, so near and far depths get as many points per
+  image-space layer; its footprint is the world width the camera's image spans at that depth (depth x
+  width / focal), by which a start sizes splats to a share of the image whatever the scene's units. near,
+  far are depths along the view axis, as LLFF's save_poses measures them (z of the SfM points in camera
+  space). A box around the frustums would hold mostly space no camera sees.
   """
   source = Path(root) / POSES_FILE
   poses, bounds = read_poses_bounds(source)
   for index, (near, far) in enumerate(bounds):
-    if near > far:
-      raise DatasetError(f"{source}: row {index} has near bound {near:g} beyond far bound {far:g}")
-  points = np.concatenate([poses[:, :, 3], _frustum_corners(poses, bounds).reshape(-1, 3)])
-  return points.min(0), points.max(0)
+    if not 0 < near <= far:
+      raise DatasetError(f"{source}: row {index} has bounds near {near:g}, far {far:g}; LLFF needs "
+                         f"0 < near <= far")
+  if num < 1:
+    raise ValueError(f"llff_frustum_points needs at least one point, got {num}")
+  cameras = rng.integers(0, len(poses), num)
+  near, far = bounds[cameras, 0], bounds[cameras, 1]
+  depth = 1.0 / rng.uniform(1.0 / far, 1.0 / near)
+  half = _half_fields(poses[cameras])  # [num, 2]
+  # OpenGL camera space: x right, y up, looking down -z; an image point at depth d is (sx hx d, sy hy d, -d).
+  directions = np.concatenate([rng.uniform(-1.0, 1.0, (num, 2)) * half, -np.ones((num, 1))], -1)
+  c2w = llff_opengl_camera_to_world(poses[cameras])
+  points = np.einsum("nij,nj->ni", c2w[:, :, :3], directions * depth[:, None]) + c2w[:, :, 3]
+  return points, 2.0 * half[:, 0] * depth
 
 
-def _frustum_corners(poses: np.ndarray, bounds: np.ndarray) -> np.ndarray:
-  """[N, 2, 4, 3] world positions of the image corners at the near and far depths of each camera."""
-  c2w = llff_opengl_camera_to_world(poses)
+def _half_fields(poses: np.ndarray) -> np.ndarray:
+  """[N, 3, 5] LLFF poses -> [N, 2] tangents of the half fields of view across (x) and up (y)."""
   height, width, focal = poses[:, 0, 4], poses[:, 1, 4], poses[:, 2, 4]
-  signs = np.array([[-1, -1], [-1, 1], [1, -1], [1, 1]], np.float64)  # [4, 2] corner (x, y) signs
-  half = np.stack([width, height], -1) / (2 * focal[:, None])  # [N, 2] tan of the half fields of view
-  # OpenGL camera space: x right, y up, looking down -z; a corner at depth d is (sx hx d, sy hy d, -d).
-  directions = np.concatenate([signs[None] * half[:, None], -np.ones((len(poses), 4, 1))], -1)  # [N,4,3]
-  camera_points = bounds[:, :, None, None] * directions[:, None]  # [N, 2, 4, 3]
-  return np.einsum("nij,nkcj->nkci", c2w[:, :, :3], camera_points) + c2w[:, None, None, :, 3]
+  return np.stack([width, height], -1) / (2 * focal[:, None])

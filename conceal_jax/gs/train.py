@@ -130,9 +130,9 @@ def loop_settings(config: ml_collections.ConfigDict) -> loop.LoopSettings:
 def initial_gaussians(config: ml_collections.ConfigDict, scene, rng: np.random.Generator) -> Gaussians:
   """init.kind 'points' (SfM / point file), 'random' (uniform in a box), 'auto' (points when the
   dataset has them) or 'ply' (a trained scene, init.ply, to train further: fine-tuning). 'points' on a
-  capture without points starts randomly, with a logged note: the capture still trains. The box is the
-  cube of half extent init.box_half_extent (synthetic scenes), or for an LLFF capture the box around its
-  cameras' near..far frustums."""
+  capture without points starts randomly, with a logged note: the capture still trains. Random points
+  fill the cube of half extent init.box_half_extent (synthetic scenes), or for an LLFF capture its cameras'
+  frustums between their near and far bounds, with splats of a few pixels (gs.init.frustum_start_scales)."""
   kind = config.init.kind
   if kind == "ply":
     try:
@@ -143,11 +143,13 @@ def initial_gaussians(config: ml_collections.ConfigDict, scene, rng: np.random.G
     logging.warning("init.kind='points' but %s has no point cloud: starting from %d random points, as "
                     "init.kind='random' does", config.data.path, config.init.num_random_points)
   if kind == "random" or scene.points is None:
-    box = (config.init.box_half_extent,)
     if (config.data.path != "demo"
         and datasets.choose_format(config.data.path, **evaluate.scene_format(config)).kind == "llff"):
-      box = datasets.llff_bounds_box(config.data.path)
-    points, colors = init.random_box_points(rng, config.init.num_random_points, *box)
+      points, footprints = datasets.llff_frustum_points(config.data.path, config.init.num_random_points, rng)
+      colors = rng.uniform(0.0, 1.0, points.shape)
+      return init.gaussians_from_points(points, colors, config.train.sh_degree,
+                                        max_scales=init.frustum_start_scales(footprints))
+    points, colors = init.random_box_points(rng, config.init.num_random_points, config.init.box_half_extent)
   else:
     points, colors = scene.points, scene.point_colors
     colors = np.full_like(points, 0.5) if colors is None else colors
