@@ -25,8 +25,9 @@ length, the raw bit accuracy, whether the corrected message is exact, the render
 verify on the student and on a clean scene (its own teacher) read with the same key.
 
 Writes ownership_bench.json (clean_trials, false_positives, alpha, tpr_at_alpha per marked run, message rows per
-scene and length, the rows behind them) and ownership_bench.png (the clean trials' p-values against the uniform,
-log scale; their z against N(0, 1); the marked trials' z against the threshold) to --out.
+scene and length, the rows behind them), ownership_bench.png (the clean trials' p-values against the uniform, log
+scale; their z against N(0, 1)) and ownership_tpr.png (the marked trials' z against the threshold) to --out.
+--messages-only and --marked-only refresh those rows alone, keeping the rest of the JSON.
 """
 from __future__ import annotations
 
@@ -211,6 +212,11 @@ def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict
   return rows
 
 
+def true_positive_rates(marked: dict) -> dict:
+  """{run: the share of its attacked trials decided owned} of marked_trials' rows per run."""
+  return {run: float(np.mean([r["owned"] for r in rows if r["kind"] != "none"])) for run, rows in marked.items()}
+
+
 def message_row(run: pathlib.Path, clean_ply: str | None, alpha: float, scratch: pathlib.Path) -> dict:
   """A message-mode concealment: the message read from the student at the key (message.json), the render against
   the teacher's (metrics.json), the message read under each mild and medium attack (attacked_reveals), and verify
@@ -263,12 +269,17 @@ def tail_counts(log10_p: np.ndarray) -> list[dict]:
           for k in range(1, 7)]
 
 
-def plot(clean_log_model: np.ndarray, clean_log_p: np.ndarray, clean_z: np.ndarray, own_z: np.ndarray, marked: dict,
-         alpha: float, path: pathlib.Path):
+def _pyplot():
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
-  fig, (qq, hist, bars) = plt.subplots(1, 3, figsize=(17, 5))
+  return plt
+
+
+def plot(clean_log_model: np.ndarray, clean_log_p: np.ndarray, clean_z: np.ndarray, own_z: np.ndarray, alpha: float,
+         path: pathlib.Path):
+  """The clean trials: their p-values against the uniform (QQ, log scale) and their z against N(0, 1)."""
+  fig, (qq, hist) = _pyplot().subplots(1, 2, figsize=(12, 5))
   n = clean_log_p.size
   ranks = np.arange(n, 0, -1)  # the largest -log10 p has rank 1
   expected = -np.log10(ranks / (n + 1))
@@ -293,6 +304,12 @@ def plot(clean_log_model: np.ndarray, clean_log_p: np.ndarray, clean_z: np.ndarr
   hist.set_xlabel("z")
   hist.legend(fontsize=7)
   hist.set_title("clean z")
+  fileio.save_figure(fig, path)
+
+
+def plot_marked(marked: dict, alpha: float, path: pathlib.Path):
+  """The marked trials: each run's attacked students' z against the threshold."""
+  fig, bars = _pyplot().subplots(1, 1, figsize=(7, 1.5 + 0.6 * len(marked)))
   for i, (run, rows) in enumerate(marked.items()):
     rows = [r for r in rows if r["kind"] != "none"]
     bars.plot([r["z"] for r in rows], [i + 0.3 * (k / max(len(rows) - 1, 1) - 0.5) for k in range(len(rows))],
@@ -327,6 +344,9 @@ def main():
   parser.add_argument("--messages-only", action="store_true",
                       help="refresh only the message rows of --out's ownership_bench.json (the message runs finish "
                            "apart from the clean trials)")
+  parser.add_argument("--marked-only", action="store_true",
+                      help="refresh only the marked trials and true-positive rates of the --marked runs found, "
+                           "keeping the other runs' rows of --out's ownership_bench.json (and ownership_tpr.png)")
   args = parser.parse_args()
   if not 0 < args.alpha < 1:
     raise SystemExit(f"--alpha must be strictly between 0 and 1, got {args.alpha}")
@@ -340,12 +360,6 @@ def main():
     return {scene: {str(row["bits"]): row for row in rows if row["scene"] == scene}
             for scene in sorted({row["scene"] for row in rows})}
 
-  if args.messages_only:
-    result = json.loads((out / "ownership_bench.json").read_text())
-    result["message"] = message_rows()
-    fileio.write_json(out / "ownership_bench.json", result)
-    return
-
   def present(paths: str, files: tuple[str, ...]) -> list[pathlib.Path]:
     found = []
     for path in (pathlib.Path(p) for p in paths.split(",") if p):
@@ -356,6 +370,17 @@ def main():
     return found
 
   run_files = ("student.ply", "decoder.msgpack", "key.json", "config.json")
+  if args.messages_only or args.marked_only:
+    result = json.loads((out / "ownership_bench.json").read_text())
+    if args.messages_only:
+      result["message"] = message_rows()
+    if args.marked_only:
+      found = {str(run): marked_trials(run, args.alpha, args.null_views) for run in present(args.marked, run_files)}
+      result["marked"], result["tpr_at_alpha"] = dict(result["marked"], **found), dict(result["tpr_at_alpha"],
+                                                                                         **true_positive_rates(found))
+      plot_marked(result["marked"], args.alpha, out / "ownership_tpr.png")
+    fileio.write_json(out / "ownership_bench.json", result)
+    return
   runs, marked = present(args.runs, run_files), present(args.marked, run_files)
   teachers = present(args.clean, ("point_cloud.ply", "config.json"))
   scenes = [clean_scene(path, args.poses, args.test_views) for path in teachers]
@@ -373,7 +398,7 @@ def main():
   pairs = [pair for t in per_run.values() for pair in t["pairs"]]
   top = sorted((row for t in per_run.values() for row in t["top"]), key=lambda row: -row["z"])[:TOP]
   marked_rows = {str(run): marked_trials(run, args.alpha, args.null_views) for run in marked}
-  tpr = {run: float(np.mean([r["owned"] for r in rows if r["kind"] != "none"])) for run, rows in marked_rows.items()}
+  tpr = true_positive_rates(marked_rows)
   result = dict(
       device=str(jax.devices()[0]), alpha=args.alpha, clean_trials=int(z.size), false_positives=int(owned.sum()),
       false_positives_model=int(np.sum(log_model <= np.log10(args.alpha))),
@@ -394,7 +419,8 @@ def main():
                       rows={run: t["own"] for run, t in per_run.items()}),
       marked=marked_rows, message=message_rows())
   fileio.write_json(out / "ownership_bench.json", result)
-  plot(log_model, log_p, z, own_z, marked_rows, args.alpha, out / "ownership_bench.png")
+  plot(log_model, log_p, z, own_z, args.alpha, out / "ownership_bench.png")
+  plot_marked(marked_rows, args.alpha, out / "ownership_tpr.png")
   print(json.dumps({k: v for k, v in result.items() if k not in ("marked", "own_hidden", "pairs", "top_clean_trials")},
                    indent=1))
 

@@ -317,7 +317,8 @@ def ownership_test_table(ownership_bench: dict) -> list[str]:
   tail = ", ".join(f"<= {row['p_at_most']:g}: {row['observed']} ({row['predicted']:.3g})"
                    for row in ownership_bench.get("tail_counts", [])[2:])
   top = (ownership_bench.get("top_clean_trials") or [None])[0]
-  lines += ["", "The clean trials' p-values against the null: [ownership_bench.png](ownership_bench.png)."
+  lines += ["", "The clean trials' p-values against the null: [ownership_bench.png](ownership_bench.png); the attacked "
+            "students' z: [ownership_tpr.png](ownership_tpr.png)."
             + (f" Clean trials whose decision p-value is at most p, observed (predicted): {tail}." if tail else "")
             + (f" The highest clean z, {top['z']:.2f} (p 1e{top['log10_p']:.2f}): decoder {top['decoder']} on "
                f"{top['scene']}, {top['view']}, hidden image '{top['hidden']}'." if top else ""), "",
