@@ -10,7 +10,7 @@ import pytest
 
 from conceal_jax.conceal import augment, train as conceal_train
 from conceal_jax.gs import densify
-from conceal_jax.robust import image_attacks
+from conceal_jax.robust import image_attacks, model_attacks
 from conceal_jax.splat.gaussians import Gaussians
 from conceal_jax.conceal.augment import Augmentation
 from tests.test_conceal import tiny, tiny_config  # noqa: F401  (tiny is a fixture)
@@ -207,3 +207,38 @@ def test_an_opacity_reset_caps_every_opacity_where_drawn():
   drawn["reset"] = np.float32(0.0)
   for x, y in zip(jax.tree.leaves(augment.perturb_gaussians(g, drawn, a)), jax.tree.leaves(g)):
     np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+@pytest.mark.parametrize("share", [0.0, 0.1, 0.3, 0.55])
+def test_size_pruning_drops_what_the_prune_attack_removes(share):
+  """The Gaussians kept_by_size drops are those robust.model_attacks.prune_smallest removes (volume ties included,
+  the lower index first), the rest keep their values, and a dropped Gaussian's opacity gets no gradient."""
+  g = _random_gaussians(2_000, seed=3)
+  scales = np.asarray(g.log_scales).copy()
+  scales[:40] = scales[40:80]  # ties in volume
+  g = g.replace(log_scales=jnp.asarray(scales))
+  pruned = model_attacks.prune_smallest(g, share)
+  survivors = {tuple(row) for row in np.asarray(pruned.means).tolist()}
+  expected = np.array([tuple(row) in survivors for row in np.asarray(g.means).tolist()])
+  drawn = dict(dropout=np.float32(0.0), param_noise=np.float32(0.0), model_seed=np.uint32(0),
+               prune_small=np.float32(share))
+  model = Augmentation(prune_small_max=0.6)
+  out = augment.perturb_gaussians(g, drawn, model)
+  kept = np.asarray(out.opacity_logits) != augment.DROPPED_LOGIT
+  np.testing.assert_array_equal(kept, expected)
+  np.testing.assert_array_equal(np.asarray(out.opacity_logits)[kept], np.asarray(g.opacity_logits)[kept])
+  grads = jax.grad(lambda gs: jnp.sum(augment.perturb_gaussians(gs, drawn, model).opacity_logits))(g)
+  np.testing.assert_array_equal(np.asarray(grads.opacity_logits), kept.astype(np.float32))
+  assert np.isfinite(np.asarray(grads.log_scales)).all()
+
+
+def test_size_pruning_draws_stay_in_range_and_keep_earlier_draws():
+  plain = augment.draw(np.random.default_rng(5), Augmentation(dropout_max=0.2, merge_fraction=0.5))
+  with_pruning = augment.draw(np.random.default_rng(5), Augmentation(dropout_max=0.2, merge_fraction=0.5,
+                                                                     prune_small_max=0.3))
+  without = lambda drawn: {k: v for k, v in drawn.items() if k != "prune_small"}
+  assert without(with_pruning) == without(plain) and plain["prune_small"] == 0.0
+  shares = [augment.draw(np.random.default_rng(s), Augmentation(prune_small_max=0.3))["prune_small"] for s in range(200)]
+  assert 0.0 <= min(shares) and max(shares) <= 0.3 and max(shares) > 0.25
+  with pytest.raises(ValueError, match="prune_small_max"):
+    Augmentation(prune_small_max=1.0)

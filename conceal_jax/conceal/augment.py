@@ -59,7 +59,7 @@ SPZ_COLOR_SCALE = 0.15
 REST_CELL = 8.0 / 256.0
 # An Augmentation field f is config key conceal.attacks.<f>; a contrast factor and a dropout probability stay below 1.
 UPPER_BOUNDS = dict(contrast_max=1.0, dropout_max=1.0, quantize_fraction=1.0 + 1e-9, reset_fraction=1.0 + 1e-9,
-                    merge_fraction=1.0 + 1e-9)
+                    merge_fraction=1.0 + 1e-9, prune_small_max=1.0)
 # A decimation to a quarter of the film is two rounds of merges; deeper than that a film keeps no image.
 MAX_MERGE_DEPTH = 2.0
 # Gaussians fields that parameter noise moves: all of them (robust.model_attacks.FIELDS).
@@ -110,6 +110,7 @@ class Augmentation:
   reset_fraction: float = 0.0  # the share of steps whose check render is of opacities reset to densify.RESET_CEILING
   merge_fraction: float = 0.0  # the share of steps whose check render merges film pairs (decimate.merge_rounds)
   merge_depth: float = 1.0  # the rounds of merges such a render goes up to: its depth ~ U[0, merge_depth]
+  prune_small_max: float = 0.0  # the share ~ U[0, max] of smallest Gaussians dropped (`kept_by_size`)
 
   def __post_init__(self):
     for f in dataclasses.fields(self):
@@ -133,7 +134,7 @@ class Augmentation:
   def perturbs_model(self) -> bool:
     """Whether a step renders the check view from a perturbed student (`perturb_gaussians`)."""
     return max(self.dropout_max, self.param_noise_max, self.quantize_fraction, self.reset_fraction,
-               self.merge_fraction) > 0
+               self.merge_fraction, self.prune_small_max) > 0
 
   @property
   def draws(self) -> bool:
@@ -176,12 +177,24 @@ def quantize_8bit(gaussians, rounding=0.5):
                            opacity_logits=straight_through(gaussians.opacity_logits, opacity_logit(opacity)))
 
 
+def kept_by_size(log_scales: jax.Array, share) -> jax.Array:
+  """[N] bool: False for the floor(share N) of N Gaussians of smallest volume (the sum of their log scales [N, 3],
+  robust.model_attacks.prune_smallest's order, ties to the lower index), as a size pruning leaves them. `share` in
+  [0, 1) may be traced; 0 keeps all."""
+  volume = jax.lax.stop_gradient(jnp.sum(log_scales, -1))
+  n = volume.shape[0]
+  rank = jnp.zeros((n,), jnp.int32).at[jnp.argsort(volume, stable=True)].set(jnp.arange(n, dtype=jnp.int32))
+  return rank >= jnp.floor(share * n).astype(jnp.int32)
+
+
 def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmentation,
                       merges: tuple[decimate.Merges, ...] | None = None):
   """Gaussians [N] as the check render sees them: every field of MODEL_FIELDS plus normal noise of
   distortion["param_noise"] times that field's per-channel standard deviation over the N Gaussians (a constant:
   the noise's scale is not trained), then each Gaussian dropped (opacity logit DROPPED_LOGIT, no gradient) with
-  probability distortion["dropout"]; drawn from the PRNG seed distortion["model_seed"]. First, where
+  probability distortion["dropout"]; drawn from the PRNG seed distortion["model_seed"]; then the share
+  distortion["prune_small"] of smallest Gaussians dropped (`kept_by_size`, by the volumes before the noise). First,
+  where
   distortion["quantize"] is 1, the 8-bit colours and opacities (`quantize_8bit`, rounding at
   distortion["rounding"]), and where distortion["reset"] is 1, every opacity at most densify.RESET_CEILING; before
   all, the film decimated distortion["merge"] rounds deep by the rounds of `merges` (decimate.merge_rounds, from
@@ -202,6 +215,7 @@ def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmenta
     gaussians = gaussians.replace(opacity_logits=jnp.where(distortion["reset"] > 0, reset,
                                                            gaussians.opacity_logits))
   noise_key, drop_key = jax.random.split(model_key)
+  sized = kept_by_size(gaussians.log_scales, distortion["prune_small"]) if a.prune_small_max > 0 else None
   if a.param_noise_max > 0:
     keys = dict(zip(MODEL_FIELDS, jax.random.split(noise_key, len(MODEL_FIELDS))))
     level = distortion["param_noise"]
@@ -215,6 +229,8 @@ def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmenta
   if a.dropout_max > 0:
     keep = jax.random.uniform(drop_key, gaussians.opacity_logits.shape) >= distortion["dropout"]
     gaussians = gaussians.replace(opacity_logits=jnp.where(keep, gaussians.opacity_logits, DROPPED_LOGIT))
+  if sized is not None:
+    gaussians = gaussians.replace(opacity_logits=jnp.where(sized, gaussians.opacity_logits, DROPPED_LOGIT))
   return gaussians
 
 
@@ -225,7 +241,8 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   U[-contrast_max, contrast_max]; whether the step quantizes (1 with probability quantize_fraction) and resets the
   opacities (1 with probability reset_fraction); with quantize_fraction, the point its grids round at ~ U[0, 1)
   (`quantize_8bit`); the depth of the film's merges (~ U[0, merge_depth] with probability merge_fraction, else 0:
-  decimate.merge_rounds). Later kinds are drawn after earlier ones, so a run without them sees the distortions it
+  decimate.merge_rounds); the share of smallest Gaussians dropped ~ U[0, prune_small_max]. Later kinds are drawn
+  after earlier ones, so a run without them sees the distortions it
   always did."""
   a = augmentation
   image = dict(blur=np.float32(rng.uniform(0.0, a.blur_max)), noise=np.float32(rng.uniform(0.0, a.noise_max)),
@@ -239,4 +256,5 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   drawn["rounding"] = np.float32(rng.random() if a.quantize_fraction > 0 else 0.5)
   merges = a.merge_fraction > 0 and rng.random() < a.merge_fraction
   drawn["merge"] = np.float32(rng.random() * a.merge_depth if merges else 0.0)
+  drawn["prune_small"] = np.float32(rng.uniform(0.0, a.prune_small_max) if a.prune_small_max > 0 else 0.0)
   return drawn

@@ -27,7 +27,7 @@ from conceal_jax.splat.render import RenderOptions, render_batch
 NO_DISTORTION = dict(blur=np.float32(0.0), noise=np.float32(0.0), seed=np.uint32(0), dropout=np.float32(0.0),
                      param_noise=np.float32(0.0), model_seed=np.uint32(0), brightness=np.float32(0.0),
                      contrast=np.float32(1.0), quantize=np.float32(0.0), reset=np.float32(0.0),
-                     rounding=np.float32(0.5), merge=np.float32(0.0))
+                     rounding=np.float32(0.5), merge=np.float32(0.0), prune_small=np.float32(0.0))
 
 
 @struct.dataclass
