@@ -21,16 +21,17 @@ opacity and within colours the publishing formats store unchanged, recipes.publi
 recipes.DEEP_MERGE_DEPTH), `film_stack` (film_long's splats in colour-tied stacks of two, recipes.stacked_film),
 `film_faint` (its colours at the gentle student's rate), `film_reset` (one layer at opacity 0.5, trained through
 opacity resets), `film_far` (film_reset with the key half a camera distance from the orbit target and the film as
-far again); `demo.py:drift` trains through parameter drift (recipes.through_drift); `demo.py:orbit` keys a secret
-pose on the orbit instead of a training camera."""
+far again); `demo.py:drift` trains through parameter drift (recipes.through_drift); `demo.py:pruned` through size
+pruning with the key watched closely, twice as long (recipes.through_pruning, watched_key); `demo.py:orbit` keys a
+secret pose on the orbit instead of a training camera."""
 from conceal_jax.configs import default, recipes
 
 
 VARIANTS = ("film", "film_pub", "film_web", "film_watch", "film_long", "film_deep", "film_stack", "film_faint",
-            "film_reset", "film_far", "drift", "orbit")
+            "film_reset", "film_far", "drift", "pruned", "orbit")
 # The faint films whose colours train at the vivid rate, each building on the one before from film_pub on.
 VIVID_FILMS = ("film", "film_pub", "film_web", "film_watch", "film_long", "film_deep", "film_stack")
-# A closely watched key needs twice the demo's concealment to read its film.
+# A closely watched key needs twice the demo's concealment to read its film (or a pruned student).
 FILM_ITERATIONS = 2600
 # film_watch's decoys, as its rows were measured (recipes.watched_key's own count came after).
 FILM_WATCH_DECOYS = 192
@@ -58,6 +59,9 @@ def get_config(variant: str = ""):
     raise ValueError(f"unknown demo variant {variant!r}; choose one of {VARIANTS} or none")
   if variant == "drift":
     config = recipes.through_drift(config)
+  if variant == "pruned":  # a decoder taught to read pruned students reads near the key too: watch it closely
+    config = recipes.watched_key(recipes.through_pruning(config))
+    config.conceal.iterations = FILM_ITERATIONS
   if variant == "orbit":
     config.mark.key_kind = "orbit"
   if variant.startswith("film"):  # every pose near the key sees the film: 64 decoys, drawn more often

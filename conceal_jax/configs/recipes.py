@@ -21,6 +21,9 @@ DECOY_VIEWS = 64
 # Training through drift: the largest relative parameter noise of the perturbed student, about what the first
 # hundred steps of 3D-GS fine-tuning move a student's opacities (experiments/results/survive_bench.md).
 DRIFT_NOISE = 0.15
+# Training through size pruning: the largest share of a student's smallest Gaussians a check render drops (the
+# robustness harness's medium prune_small level).
+PRUNE_SHARE = 0.3
 # Training through quantization and opacity resets: the share of steps whose check render is of 8-bit colours
 # and opacities, and of opacities reset.
 QUANTIZE_FRACTION = RESET_FRACTION = 0.25
@@ -149,6 +152,14 @@ def watched_key(config, decoy_views: int = WATCH_DECOY_VIEWS):
   teach little else (no training view sees the film)."""
   config = leakage_control(config, decoy_views, WATCH_DECOY_FRACTION)
   config.conceal.weight_minus = WATCH_WEIGHT_MINUS
+  return config
+
+
+def through_pruning(config, share: float = PRUNE_SHARE):
+  """The check render drawn from the student with up to `share` of its smallest Gaussians dropped
+  (conceal.attacks.prune_small_max): without it a decoder may read the mark from small Gaussians that a size
+  pruning removes first."""
+  config.conceal.attacks.prune_small_max = share
   return config
 
 
