@@ -142,7 +142,7 @@ bench-falloff: $(STAMP)
 SURVIVE_RUNS := workdirs/survive_runs
 LEGO_TEACHER := workdirs/bench/lego/teacher/point_cloud.ply
 LEGO_FILM_STEPS ?= 10000
-SURVIVE_VARIANTS := film film_pub film_web film_watch film_long film_deep film_stack film_faint film_reset film_far drift orbit
+SURVIVE_VARIANTS := film film_pub film_web film_watch film_long film_deep film_stack film_faint film_reset film_far drift pruned orbit
 $(WORKDIR)/teacher/point_cloud.ply: | $(STAMP)
 	$(MAIN) --workdir=$(WORKDIR)/teacher
 survive-runs: $(STAMP) | $(WORKDIR)/teacher/point_cloud.ply
