@@ -101,9 +101,9 @@ RECIPE_NOTES = {
                           "--config.conceal.leakage.decoy_views=768 --config.conceal.iterations=2600)",
     "film_long": "recipes.film's design on the demo: film_watch with 768 decoys for 2600 steps, the check render's "
                  "8-bit grids including .compressed.ply's of the higher SH bands (demo.py:film_long)",
-    "film_long_epyc": "film_long concealed again (the same config and seed) on another 2-core CPU (AMD EPYC), where the "
-                      "demo teacher, the same code and seed, trains to 30.85 dB rather than 30.53: a second sample of "
-                      "the design (workdirs/survive_runs/demo_film_long, concealed 2026-11-26)",
+    "film_long_epyc": "film_long concealed again (the same config and seed) on another 2-core CPU (AMD EPYC), where "
+                      "the demo teacher, the same code and seed, trains to 30.85 dB rather than 30.53: a second "
+                      "sample of the design (workdirs/survive_runs/demo_film_long, concealed 2026-11-26)",
     "film_deep": "film_long trained through merges up to 1.5 rounds deep (recipes.DEEP_MERGE_DEPTH; demo.py:film_deep)",
     "film_stack": "film_long with the film's splats in stacks of two at each grid position, their colours trained as "
                   "one at half the rate, and half as many grids (recipes.stacked_film; demo.py:film_stack)",

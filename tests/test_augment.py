@@ -238,7 +238,8 @@ def test_size_pruning_draws_stay_in_range_and_keep_earlier_draws():
                                                                      prune_small_max=0.3))
   without = lambda drawn: {k: v for k, v in drawn.items() if k != "prune_small"}
   assert without(with_pruning) == without(plain) and plain["prune_small"] == 0.0
-  shares = [augment.draw(np.random.default_rng(s), Augmentation(prune_small_max=0.3))["prune_small"] for s in range(200)]
+  pruning = Augmentation(prune_small_max=0.3)
+  shares = [augment.draw(np.random.default_rng(s), pruning)["prune_small"] for s in range(200)]
   assert 0.0 <= min(shares) and max(shares) <= 0.3 and max(shares) > 0.25
   with pytest.raises(ValueError, match="prune_small_max"):
     Augmentation(prune_small_max=1.0)

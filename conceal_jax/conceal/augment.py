@@ -1,37 +1,20 @@
 """Distortions of the student's check render during training, so that the hidden image survives them.
 
 An option beyond ConcealGS (arXiv:2501.03605), whose robustness figure (Sec. 3) only measures what blur and
-JPEG of the check render cost: with conceal.attacks.blur_max / noise_max, every step blurs the check render
-by a Gaussian of a standard deviation drawn from [0, blur_max] pixels and adds normal noise of a standard
-deviation drawn from [0, noise_max] before the decoder reads it for L_d^+ (eq. 5), as watermarking methods
-train through their attack layers. The draws are made on the host and enter the jitted step as values, so
-they never retrace it. A decoder taught to read blurred check renders also reads blurred views near the key
-more readily; conceal.attacks.identity_distorted shows L_d^- the student's normal render distorted alike.
-
-With conceal.attacks.brightness_max / contrast_max, the check render's brightness and contrast change first,
-by an offset drawn from [-max, max] and a factor drawn from 1 + [-max, max] (`photometric`): the hidden image
-must then carry a signal that survives a global shift, which costs hidden and render quality.
-
-The model attacks of the robustness issue (robust/model_attacks.py: parameter noise, pruning, subsampling,
-quantisation) change the scene rather than its image. With conceal.attacks.dropout_max / param_noise_max the
-check render is made from a perturbed student (`perturb_gaussians`): each Gaussian dropped with a probability
-drawn from [0, dropout_max], and every stored parameter moved by normal noise of a relative level drawn from
-[0, param_noise_max], the relative noise of model_attacks.parameter_noise. A decoder taught to read perturbed
-check renders also reads near-key views of the student more readily. With conceal.attacks.quantize_fraction, that
-share of the steps renders the check view from the student's base colours and opacities on 8-bit grids as .spz
-stores them, the coarsest grid of the publishing formats, and its higher SH bands as .compressed.ply stores them,
-the one grid that has no zero (`quantize_8bit`; the gradient passes the rounding straight through), so that a
-mark carried by colours survives the round trip. Each such step rounds at a point
-drawn anew (to the nearest value as .spz and .compressed.ply do, down as .sog does, or between): a film of faint
-splats, all of one opacity, comes back from each format at another 8-bit step, and its image changes with it. With
-conceal.attacks.reset_fraction, that share renders it with every opacity at most densify.RESET_CEILING, as the
-opacity reset of 3D-GS training with densification leaves the Gaussians no training view sees. With
-conceal.attacks.merge_fraction, that share renders it with the carrier film's neighbouring splats merged as a
-converter's decimation merges them, to a depth ~ U[0, conceal.attacks.merge_depth] rounds (decimate.merge_rounds:
-depth 0.5 merges half the pairs, 1 every pair, 1.2 every pair and a fifth of the pairs of what that leaves).
-
-The recommended recipe (configs/recipes.through_attacks) trains through blur and noise only: what each
-distortion gained and cost is in experiments/results/conceal_options.md.
+JPEG of the check render cost. Each step draws a distortion on the host (`draw`; values, so the jitted step
+never retraces) within the maxima of conceal.attacks, as watermarking methods train through attack layers:
+- of the image (`distort`): brightness and contrast (`photometric`), a Gaussian blur, normal noise, before the
+  decoder reads the render for L_d^+ (eq. 5); identity_distorted shows L_d^- the student's normal render alike;
+- of the scene (`perturb_gaussians`), the model attacks of robust/model_attacks.py: each Gaussian dropped with a
+  drawn probability, every stored parameter moved by relative normal noise (model_attacks.parameter_noise's), a
+  drawn share of the smallest Gaussians dropped (`kept_by_size`, a size pruning); on a share of the steps the base
+  colours and opacities on the 8-bit grids of .spz and the higher SH bands on .compressed.ply's (`quantize_8bit`,
+  rounding at a point drawn anew, since the formats round to the nearest or down; the gradient passes straight
+  through), every opacity at most densify.RESET_CEILING (3D-GS's opacity reset), or the carrier film's
+  neighbouring splats merged as a converter's decimation merges them (decimate.merge_rounds).
+A decoder taught to read distorted check renders also reads views near the key more readily. The recommended
+recipe (configs/recipes.through_attacks) trains through blur and noise only: what each distortion gained and cost
+is in experiments/results/conceal_options.md.
 """
 from __future__ import annotations
 
