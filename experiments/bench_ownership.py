@@ -342,8 +342,9 @@ def main():
                       help="a clean scene's .ply the message runs' keys are also read from (default: each run's "
                            "own teacher, never marked)")
   parser.add_argument("--messages-only", action="store_true",
-                      help="refresh only the message rows of --out's ownership_bench.json (the message runs finish "
-                           "apart from the clean trials)")
+                      help="refresh only the message rows of the --message-runs found in --out's ownership_bench.json, "
+                           "keeping the other scenes' and lengths' rows (the message runs finish apart from the clean "
+                           "trials)")
   parser.add_argument("--marked-only", action="store_true",
                       help="refresh only the marked trials and true-positive rates of the --marked runs found, "
                            "keeping the other runs' rows of --out's ownership_bench.json (and ownership_tpr.png)")
@@ -372,8 +373,10 @@ def main():
   run_files = ("student.ply", "decoder.msgpack", "key.json", "config.json")
   if args.messages_only or args.marked_only:
     result = json.loads((out / "ownership_bench.json").read_text())
-    if args.messages_only:
-      result["message"] = message_rows()
+    if args.messages_only:  # the runs found replace their (scene, length) rows; the others' rows stay
+      found, stored = message_rows(), result.get("message", {})
+      result["message"] = {scene: dict(stored.get(scene, {}), **found.get(scene, {}))
+                           for scene in sorted(set(stored) | set(found))}
     if args.marked_only:
       found = {str(run): marked_trials(run, args.alpha, args.null_views) for run in present(args.marked, run_files)}
       result["marked"], result["tpr_at_alpha"] = dict(result["marked"], **found), dict(result["tpr_at_alpha"],

@@ -32,3 +32,20 @@ def test_marked_only_merges_the_runs_found_and_keeps_the_rest(tmp_path, monkeypa
   assert result["tpr_at_alpha"] == {"old": 0.5, "lego": 0.0, str(lego): 0.75}
   assert set(result["marked"]) == {"old", "lego", str(lego)} and result["clean_trials"] == 100_000
   assert (tmp_path / "ownership_tpr.png").is_file()
+
+
+def test_messages_only_replaces_the_rows_of_the_runs_found(tmp_path, monkeypatch):
+  stored = dict(clean_trials=100_000, marked={}, tpr_at_alpha={},
+                message={"demo": {"32": dict(run="demo_32", bits=32)}, "lego": {"48": dict(run="lego_48", bits=48)}})
+  (tmp_path / "ownership_bench.json").write_text(json.dumps(stored))
+  run = tmp_path / "lego_48_10k"
+  run.mkdir()
+  (run / "message.json").write_text("{}")
+  monkeypatch.setattr(bench_ownership, "message_row",
+                      lambda run, clean, alpha, scratch: dict(run=str(run), scene="lego", bits=48))
+  monkeypatch.setattr(sys, "argv", ["bench_ownership", f"--out={tmp_path}", "--messages-only",
+                                    f"--message-runs={tmp_path / 'missing'},{run}"])
+  bench_ownership.main()
+  message = json.loads((tmp_path / "ownership_bench.json").read_text())["message"]
+  assert message == {"demo": {"32": dict(run="demo_32", bits=32)}, "lego": {"48": dict(run=str(run), scene="lego",
+                                                                                          bits=48)}}
