@@ -379,8 +379,8 @@ def main():
                            for scene in sorted(set(stored) | set(found))}
     if args.marked_only:
       found = {str(run): marked_trials(run, args.alpha, args.null_views) for run in present(args.marked, run_files)}
-      result["marked"], result["tpr_at_alpha"] = dict(result["marked"], **found), dict(result["tpr_at_alpha"],
-                                                                                         **true_positive_rates(found))
+      result["marked"] = dict(result["marked"], **found)
+      result["tpr_at_alpha"] = true_positive_rates(result["marked"])
       plot_marked(result["marked"], args.alpha, out / "ownership_tpr.png")
     fileio.write_json(out / "ownership_bench.json", result)
     return

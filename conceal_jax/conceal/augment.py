@@ -176,9 +176,8 @@ def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmenta
   distortion["param_noise"] times that field's per-channel standard deviation over the N Gaussians (a constant:
   the noise's scale is not trained), then each Gaussian dropped (opacity logit DROPPED_LOGIT, no gradient) with
   probability distortion["dropout"]; drawn from the PRNG seed distortion["model_seed"]; then the share
-  distortion["prune_small"] of smallest Gaussians dropped (`kept_by_size`, by the volumes before the noise). First,
-  where
-  distortion["quantize"] is 1, the 8-bit colours and opacities (`quantize_8bit`, rounding at
+  distortion["prune_small"] of smallest Gaussians dropped (`kept_by_size`, by the volumes before the noise).
+  First, where distortion["quantize"] is 1, the 8-bit colours and opacities (`quantize_8bit`, rounding at
   distortion["rounding"]), and where distortion["reset"] is 1, every opacity at most densify.RESET_CEILING; before
   all, the film decimated distortion["merge"] rounds deep by the rounds of `merges` (decimate.merge_rounds, from
   the PRNG seed distortion["model_seed"]). A kind whose maximum in `augmentation` is 0 is left out at trace time
@@ -225,8 +224,7 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   opacities (1 with probability reset_fraction); with quantize_fraction, the point its grids round at ~ U[0, 1)
   (`quantize_8bit`); the depth of the film's merges (~ U[0, merge_depth] with probability merge_fraction, else 0:
   decimate.merge_rounds); the share of smallest Gaussians dropped ~ U[0, prune_small_max]. Later kinds are drawn
-  after earlier ones, so a run without them sees the distortions it
-  always did."""
+  after earlier ones, so a run without them sees the distortions it always did."""
   a = augmentation
   image = dict(blur=np.float32(rng.uniform(0.0, a.blur_max)), noise=np.float32(rng.uniform(0.0, a.noise_max)),
                seed=np.uint32(rng.integers(2**32)))

@@ -142,18 +142,18 @@ def initial_gaussians(config: ml_collections.ConfigDict, scene, rng: np.random.G
   if kind == "points" and scene.points is None:
     logging.warning("init.kind='points' but %s has no point cloud: starting from %d random points, as "
                     "init.kind='random' does", config.data.path, config.init.num_random_points)
+  max_scales = None
   if kind == "random" or scene.points is None:
     if (config.data.path != "demo"
         and datasets.choose_format(config.data.path, **evaluate.scene_format(config)).kind == "llff"):
       points, footprints = datasets.llff_frustum_points(config.data.path, config.init.num_random_points, rng)
-      colors = rng.uniform(0.0, 1.0, points.shape)
-      return init.gaussians_from_points(points, colors, config.train.sh_degree,
-                                        max_scales=init.frustum_start_scales(footprints))
-    points, colors = init.random_box_points(rng, config.init.num_random_points, config.init.box_half_extent)
+      colors, max_scales = rng.uniform(0.0, 1.0, points.shape), init.frustum_start_scales(footprints)
+    else:
+      points, colors = init.random_box_points(rng, config.init.num_random_points, config.init.box_half_extent)
   else:
     points, colors = scene.points, scene.point_colors
     colors = np.full_like(points, 0.5) if colors is None else colors
-  return init.gaussians_from_points(points, colors, config.train.sh_degree)
+  return init.gaussians_from_points(points, colors, config.train.sh_degree, max_scales=max_scales)
 
 
 def pad_to_capacity(live: Gaussians, capacity: int) -> Gaussians:
