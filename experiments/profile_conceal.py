@@ -4,11 +4,12 @@
   make profile-conceal BENCH_ARGS="--widths=16 --repeats=9 --row=full"
   python -m experiments.profile_conceal --scene=demo --teacher=workdirs/demo/teacher/point_cloud.ply --widths=16
 
-With the settings of a bench-conceal row, for each decoder width, the median of --repeats (each part jitted on
-its own): one view's terms (objective.view_terms) with their gradient, for the normal view and for the check
-view; the decoder alone (forward, forward+backward, one image); the guided combination of the two decoder
-gradients; the two optimiser updates; and the whole step with its two views on one device and split over two
-(core.parallel), taking turns. Writes conceal_step_profile.json to --out. Run it on a quiet machine.
+With the settings of a bench-conceal row, for each decoder width, the median of --repeats (each part jitted on its
+own): one view's terms (objective.view_terms) with their gradient, for the normal view and for the check view, its
+two decoder reads in turn and as the step runs them (batched: decoder_pair.py); the decoder alone (forward,
+forward+backward, one image); the guided combination of the two decoder gradients; the two optimiser updates; and
+the whole step with its two views on one device and split over two (core.parallel), taking turns. Writes
+conceal_step_profile.json to --out. Run it on a quiet machine.
 """
 from __future__ import annotations
 
@@ -22,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from conceal_jax.conceal import augment, objective, reveal, step as step_lib, train as conceal_train
+from conceal_jax.conceal import augment, decoder_pair, objective, reveal, step as step_lib, train as conceal_train
 from conceal_jax.conceal import guidance, settings as settings_lib, views as views_lib
 from conceal_jax.configs import demo
 from conceal_jax.core import fileio, parallel
@@ -73,12 +74,13 @@ def part_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
   views = views_lib.step_views(run.data, 0, 1, 0, distortion, s)
   for index, name in enumerate(("normal", "check")):
     view = jax.tree.map(lambda x, i=index: x[i], views)
-    def loss(g, d, v=view):
-      terms = objective.view_terms(g, d, d, v, s, run.options)
-      return terms.student + terms.plus + terms.minus
+    for suffix, read in (("", None), ("_batched", decoder_pair.batched_l1_of_decoded_pair)):
+      def loss(g, d, v=view, read=read):
+        terms = objective.view_terms(g, d, d, v, s, run.options, read_pair=read)
+        return terms.student + terms.plus + terms.minus
 
-    times[f"{name}_view_terms_fwd_bwd"] = median_ms(jax.jit(jax.grad(loss, argnums=(0, 1))), run.teacher, decoder,
-                                                    repeats=repeats)
+      times[f"{name}_view_terms_fwd_bwd{suffix}"] = median_ms(jax.jit(jax.grad(loss, argnums=(0, 1))), run.teacher,
+                                                              decoder, repeats=repeats)
   image = run.data.teacher_small[0]
   apply = lambda d, x: reveal.decode(d, s.decoder_width, x)
   times["decoder_fwd"] = median_ms(jax.jit(apply), decoder, image, repeats=repeats)

@@ -10,7 +10,8 @@ import optax
 import pytest
 
 from conceal_jax import RenderOptions, render
-from conceal_jax.conceal import augment, key as key_lib, objective, reveal, step as step_lib, unet, views as views_lib
+from conceal_jax.conceal import augment, decoder_pair, key as key_lib, objective, reveal, step as step_lib, unet
+from conceal_jax.conceal import views as views_lib
 from conceal_jax.conceal.augment import Augmentation
 from conceal_jax.conceal.settings import ConcealSettings
 from conceal_jax.configs import default
@@ -202,6 +203,28 @@ def test_two_guided_steps_are_the_pre_redesign_steps(row):
     np.testing.assert_allclose(sketch(a, i), b, rtol=1e-4, atol=1e-6 * float(b[0]) + 1e-9)
   for name in ("loss", "normal", "plus", "minus", "psnr", "num_pairs", "mean_guidance_weight"):
     np.testing.assert_allclose(stats[name], golden["stats"][name], rtol=1e-5, err_msg=name)
+
+
+@pytest.mark.parametrize("reading", [reveal.PAPER_READING, reveal.Reading("center", False)])
+def test_batched_decoder_pair_is_the_two_reads(reading):
+  """The step's batch of two decoder reads: the values of l1_of_decoded_pair and, under unequal cotangents, the
+  gradient of each read in its own decoder argument, and those of the images and targets."""
+  rng = np.random.default_rng(3)
+  images, targets = (jnp.asarray(rng.uniform(0, 1, (2, 16, 16, 3)), jnp.float32) for _ in range(2))
+  decoder = unet.init_decoder(jax.random.key(1), 4, 16)
+  weights = jnp.asarray([2.0, -0.7])
+  for use_decoder in (True, False):
+    s = settings(reading=reading, use_decoder=use_decoder)
+    params = decoder if use_decoder else {}
+    for read in (objective.l1_of_decoded_pair, decoder_pair.batched_l1_of_decoded_pair):
+      np.testing.assert_allclose(read((params, params), images, targets, s),
+                                 objective.l1_of_decoded_pair((params, params), images, targets, s), rtol=1e-6)
+    loss = lambda read: lambda a, b, i, t: jnp.sum(weights * read((a, b), i, t, s))
+    want = jax.grad(loss(objective.l1_of_decoded_pair), argnums=(0, 1, 2, 3))(params, params, images, targets)
+    got = jax.jit(jax.grad(loss(decoder_pair.batched_l1_of_decoded_pair), argnums=(0, 1, 2, 3)))(
+        params, params, images, targets)
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(a, b, rtol=2e-5, atol=1e-8), got, want)
+    assert all(np.all(np.isfinite(leaf)) for leaf in jax.tree.leaves(got))
 
 
 @needs_two

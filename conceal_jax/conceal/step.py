@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from conceal_jax.conceal import carrier, guidance, objective
+from conceal_jax.conceal import carrier, decoder_pair, guidance, objective
 from conceal_jax.conceal.settings import ConcealSettings
 from conceal_jax.conceal.views import ConcealData, step_views
 from conceal_jax.core import loop, parallel
@@ -45,12 +45,14 @@ def gradients(student, decoder, views: objective.View, settings: ConcealSettings
   """({'student': ..., 'plus': ..., 'minus': ...} gradients summed over the stacked views [B], their Terms [B]).
   'student' is the gradient of every term with respect to the student (None without `train_student`: then
   the renders are not differentiated); 'plus' and 'minus' the decoder's gradients of lambda+ L_d^+ and of
-  lambda- L_d^-. `merges`: the film pairs a decimation merges (views.ConcealData)."""
+  lambda- L_d^-. `merges`: the film pairs a decimation merges (views.ConcealData). A view's two decoder reads run
+  as one batch (decoder_pair.py: exact here, where both decoder arguments are `decoder`)."""
   argnums = (0, 1, 2) if train_student else (1, 2)
 
   def per_view(shared, view):
     def loss(student, decoder_plus, decoder_minus):
-      terms = objective.view_terms(student, decoder_plus, decoder_minus, view, settings, options, shared[2])
+      terms = objective.view_terms(student, decoder_plus, decoder_minus, view, settings, options, shared[2],
+                                   read_pair=decoder_pair.batched_l1_of_decoded_pair)
       return terms.student + terms.plus + terms.minus, terms
 
     grads, terms = jax.grad(loss, argnums, has_aux=True)(shared[0], shared[1], shared[1])
