@@ -224,8 +224,9 @@ def claim_cache(cache: pathlib.Path, run: pathlib.Path) -> None:
   if path.is_file():
     held = json.loads(path.read_text())
     if held != source:
-      raise ValueError(f"{cache} holds the attacks of {held['student']} (size {held['size']}), not of {student}: "
-                       "give this run another label, or remove the folder")
+      differ = ", ".join(k for k in sorted(source) if held.get(k) != source[k])
+      raise ValueError(f"{cache} holds the attacks of {held['student']} (size {held['size']}), not of {student} "
+                       f"(differing: {differ}): give this run another label, or remove the folder")
     return
   if cache.is_dir() and any(cache.iterdir()):  # attacks cached before the source was recorded
     print(f"note: {cache} has no {CACHE_SOURCE}; its cached attacks are taken to be {student}'s")

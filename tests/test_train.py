@@ -151,6 +151,19 @@ def test_snapshots_must_fall_on_log_windows(tiny_scene):
     train.validate(config)
 
 
+def test_a_resumed_run_must_have_the_snapshots_it_passed(tiny_scene, tmp_path):
+  """A run stopped at step 4 without snapshots cannot be resumed asking for one at step 4 (it would never be
+  written); asking for one at step 8, not reached yet, resumes and writes it."""
+  config = tiny_config(tiny_scene)
+  assert train.train_and_evaluate(config, str(tmp_path), max_steps=4) == dict(stopped_at=4)
+  config.train.snapshots = (4, 8)
+  with pytest.raises(ValueError, match=r"reached step 4 without the snapshots \[4\]"):
+    train.train_and_evaluate(config, str(tmp_path))
+  config.train.snapshots = (8,)
+  train.train_and_evaluate(config, str(tmp_path), max_steps=8)
+  assert (tmp_path / train.snapshot_name(8)).is_file()
+
+
 def test_position_learning_rate_is_log_linear():
   schedule = optimizer.log_linear_schedule(1e-2, 1e-4, 100)
   np.testing.assert_allclose([schedule(0), schedule(50), schedule(100), schedule(500)],

@@ -24,7 +24,7 @@ import optax
 from absl import logging
 from flax import struct
 
-from conceal_jax.core import fileio, loop, parallel, settings
+from conceal_jax.core import checkpoint, fileio, loop, parallel, settings
 from conceal_jax.data import datasets, ply
 from conceal_jax.gs import capacity, densify, evaluate, init, losses, metrics, optimizer
 from conceal_jax.splat import camera as camera_lib
@@ -121,6 +121,18 @@ def snapshot_steps(config: ml_collections.ConfigDict) -> tuple[int, ...]:
 
 def snapshot_name(step: int) -> str:
   return f"point_cloud_{step:06d}.ply"
+
+
+def check_resumable_snapshots(workdir: str, snapshots) -> None:
+  """ValueError when the run in `workdir` has passed a step of `snapshots` (its newest checkpoint is at or after it)
+  without that snapshot's file: it was begun with other train.snapshots, and resuming would never write it."""
+  reached = checkpoint.list_steps(os.path.join(workdir, loop.CHECKPOINT_DIR))
+  missing = [s for s in sorted(snapshots) if reached and s <= reached[-1]
+             and not os.path.isfile(os.path.join(workdir, snapshot_name(s)))]
+  if missing:
+    raise ValueError(f"{workdir}: the run has reached step {reached[-1]} without the snapshots {missing} that "
+                     "train.snapshots asks for (it was begun with other snapshots); start it in a new workdir, or "
+                     "ask only for snapshots it has or has not reached yet")
 
 
 def loop_settings(config: ml_collections.ConfigDict) -> loop.LoopSettings:
@@ -315,6 +327,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   base_options = evaluate.render_options(config, scene.background)
   white = tuple(scene.background) == (1.0, 1.0, 1.0)
   snapshots = set(snapshot_steps(config))
+  check_resumable_snapshots(workdir, snapshots)
   traces = loop.TraceCounter()
   variants = set()  # (SH degree, buffer capacity, pair capacity): each compiles the step once
   # One jitted step per SH degree and pair capacity; the pair capacity grows when a render needs more. It
