@@ -74,7 +74,7 @@ def part_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
   views = views_lib.step_views(run.data, 0, 1, 0, distortion, s)
   for index, name in enumerate(("normal", "check")):
     view = jax.tree.map(lambda x, i=index: x[i], views)
-    for suffix, read in (("", None), ("_batched", decoder_pair.batched_l1_of_decoded_pair)):
+    for suffix, read in (("", objective.l1_of_decoded_pair), ("_batched", decoder_pair.batched_l1_of_decoded_pair)):
       def loss(g, d, v=view, read=read):
         terms = objective.view_terms(g, d, d, v, s, run.options, read_pair=read)
         return terms.student + terms.plus + terms.minus

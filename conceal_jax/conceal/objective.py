@@ -84,15 +84,20 @@ def pixel_loss(rgb: jax.Array, view: View, settings: ConcealSettings) -> jax.Arr
   return value
 
 
+def l1_of_decoded_pair(decoders, images: jax.Array, targets: jax.Array, settings: ConcealSettings) -> jax.Array:
+  """[2] l1_of_decoded of images [2, S, S, 3] against targets [2, S, S, 3], image i read by decoders[i]."""
+  return jnp.stack([l1_of_decoded(d, images[i], targets[i], settings) for i, d in enumerate(decoders)])
+
+
 def view_terms(student, decoder_plus, decoder_minus, view: View, settings: ConcealSettings,
-               options: RenderOptions, merges=None, read_pair=None) -> Terms:
+               options: RenderOptions, merges=None, read_pair=l1_of_decoded_pair) -> Terms:
   """The terms of one view: the student rendered through view.model (with `merges`, the film pairs a decimation
   merges: augment.perturb_gaussians) and its pixel loss; the render read by F
   at the decoder size (through view.image), once: against I where the view carries L_d^+ (lambda+ L_d^+,
   eq. 5, through the render, F as `decoder_plus`), else against itself as a constant (its L_d^- share, eq. 4,
   F as `decoder_minus`); and the teacher render against itself (its L_d^- share). A view carries L_d^+ or
   holds F to the identity on its own render, never both (views.step_views). `read_pair` computes the two reads
-  (l1_of_decoded_pair's signature; decoder_pair.py batches them); l1_of_decoded_pair without it."""
+  (l1_of_decoded_pair, or decoder_pair.py's batch of two)."""
   s = settings
   out = render(augment.perturb_gaussians(student, view.model, s.augmentation, merges), view.camera, options)
   seen = decoder_view(augment.distort(out.rgb, view.image, s.augmentation), s)
@@ -101,7 +106,7 @@ def view_terms(student, decoder_plus, decoder_minus, view: View, settings: Conce
   constant = jax.lax.stop_gradient(seen)
   images = jnp.stack([jnp.where(reads_hidden, seen, constant), view.teacher_small])
   targets = jnp.stack([jnp.where(reads_hidden, view.hidden, constant), view.teacher_small])
-  own, teacher = (read_pair or l1_of_decoded_pair)((own_decoder, decoder_minus), images, targets, s)
+  own, teacher = read_pair((own_decoder, decoder_minus), images, targets, s)
   return Terms(student=pixel_loss(out.rgb, view, s), plus=view.plus_weight * own,
                minus=view.own_minus_weight * own + view.teacher_minus_weight * teacher,
                psnr=metrics.psnr(jnp.clip(out.rgb, 0.0, 1.0), view.target), num_pairs=out.num_pairs,
@@ -112,8 +117,3 @@ def l1_of_decoded(decoder, image: jax.Array, target: jax.Array, settings: Concea
   """|F(image) - target| for one image [S, S, 3]: L_d^+ (eq. 5, losses.hidden_image_loss) with target I, L_d^-
   (eq. 4, losses.decoder_identity_loss) with target the image itself; the two are the same mean absolute error."""
   return losses.hidden_image_loss(decoded(decoder, image, settings), target)
-
-
-def l1_of_decoded_pair(decoders, images: jax.Array, targets: jax.Array, settings: ConcealSettings) -> jax.Array:
-  """[2] l1_of_decoded of images [2, S, S, 3] against targets [2, S, S, 3], image i read by decoders[i]."""
-  return jnp.stack([l1_of_decoded(d, images[i], targets[i], settings) for i, d in enumerate(decoders)])
