@@ -8,14 +8,17 @@ Decoders: every finished conceal run of --runs (its decoder, key and hidden imag
 with a note). Clean scenes: the teachers of --clean (train workdirs never marked: other seeds, other scenes). A
 clean trial pairs what a decoder reveals from a clean scene (at the decoder's key, at --poses orbit poses and at
 the scene's test views) with a hidden image the scene was not marked with: the decoder's own I, circular shifts
-of I, and crops of the scikit-image pictures, turned and flipped. Each trial is decided as verify decides
-(robust.ownership.decisions at --alpha, with the decoder's outputs on the unrelated pictures and on the clean scene
-turned away from the decoder's key as its null), the empirical p-value computed where the model's is at most
+of I, and crops of the scikit-image pictures, turned and flipped. Each trial is decided as verify decides given
+the owner's copy of the marked scene (reveal.owner: the clean render mapped onto the tone of the marked student's
+render at the same camera, conceal.align.fit_tone; robust.ownership.decisions at --alpha, with the decoder's
+outputs on the unrelated pictures and on the clean scene turned away from the decoder's key, through the same map,
+as its null), the empirical p-value computed where the model's is at most
 RESOLVE (below it, the decision's p-value is exact; above, the model's stands in, a lower bound). Trials of one
 (decoder, scene) pair share the decoder and the renders, and every demo decoder passes much of the render through:
 they are not independent, and the JSON counts the pairs and the false positives per pair. Marked trials: the
 student of each --marked run under every mild and medium attack of the robustness harness (image attacks on the
-check render, model attacks on the scene), each with the null verify would draw from that attacked scene.
+check render, model attacks on the scene), each with the null verify would draw from that attacked scene, decided
+with the owner's copy (the untouched student) and without it (`unaligned`, tpr_at_alpha_unaligned).
 
 Each (decoder, scene) pair's trials are kept in --cache (an .npz per pair, keyed by the settings), so a run
 stopped part way resumes where it was.
@@ -42,7 +45,7 @@ import ml_collections
 import numpy as np
 from scipy import stats
 
-from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, message
+from conceal_jax.conceal import align, hidden as hidden_lib, key as key_lib, message, reveal
 from conceal_jax.configs import default
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
@@ -113,29 +116,45 @@ def clean_scene(workdir: pathlib.Path, poses: int, test_views: int) -> dict:
               cameras=cameras)
 
 
-def pair_trials(owner, hidden: np.ndarray, scene: dict, alpha: float, null_views: int) -> dict:
+def read_and_decide(reveal_fn, renders: np.ndarray, hidden: np.ndarray, nulls: dict, alpha: float,
+                    resolve: float = 1.0) -> tuple[np.ndarray, dict]:
+  """Revealed images [V, S, S, 3] of renders [V, H, W, 3] through reveal_fn, and their decisions against hidden
+  images [J, S, S, 3] (ownership.decisions), with the null outputs reveal_fn gives of nulls (ownership.null_renders)."""
+  revealed = np.asarray(reveal_fn(jnp.asarray(renders)))
+  null = np.concatenate([np.asarray(reveal_fn(jnp.asarray(images))) for images in nulls.values()])
+  return revealed, ownership.decisions(revealed, hidden, null, alpha, resolve=resolve)
+
+
+def pair_trials(owner, hidden: np.ndarray, scene: dict, alpha: float, null_views: int, marked=None) -> dict:
   """The clean trials of one decoder (owner) on one clean scene: revealed at the decoder's key and at the scene's
   cameras [V], against the hidden images [J] (ownership.decisions, resolved at RESOLVE): z, log10_p_model,
-  log10_p (the decision's), owned, each [V, J]."""
+  log10_p (the decision's), owned, each [V, J]. With `marked` (the owner's copy of the marked scene), each view is
+  first mapped onto the tone of the marked scene's render at its camera (align.fit_tone), and its null outputs
+  through the same map, as verify with reveal.owner reads a suspect at its key."""
+  fields = ("z", "log10_p_model", "log10_p", "owned")
   # the key may be another scene's (another image size): rendered apart from the scene's own cameras
-  revealed = np.concatenate([np.asarray(owner.reveal_renders(evaluate.render_images(scene["gaussians"], cameras,
-                                                                                    owner.options)))
-                             for cameras in ([owner.check_camera], scene["cameras"])])
-  nulls = ownership.null_reveals(scene["gaussians"], owner.check_camera, owner.options, owner.reveal_renders,
-                                 null_views, owner.hidden)
-  result = ownership.decisions(revealed, hidden, np.concatenate(list(nulls.values())), alpha, resolve=RESOLVE)
-  return {name: result[name] for name in ("z", "log10_p_model", "log10_p", "owned")}
+  groups = ([owner.check_camera], scene["cameras"])
+  renders = [np.asarray(evaluate.render_images(scene["gaussians"], cameras, owner.options)) for cameras in groups]
+  nulls = ownership.null_renders(scene["gaussians"], owner.check_camera, owner.options, null_views, owner.hidden)
+  if marked is None:
+    results = [read_and_decide(owner.reveal_renders, group, hidden, nulls, alpha, RESOLVE)[1] for group in renders]
+  else:
+    references = [np.asarray(evaluate.render_images(marked, cameras, owner.options)) for cameras in groups]
+    pairs = [(image, reference) for group, refs in zip(renders, references) for image, reference in zip(group, refs)]
+    results = [read_and_decide(reveal.toned(owner.reveal_renders, align.fit_tone(image, reference)), image[None],
+                               hidden, nulls, alpha, RESOLVE)[1] for image, reference in pairs]
+  return {name: np.concatenate([result[name] for result in results]) for name in fields}
 
 
 def cached_pair_trials(cache: pathlib.Path, run: pathlib.Path, owner, hidden: np.ndarray, scene: dict, alpha: float,
-                       null_views: int, settings: str) -> dict:
+                       null_views: int, settings: str, marked=None) -> dict:
   """pair_trials, read from `cache` when this pair was run with the same settings, else run and saved there."""
   tag = hashlib.sha1(f"{run.resolve()}|{scene['name']}|{settings}".encode()).hexdigest()[:16]
   path = cache / f"{run.name}_{pathlib.Path(scene['name']).parent.name}_{tag}.npz"
   if path.is_file():
     with np.load(path) as saved:
       return {name: saved[name] for name in saved.files}
-  result = pair_trials(owner, hidden, scene, alpha, null_views)
+  result = pair_trials(owner, hidden, scene, alpha, null_views, marked)
   cache.mkdir(parents=True, exist_ok=True)
   with fileio.atomic_path(str(path)) as tmp:
     with open(tmp, "wb") as f:
@@ -148,11 +167,12 @@ def clean_trials(run: pathlib.Path, scenes: list[dict], alpha: float, null_views
   """Every clean trial of one decoder: each clean scene at the decoder's key and at the scene's own cameras, against
   clean_hidden_images; returns the z and p-values flattened, per scene its count and false positives, the trials
   of highest z, and the own-I trials apart."""
-  _, _, owner = bench_robust.load_run(run)
+  _, student, owner = bench_robust.load_run(run)
   hidden, names = clean_hidden_images(owner.hidden)
   z, log_model, log_p, owned, own, pairs, top = [], [], [], [], [], [], []
   for scene in scenes:
-    result = cached_pair_trials(cache, run, owner, hidden, scene, alpha, null_views, settings)
+    result = cached_pair_trials(cache, run, owner, hidden, scene, alpha, null_views, settings,
+                                jax.tree.map(jnp.asarray, student))
     z.append(result["z"].ravel())
     log_model.append(result["log10_p_model"].ravel())
     log_p.append(result["log10_p"].ravel())
@@ -176,52 +196,64 @@ def clean_trials(run: pathlib.Path, scenes: list[dict], alpha: float, null_views
               owned=np.concatenate(owned), own=own, pairs=pairs, top=top, hidden_names=names)
 
 
-def attacked_reveals(student, owner):
-  """(kind, attack, level, severity, revealed [S, S, 3], scene) for the student untouched ("none") and under each
-  mild and medium attack: image attacks on its check render (scene: the student), model attacks on the scene."""
+def attacked_checks(student, owner):
+  """(kind, attack, level, severity, check render [H, W, 3], scene) for the student untouched ("none") and under
+  each mild and medium attack: image attacks on its check render (scene: the student), model attacks on the scene."""
   levels = [level for level in image_attacks.LEVELS if level[2] in MARKED_SEVERITIES]
-  revealed = np.asarray(owner.reveal_renders(robustness.attacked_check_renders(student, owner, levels)))
-  yield "none", "none", None, "none", revealed[0], student
-  for (name, level, severity), image in zip(levels, revealed[1:]):
+  checks = robustness.attacked_check_renders(student, owner, levels)
+  yield "none", "none", None, "none", checks[0], student
+  for (name, level, severity), image in zip(levels, checks[1:]):
     yield "image", name, level, severity, image, student
   levels = [level for level in model_attacks.LEVELS if level[2] in MARKED_SEVERITIES]
   for name, level, severity, _, scene in robustness.attacked_scenes(student, levels):
     if name != "none":
-      check = owner.reveal_renders(evaluate.render_images(scene, [owner.check_camera], owner.options))
-      yield "model", name, level, severity, np.asarray(check)[0], scene
+      yield "model", name, level, severity, np.asarray(evaluate.render_images(scene, [owner.check_camera],
+                                                                              owner.options))[0], scene
+
+
+def decision_row(revealed: np.ndarray, result: dict, hidden: np.ndarray) -> dict:
+  """z, p-values, the decision and the SSIM of one revealed image [1, S, S, 3] (ownership.decisions' result)."""
+  return dict(z=float(result["z"][0, 0]), log10_p=float(result["log10_p"][0, 0]),
+              log10_p_model=float(result["log10_p_model"][0, 0]), log10_p_null=float(result["log10_p_null"][0, 0]),
+              owned=bool(result["owned"][0, 0]), ssim=float(metrics.ssim(revealed[0], hidden)))
 
 
 def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict]:
-  """The student of `run` under each mild and medium attack (attacked_reveals), decided as verify decides, with
-  the null verify would draw from the (attacked) scene; one row per attack level."""
+  """The student of `run` under each mild and medium attack (attacked_checks), decided as verify decides given the
+  owner's copy (the untouched student: each check render mapped onto its tone first, align.fit_tone, and the null
+  outputs through the same map), with the null verify would draw from the (attacked) scene; `unaligned`: decided
+  as verify decides without it. One row per attack level."""
   _, student, owner = bench_robust.load_run(run)
   student = jax.tree.map(jnp.asarray, student)
   hidden = owner.hidden
-  rows, nulls = [], None
-  for kind, name, level, severity, revealed, scene in attacked_reveals(student, owner):
+  rows, nulls, reference = [], None, None
+  for kind, name, level, severity, check, scene in attacked_checks(student, owner):
+    reference = check if reference is None else reference
     if kind != "image" or nulls is None:  # image attacks leave the scene, and so its null, as it is
-      nulls = ownership.null_reveals(scene, owner.check_camera, owner.options, owner.reveal_renders, null_views,
-                                     hidden)
-    result = ownership.decisions(revealed[None], hidden[None], np.concatenate(list(nulls.values())), alpha)
-    rows.append(dict(kind=kind, attack=name, level=level, severity=severity, z=float(result["z"][0, 0]),
-                     log10_p=float(result["log10_p"][0, 0]), log10_p_model=float(result["log10_p_model"][0, 0]),
-                     log10_p_null=float(result["log10_p_null"][0, 0]), owned=bool(result["owned"][0, 0]),
-                     ssim=float(metrics.ssim(revealed, hidden))))
+      nulls = ownership.null_renders(scene, owner.check_camera, owner.options, null_views, hidden)
+    tone = align.fit_tone(check, reference)
+    aligned = read_and_decide(reveal.toned(owner.reveal_renders, tone), check[None], hidden[None], nulls, alpha)
+    unaligned = read_and_decide(owner.reveal_renders, check[None], hidden[None], nulls, alpha)
+    rows.append(dict(kind=kind, attack=name, level=level, severity=severity, **decision_row(*aligned, hidden),
+                     tone=tone.report(), unaligned=decision_row(*unaligned, hidden)))
   print(f"{run}: {sum(r['owned'] for r in rows[1:])} of {len(rows) - 1} attacked trials decided owned, lowest z "
-        f"{min(r['z'] for r in rows[1:]):.2f}", flush=True)
+        f"{min(r['z'] for r in rows[1:]):.2f} (without the owner's copy: "
+        f"{sum(r['unaligned']['owned'] for r in rows[1:])})", flush=True)
   return rows
 
 
-def true_positive_rates(marked: dict) -> dict:
-  """{run: the share of its attacked trials decided owned} of marked_trials' rows per run."""
-  return {run: float(np.mean([r["owned"] for r in rows if r["kind"] != "none"])) for run, rows in marked.items()}
+def true_positive_rates(marked: dict, unaligned: bool = False) -> dict:
+  """{run: the share of its attacked trials decided owned} of marked_trials' rows per run (`unaligned`: decided
+  without the owner's copy, for the runs whose rows hold it)."""
+  return {run: float(np.mean([(r["unaligned"] if unaligned else r)["owned"] for r in rows if r["kind"] != "none"]))
+          for run, rows in marked.items() if not unaligned or all("unaligned" in r for r in rows)}
 
 
 def message_row(run: pathlib.Path, clean_ply: str | None, alpha: float, scratch: pathlib.Path) -> dict:
   """A message-mode concealment: the message read from the student at the key (message.json), the render against
-  the teacher's (metrics.json), the message read under each mild and medium attack (attacked_reveals), and verify
-  (ownership test + message) on the student and on a clean scene read with the same key and decoder: `clean_ply`,
-  or the run's own teacher, which was never marked."""
+  the teacher's (metrics.json), the message read under each mild and medium attack (attacked_checks, without
+  re-alignment), and verify (ownership test + message) on the student and on a clean scene read with the same key
+  and decoder: `clean_ply`, or the run's own teacher, which was never marked."""
   metrics = json.loads((run / "metrics.json").read_text())
   read = json.loads((run / "message.json").read_text())
   config = saved_config(run)
@@ -236,8 +268,8 @@ def message_row(run: pathlib.Path, clean_ply: str | None, alpha: float, scratch:
   _, student, owner = bench_robust.load_run(run)
   hidden_message = message.message_of_key(key_lib.load_key(str(run / "key.json"))[1])
   row["attacks"] = []
-  for kind, name, level, severity, revealed, _ in attacked_reveals(jax.tree.map(jnp.asarray, student), owner):
-    read_back = message.read_message(revealed, hidden_message)
+  for kind, name, level, severity, check, _ in attacked_checks(jax.tree.map(jnp.asarray, student), owner):
+    read_back = message.read_message(np.asarray(owner.reveal_renders(jnp.asarray(check[None])))[0], hidden_message)
     row["attacks"].append(dict(kind=kind, attack=name, level=level, severity=severity,
                                bit_accuracy=read_back["raw_bit_accuracy"], message_exact=read_back["message_exact"]))
   attacked = [a for a in row["attacks"] if a["kind"] != "none"]
@@ -381,6 +413,7 @@ def main():
       found = {str(run): marked_trials(run, args.alpha, args.null_views) for run in present(args.marked, run_files)}
       result["marked"] = dict(result["marked"], **found)
       result["tpr_at_alpha"] = true_positive_rates(result["marked"])
+      result["tpr_at_alpha_unaligned"] = true_positive_rates(result["marked"], unaligned=True)
       plot_marked(result["marked"], args.alpha, out / "ownership_tpr.png")
     fileio.write_json(out / "ownership_bench.json", result)
     return
@@ -390,7 +423,7 @@ def main():
   if not runs or not scenes:
     raise SystemExit("bench-ownership needs at least one conceal run and one clean teacher")
   settings = (f"poses={args.poses} test_views={args.test_views} alpha={args.alpha} null_views={args.null_views} "
-              f"resolve={RESOLVE} shifts={SHIFTS} crops={CROPS}")
+              f"resolve={RESOLVE} shifts={SHIFTS} crops={CROPS} owner_copy=tone")
   per_run = {str(run): clean_trials(run, scenes, args.alpha, args.null_views, pathlib.Path(args.cache), settings)
              for run in runs}
   z = np.concatenate([t["z"] for t in per_run.values()])
@@ -406,7 +439,8 @@ def main():
       device=str(jax.devices()[0]), alpha=args.alpha, clean_trials=int(z.size), false_positives=int(owned.sum()),
       false_positives_model=int(np.sum(log_model <= np.log10(args.alpha))),
       predicted_false_positive_rate=args.alpha, z_threshold_model=float(stats.norm.isf(args.alpha)),
-      tpr_at_alpha=tpr, decoders=[str(r) for r in runs], clean_scenes=[s["name"] for s in scenes],
+      tpr_at_alpha=tpr, tpr_at_alpha_unaligned=true_positive_rates(marked_rows, unaligned=True),
+      decoders=[str(r) for r in runs], clean_scenes=[s["name"] for s in scenes],
       independent_pairs=dict(
           decoder_scene_pairs=len(pairs), decoders=len(runs), clean_scenes=len(scenes),
           note="trials of one (decoder, scene) pair share the decoder, the renders and the null; the demo teachers "

@@ -11,7 +11,7 @@ is skipped with a note. Attacks (`level` in brackets):
 - none: the student as shared;
 - rotate (degrees about the up axis through the centroid), translate (fraction of the RMS radius), scale
   (factor), each with the Gaussians shuffled (robust.scene_attacks): hidden_* are revealed after re-alignment
-  against the owner's copy (reveal.aligned_key: registration, key moved with the similarity found),
+  against the owner's copy (align.aligned_key: registration, key moved with the similarity found),
   `unaligned` without it; `registration` reports the transform found and its error against the applied one;
 - sog, spz, compressed_ply (the format), decimate (fraction kept), sh_bands (bands kept): round trips through
   @playcanvas/splat-transform (robust.converter; skipped without `make node_modules`), revealed as they come back
@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from conceal_jax.conceal import key as key_lib, reveal
+from conceal_jax.conceal import align, key as key_lib
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, similarity as sim, train
@@ -184,7 +184,7 @@ def scores_of(scene: Scene, gaussians, similarity: sim.Similarity | None = None)
   g = jax.tree.map(jnp.asarray, gaussians)
   cameras, options = scene.cameras, scene.owner.options
   if similarity is not None:
-    moved = [reveal.moved_key(c, options, similarity) for c in cameras]
+    moved = [align.moved_key(c, options, similarity) for c in cameras]
     cameras, options = [c for c, _ in moved], moved[0][1]
   return dict(render_psnr=evaluate.views_psnr(g, list(cameras), scene.targets, options),
               **scene.owner.check_scores(g), num_gaussians=int(np.asarray(gaussians.means).shape[0]))
@@ -281,7 +281,7 @@ def converter_rows(scene: Scene, todo) -> list[dict]:
     scores = scores_of(scene, padded)
     scores["num_gaussians"] = int(published.num)
     rows.append(scene.row(attack, level, scores, aligned=aligned(scene, published),
-                          moved=dict(aligned(scene, moved, applied), similarity=reveal.similarity_report(applied))))
+                          moved=dict(aligned(scene, moved, applied), similarity=align.similarity_report(applied))))
     print(json.dumps({k: v for k, v in rows[-1].items() if not isinstance(v, dict)}), flush=True)
   return rows
 

@@ -2,6 +2,8 @@
 import json
 import sys
 
+import numpy as np
+
 from experiments import bench_ownership
 
 
@@ -49,3 +51,35 @@ def test_messages_only_replaces_the_rows_of_the_runs_found(tmp_path, monkeypatch
   message = json.loads((tmp_path / "ownership_bench.json").read_text())["message"]
   assert message == {"demo": {"32": dict(run="demo_32", bits=32)}, "lego": {"48": dict(run=str(run), scene="lego",
                                                                                           bits=48)}}
+
+
+def test_rates_without_the_owner_copy_skip_runs_that_predate_it():
+  aligned = _rows([True, True])
+  for row, unaligned in zip(aligned, (True, False, True)):
+    row["unaligned"] = dict(owned=unaligned)
+  rates = bench_ownership.true_positive_rates({"new": aligned, "old": _rows([True])}, unaligned=True)
+  assert rates == {"new": 0.5}
+
+
+def test_clean_trials_read_against_the_scene_itself_equal_those_without_the_owner_copy():
+  """A clean scene whose 'owner's copy' is the scene itself: the tone found at every view is the identity, so the
+  trials are those of verify without re-alignment (the per-view path and the batched path agree)."""
+  import jax
+  from conceal_jax.conceal import reveal, unet
+  from conceal_jax.robust import robustness
+  from conceal_jax.splat.render import RenderOptions
+  from tests.helpers import make_camera, random_gaussians
+
+  scene = random_gaussians(3, 400, degree=1)
+  owner = robustness.Owner(decoder=unet.init_decoder(jax.random.key(0), 4, 16), decoder_width=4,
+                           hidden=np.random.default_rng(0).uniform(size=(16, 16, 3)).astype(np.float32),
+                           check_camera=make_camera(32, 32), options=RenderOptions(background=(1.0, 1.0, 1.0)),
+                           reading=reveal.Reading(clip=True))
+  cameras = [make_camera(32, 32, eye=(x, -4.0, 1.0)) for x in (-0.5, 0.5)]
+  hidden = np.stack([owner.hidden, owner.hidden[::-1]])
+  clean = dict(name="clean", gaussians=scene, cameras=cameras)
+  plain = bench_ownership.pair_trials(owner, hidden, clean, 1e-3, 4)
+  toned = bench_ownership.pair_trials(owner, hidden, clean, 1e-3, 4, marked=scene)
+  assert plain["z"].shape == (3, 2)
+  np.testing.assert_allclose(toned["z"], plain["z"], atol=1e-4)
+  np.testing.assert_array_equal(toned["owned"], plain["owned"])

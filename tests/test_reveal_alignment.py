@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from conceal_jax import main as main_lib
-from conceal_jax.conceal import key as key_lib, reveal, unet
+from conceal_jax.conceal import align, key as key_lib, reveal, unet
 from conceal_jax.configs import default
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
@@ -78,6 +78,9 @@ def test_reveal_with_the_owner_copy_recovers_the_untouched_reveal(marked, attack
   assert found["scale"] == pytest.approx(applied.scale, rel=1e-4)
   assert np.allclose(found["translation"], applied.translation, atol=1e-3 * max(1.0, applied.scale))
   assert found["residual"] < 1e-3 and found["matched_fraction"] > 0.99
+  # moved, not graded: the tone map found is the identity
+  np.testing.assert_allclose(found["tone"]["gain"], 1.0, atol=1e-3)
+  np.testing.assert_allclose(found["tone"]["offset"], 0.0, atol=1e-3)
   angle = np.degrees(np.arccos(np.clip((np.trace(applied.rotation) - 1) / 2, -1, 1)))
   assert found["angle_deg"] == pytest.approx(angle, abs=1e-3)
   saved = json.loads((tmp_path / "aligned" / reveal.REVEAL_FILE).read_text())
@@ -89,14 +92,14 @@ def test_reveal_with_the_owner_copy_recovers_the_untouched_reveal(marked, attack
 
 def test_moved_key_scales_the_near_plane():
   similarity = sim.Similarity(sim.rotation_from_axis_angle((1.0, 2.0, 3.0), 2.0), np.array([1.0, -2.0, 0.5]), 0.25)
-  camera, options = reveal.moved_key(make_camera(), RenderOptions(near=0.2), similarity)
+  camera, options = align.moved_key(make_camera(), RenderOptions(near=0.2), similarity)
   assert options.near == pytest.approx(0.05)
   w2c = sim.transform_world_to_camera(make_camera().world_to_camera, similarity)
   np.testing.assert_allclose(np.asarray(camera.world_to_camera), w2c, atol=1e-6)
-  report = reveal.similarity_report(similarity)
+  report = align.similarity_report(similarity)
   assert report["angle_deg"] == pytest.approx(np.degrees(2.0))
   np.testing.assert_allclose(report["axis"], np.array([1.0, 2.0, 3.0]) / np.sqrt(14), atol=1e-9)
-  assert reveal.similarity_report(sim.Similarity.identity())["angle_deg"] == 0.0
+  assert align.similarity_report(sim.Similarity.identity())["angle_deg"] == 0.0
 
 
 @pytest.mark.slow  # verify renders its null views of a moved scene: about a minute on two cores

@@ -5,10 +5,10 @@ revealed.png and, given a reference hidden image, its PSNR / SSIM (reveal.json).
 are read from the key, so the check view is rendered exactly as during concealment.
 
 A shared scene may have been turned, moved, resized or reordered on import (or re-saved by a converter that
-does so). Given the owner's own copy of the marked scene (reveal.owner), the reveal first registers the
-suspect scene onto it (gs.register: the similarity owner -> suspect from the Gaussians alone), moves the key
-camera with that similarity, and renders there: the check view the key names, seen in the suspect's frame.
-reveal.json then reports the transform and how well it fits.
+does so), and its colours graded. Given the owner's own copy of the marked scene (reveal.owner), the reveal first
+re-aligns the suspect onto it (conceal.align: the key moved into the suspect's frame, its renders mapped onto the
+owner's tone) and renders there: the check view the key names, seen in the suspect's frame and tone.
+reveal.json then reports the transform, the tone map and how well they fit.
 """
 from __future__ import annotations
 
@@ -24,10 +24,10 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, message as message_lib, unet
+from conceal_jax.conceal import align, hidden as hidden_lib, key as key_lib, message as message_lib, unet
 from conceal_jax.core import fileio, settings
 from conceal_jax.data import ply
-from conceal_jax.gs import metrics, register as register_lib, similarity as similarity_lib
+from conceal_jax.gs import metrics
 from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.gaussians import Gaussians
 from conceal_jax.splat.render import RenderOptions, render
@@ -131,45 +131,6 @@ def options_from_key(info: dict) -> RenderOptions:
   return settings.from_section(RenderOptions, info["render_options"])
 
 
-def moved_key(camera: Camera, options: RenderOptions,
-              similarity: similarity_lib.Similarity) -> tuple[Camera, RenderOptions]:
-  """The key camera and render options that see the scene moved by `similarity` as `camera` saw the
-  original: the camera transformed with it, and the near plane (an absolute camera-space depth, which the
-  scale multiplies) scaled by its scale, so that the same splats are culled and the render is the same (the near
-  plane is a static render option: each value compiles the render anew)."""
-  # rounded to 6 significant digits: a scale of 1 found to float precision keeps the compiled render
-  return (similarity_lib.transform_camera(camera, similarity),
-          dataclasses.replace(options, near=float(f"{float(options.near) * similarity.scale:.6g}")))
-
-
-def aligned_key(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
-                seed: int = 0) -> tuple[Camera, RenderOptions, register_lib.Registration]:
-  """The key moved into the suspect scene's frame: registers `suspect` onto the owner's copy `owner` (the
-  scene the key was made for; any order, size or count of Gaussians in either) and moves `camera` and
-  `options` with the similarity found (moved_key). Returns them and the registration (similarity owner ->
-  suspect, residual, matched fraction). ValueError from register for scenes too small or not finite."""
-  registration = register_lib.register(owner, suspect, seed=seed)
-  return (*moved_key(camera, options, registration.similarity), registration)
-
-
-def similarity_report(similarity: similarity_lib.Similarity) -> dict:
-  """A similarity as reveal.json reports it: rotation [3, 3] and as an axis (unit [3]) and angle in degrees
-  (axis +z for no turn), translation [3], scale."""
-  quat = similarity_lib.matrix_to_quaternion(similarity.rotation)  # w >= 0: angle in [0, 180]
-  sin_half = float(np.linalg.norm(quat[1:]))
-  axis = quat[1:] / sin_half if sin_half > 1e-12 else np.array([0.0, 0.0, 1.0])
-  return dict(rotation=similarity.rotation.tolist(), axis=axis.tolist(),
-              angle_deg=float(np.degrees(2.0 * np.arctan2(sin_half, quat[0]))),
-              translation=similarity.translation.tolist(), scale=similarity.scale)
-
-
-def registration_report(registration: register_lib.Registration) -> dict:
-  """The transform found (similarity_report) with its fit: residual (trimmed RMS nearest-neighbour distance
-  / owner radius), matched_fraction and owner_radius (gs.register.Registration)."""
-  return dict(similarity_report(registration.similarity), residual=float(registration.residual),
-              matched_fraction=float(registration.matched_fraction), owner_radius=float(registration.owner_radius))
-
-
 def validate(config: ml_collections.ConfigDict) -> None:
   """The reveal job needs a scene and a key (the decoder is checked against the key when it is read)."""
   for name in ("ply", "key"):
@@ -182,7 +143,7 @@ def validate(config: ml_collections.ConfigDict) -> None:
 class KeyedScene:
   """A suspect scene with what reveals it (load_keyed_scene): the Gaussians, the key camera and render options
   (moved into the scene's frame when re-aligned), `reveal_fn` (renders [V, H, W, 3] -> revealed [V, S, S, 3],
-  decoder_reveal's), and the alignment report or None."""
+  decoder_reveal's after the scene's tone map), and the alignment report or None."""
   gaussians: Gaussians
   camera: Camera
   options: RenderOptions
@@ -195,25 +156,34 @@ class KeyedScene:
     return np.asarray(self.reveal_fn(renders))
 
 
+def toned(reveal_fn, tone: align.Tone):
+  """reveal_fn reading renders [V, H, W, 3] after `tone` (align.Tone.apply)."""
+  return lambda renders: reveal_fn(tone.apply(renders))
+
+
 def load_keyed_scene(r: ml_collections.ConfigDict) -> KeyedScene:
   """The scene r.ply, key number r.key_number of the key file r.key (0: its check view, k: its k-th extra key)
-  and the decoder r.decoder (a `reveal` config section). With r.owner set, the key is first moved into r.ply's
-  frame (aligned_key against the owner's copy r.owner) and the alignment report is registration_report's."""
+  and the decoder r.decoder (a `reveal` config section). With r.owner set, the suspect is re-aligned onto the
+  owner's copy r.owner (align.aligned_key, then align.tone_at_key) and the alignment report is
+  align.registration_report's with the tone map."""
   camera, info = key_lib.load_key(r.key, r.key_number)
   if info.get("uses_decoder", True) and not r.decoder:
     raise ValueError("reveal.decoder is required: this key was made with a decoder")
   decoder = load_decoder(r.decoder) if info.get("uses_decoder", True) else None
   suspect, options = ply.load_ply(r.ply), options_from_key(info)
+  reveal_fn = decoder_reveal(decoder, int(info.get("decoder_width", 0)), int(info["hidden_size"]),
+                             Reading.from_key(info))
   alignment = None
   if r.get("owner", ""):
-    camera, options, registration = aligned_key(ply.load_ply(r.owner), suspect, camera, options)
-    alignment = dict(owner=r.owner, **registration_report(registration))
+    owner = ply.load_ply(r.owner)
+    moved, moved_options, registration = align.aligned_key(owner, suspect, camera, options)
+    tone = align.tone_at_key(owner, suspect, camera, options, moved, moved_options)
+    camera, options, reveal_fn = moved, moved_options, toned(reveal_fn, tone)
+    alignment = dict(owner=r.owner, **align.registration_report(registration), tone=tone.report())
     if registration.matched_fraction < MIN_MATCHED_FRACTION:
       logging.warning("re-alignment of %s onto %s matched only %.0f%% of its Gaussians (residual %.2g radii): the "
                       "transform found is doubtful", r.ply, r.owner, 100 * registration.matched_fraction,
                       registration.residual)
-  reveal_fn = decoder_reveal(decoder, int(info.get("decoder_width", 0)), int(info["hidden_size"]),
-                             Reading.from_key(info))
   return KeyedScene(jax.tree.map(jnp.asarray, suspect), camera, options, reveal_fn, alignment)
 
 

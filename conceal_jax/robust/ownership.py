@@ -9,8 +9,9 @@ is owned when that p-value is at most verify.alpha. verify.json reports the stat
 decision, what the null rests on, and the SSIM; a calibration file of measured SSIM scores (verify.calibration,
 `make bench-robust`) adds its threshold's decision as further evidence. revealed.png, hidden.png and
 null_revealed.npz are kept.
-With reveal.owner set (the owner's copy of the marked scene), the key is first moved into the suspect's
-frame (conceal.reveal.aligned_key) and verify.json reports the transform found.
+With reveal.owner set (the owner's copy of the marked scene), the suspect is first re-aligned onto it (conceal.align:
+the key moved into its frame, its renders, the key's and the null views', mapped onto the owner's tone) and
+verify.json reports the transform and the tone map found.
 """
 from __future__ import annotations
 
@@ -102,16 +103,23 @@ def unrelated_images(hidden: np.ndarray) -> np.ndarray:
                    for turns in range(4)])
 
 
+def null_renders(gaussians, camera: Camera, options: RenderOptions, views: int,
+                 hidden: np.ndarray) -> dict[str, np.ndarray]:
+  """The inputs a decoder reads for its null behaviour, none of which carries the hidden image [S, S, 3]:
+  "unrelated_images" [K, S, S, 3] (unrelated_images, read as renders) and "turned_views" [views, H, W, 3], the
+  scene `gaussians` rendered with `options` at null_cameras of the key `camera`."""
+  out = dict(unrelated_images=unrelated_images(hidden))
+  if views:
+    out["turned_views"] = np.asarray(evaluate.render_images(gaussians, null_cameras(camera, views), options))
+  return out
+
+
 def null_reveals(gaussians, camera: Camera, options: RenderOptions, reveal_fn, views: int,
                  hidden: np.ndarray) -> dict[str, np.ndarray]:
-  """What a decoder (reveal_fn: renders [V, H, W, 3] -> [V, S, S, 3]) reveals from inputs that do not carry the
-  hidden image [S, S, 3]: "unrelated_images" [K, S, S, 3], unrelated_images read as renders, and "turned_views"
-  [views, S, S, 3], the scene `gaussians` rendered with `options` at null_cameras of the key `camera`."""
-  out = dict(unrelated_images=np.asarray(reveal_fn(jnp.asarray(unrelated_images(hidden)))))
-  if views:
-    renders = evaluate.render_images(gaussians, null_cameras(camera, views), options)
-    out["turned_views"] = np.asarray(reveal_fn(renders))
-  return out
+  """What a decoder (reveal_fn: renders [V, H, W, 3] -> [V, S, S, 3]) reveals from null_renders' inputs
+  [K + views, S, S, 3], by name."""
+  renders = null_renders(gaussians, camera, options, views, hidden)
+  return {name: np.asarray(reveal_fn(jnp.asarray(images))) for name, images in renders.items()}
 
 
 def turned_views_needed(alpha: float, size: int, unrelated: int, null_views: int) -> int:

@@ -13,7 +13,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from conceal_jax.conceal import reveal, scoring
+from conceal_jax.conceal import align, reveal, scoring
 from conceal_jax.gs import evaluate, train
 from conceal_jax.robust import image_attacks, model_attacks, phase_statistic
 from conceal_jax.splat import gaussians as gaussians_lib
@@ -47,15 +47,16 @@ class Owner:
     """PSNR and SSIM [V] of revealed images [V, S, S, 3] to I."""
     return scoring.scores_to_hidden(revealed, self.hidden)
 
-  def check_scores(self, gaussians: Gaussians, camera: Camera | None = None,
-                   options: RenderOptions | None = None) -> dict[str, float]:
+  def check_scores(self, gaussians: Gaussians, camera: Camera | None = None, options: RenderOptions | None = None,
+                   tone: align.Tone | None = None) -> dict[str, float]:
     """hidden_psnr, hidden_ssim and hidden_z (phase_statistic.z_scores of the revealed image itself, not less the
     decoder's mean output as the ownership test takes it: no null outputs are rendered here) of what `gaussians`
-    reveal at the key (or at `camera` with `options`: the
-    key moved into a transformed scene's frame, reveal.moved_key)."""
+    reveal at the key (or at `camera` with `options`: the key moved into a transformed scene's frame,
+    align.moved_key), the render mapped by `tone` first when given (align.Tone)."""
     camera = self.check_camera if camera is None else camera
     options = self.options if options is None else options
-    revealed = np.asarray(self.reveal_renders(render(gaussians, camera, options).rgb[None]))
+    check = render(gaussians, camera, options).rgb[None]
+    revealed = np.asarray(self.reveal_renders(check if tone is None else tone.apply(check)))
     scores = self.scores(revealed)
     z = phase_statistic.z_scores(phase_statistic.whitened_spectra(revealed),
                                  phase_statistic.whitened_spectra(np.asarray(self.hidden)[None]))
@@ -63,11 +64,13 @@ class Owner:
 
   def aligned_scores(self, marked: Gaussians, suspect: Gaussians) -> dict:
     """What `suspect` reveals at the key after re-alignment against the owner's copy `marked` (the scene the
-    key was made for; reveal.aligned_key): hidden_psnr, hidden_ssim and `registration`, the transform found
-    and its fit (reveal.registration_report)."""
-    camera, options, registration = reveal.aligned_key(marked, suspect, self.check_camera, self.options)
-    return dict(self.check_scores(jax.tree.map(jnp.asarray, suspect), camera, options),
-                registration=reveal.registration_report(registration))
+    key was made for; align.aligned_key, then align.tone_at_key): hidden_psnr, hidden_ssim, `registration`, the
+    transform found and its fit (align.registration_report), and `tone`, the colour map found."""
+    camera, options, registration = align.aligned_key(marked, suspect, self.check_camera, self.options)
+    suspect = jax.tree.map(jnp.asarray, suspect)
+    tone = align.tone_at_key(marked, suspect, self.check_camera, self.options, camera, options)
+    return dict(self.check_scores(suspect, camera, options, tone),
+                registration=align.registration_report(registration), tone=tone.report())
 
 
 def scene_scores(gaussians: Gaussians, owner: Owner, test_cameras: Sequence[Camera], test_images) -> dict:

@@ -1,0 +1,113 @@
+"""Re-alignment of a suspect scene onto the owner's copy of the marked scene (reveal.owner), before the key reads it.
+
+A shared scene may have been turned, moved, resized or reordered on import, and its colours graded (brighter,
+darker, more or less contrast), by an editor or a converter. Its frame: the suspect is registered onto the owner's
+copy (gs.register: the similarity owner -> suspect from the Gaussians alone) and the key camera is moved with that
+similarity (aligned_key), so that it sees the suspect as the key saw the marked scene. Its tone: the suspect's
+render at the moved key is mapped channel by channel onto the owner's render at the key by the gain and offset that
+fit them best (fit_tone), within what a colour grade does (MAX_TONE_GAIN, MAX_TONE_OFFSET); every render the
+decoder then reads of that suspect, the key's and the null views', passes through the same map (Tone.apply).
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax.numpy as jnp
+import numpy as np
+
+from conceal_jax.gs import register as register_lib, similarity as similarity_lib
+from conceal_jax.splat.camera import Camera
+from conceal_jax.splat.gaussians import Gaussians
+from conceal_jax.splat.render import RenderOptions, render
+
+# The tone map's bounds: a gain in [1 / MAX_TONE_GAIN, MAX_TONE_GAIN] and an offset within +-MAX_TONE_OFFSET per
+# channel, beyond any brightness or contrast change that leaves a scene worth sharing.
+MAX_TONE_GAIN, MAX_TONE_OFFSET = 2.0, 0.5
+# Pixels within this of 0 or 1 in either render are left out of the fit (a clipped value says nothing of the map),
+# and a channel with fewer than MIN_TONE_PIXELS others, or of no spread, keeps gain 1 and offset 0.
+TONE_CLIP_MARGIN, MIN_TONE_PIXELS = 1e-3, 16
+
+
+@dataclasses.dataclass(frozen=True)
+class Tone:
+  """A per-channel colour map x -> gain * x + offset (gain, offset [3]) of renders [..., 3]."""
+  gain: np.ndarray
+  offset: np.ndarray
+
+  @classmethod
+  def identity(cls) -> "Tone":
+    return cls(np.ones(3), np.zeros(3))
+
+  def apply(self, renders):
+    """[..., 3] renders mapped channel by channel (not clipped: the decoder's reading clips where it reads so)."""
+    return renders * jnp.asarray(self.gain, jnp.float32) + jnp.asarray(self.offset, jnp.float32)
+
+  def report(self) -> dict:
+    return dict(gain=[float(g) for g in self.gain], offset=[float(o) for o in self.offset])
+
+
+def fit_tone(image: np.ndarray, reference: np.ndarray) -> Tone:
+  """The Tone taking `image` [H, W, 3] closest to `reference` [H, W, 3] in least squares, channel by channel,
+  over the pixels clipped in neither (TONE_CLIP_MARGIN); the gain bounded by MAX_TONE_GAIN, the offset then the
+  best for it, bounded by MAX_TONE_OFFSET. A channel with too few such pixels or no spread keeps the identity."""
+  image, reference = np.asarray(image, np.float64), np.asarray(reference, np.float64)
+  if image.shape != reference.shape or image.shape[-1] != 3:
+    raise ValueError(f"a tone is fitted between two renders of one shape [H, W, 3], got {image.shape} and "
+                     f"{reference.shape}")
+  gain, offset = np.ones(3), np.zeros(3)
+  inside = lambda v: (v > TONE_CLIP_MARGIN) & (v < 1.0 - TONE_CLIP_MARGIN)
+  for c in range(3):
+    x, y = image[..., c].ravel(), reference[..., c].ravel()
+    used = inside(x) & inside(y)
+    x, y = x[used], y[used]
+    if x.size < MIN_TONE_PIXELS or x.var() <= 1e-12:
+      continue
+    gain[c] = np.clip(np.mean((x - x.mean()) * (y - y.mean())) / x.var(), 1.0 / MAX_TONE_GAIN, MAX_TONE_GAIN)
+    offset[c] = np.clip(y.mean() - gain[c] * x.mean(), -MAX_TONE_OFFSET, MAX_TONE_OFFSET)
+  return Tone(gain, offset)
+
+
+def tone_at_key(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
+                suspect_camera: Camera, suspect_options: RenderOptions) -> Tone:
+  """fit_tone of the suspect's render at its (moved) key onto the owner's copy's render at the key."""
+  return fit_tone(np.asarray(render(suspect, suspect_camera, suspect_options).rgb),
+                  np.asarray(render(owner, camera, options).rgb))
+
+
+def moved_key(camera: Camera, options: RenderOptions,
+              similarity: similarity_lib.Similarity) -> tuple[Camera, RenderOptions]:
+  """The key camera and render options that see the scene moved by `similarity` as `camera` saw the
+  original: the camera transformed with it, and the near plane (an absolute camera-space depth, which the
+  scale multiplies) scaled by its scale, so that the same splats are culled and the render is the same (the near
+  plane is a static render option: each value compiles the render anew)."""
+  # rounded to 6 significant digits: a scale of 1 found to float precision keeps the compiled render
+  return (similarity_lib.transform_camera(camera, similarity),
+          dataclasses.replace(options, near=float(f"{float(options.near) * similarity.scale:.6g}")))
+
+
+def aligned_key(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
+                seed: int = 0) -> tuple[Camera, RenderOptions, register_lib.Registration]:
+  """The key moved into the suspect scene's frame: registers `suspect` onto the owner's copy `owner` (the
+  scene the key was made for; any order, size or count of Gaussians in either) and moves `camera` and
+  `options` with the similarity found (moved_key). Returns them and the registration (similarity owner ->
+  suspect, residual, matched fraction). ValueError from register for scenes too small or not finite."""
+  registration = register_lib.register(owner, suspect, seed=seed)
+  return (*moved_key(camera, options, registration.similarity), registration)
+
+
+def similarity_report(similarity: similarity_lib.Similarity) -> dict:
+  """A similarity as reveal.json reports it: rotation [3, 3] and as an axis (unit [3]) and angle in degrees
+  (axis +z for no turn), translation [3], scale."""
+  quat = similarity_lib.matrix_to_quaternion(similarity.rotation)  # w >= 0: angle in [0, 180]
+  sin_half = float(np.linalg.norm(quat[1:]))
+  axis = quat[1:] / sin_half if sin_half > 1e-12 else np.array([0.0, 0.0, 1.0])
+  return dict(rotation=similarity.rotation.tolist(), axis=axis.tolist(),
+              angle_deg=float(np.degrees(2.0 * np.arctan2(sin_half, quat[0]))),
+              translation=similarity.translation.tolist(), scale=similarity.scale)
+
+
+def registration_report(registration: register_lib.Registration) -> dict:
+  """The transform found (similarity_report) with its fit: residual (trimmed RMS nearest-neighbour distance
+  / owner radius), matched_fraction and owner_radius (gs.register.Registration)."""
+  return dict(similarity_report(registration.similarity), residual=float(registration.residual),
+              matched_fraction=float(registration.matched_fraction), owner_radius=float(registration.owner_radius))
