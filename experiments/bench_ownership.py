@@ -30,7 +30,8 @@ verify on the student and on a clean scene (its own teacher) read with the same 
 Writes ownership_bench.json (clean_trials, false_positives, alpha, tpr_at_alpha per marked run, message rows per
 scene and length, the rows behind them), ownership_bench.png (the clean trials' p-values against the uniform, log
 scale; their z against N(0, 1)) and ownership_tpr.png (the marked trials' z against the threshold) to --out.
---messages-only and --marked-only refresh those rows alone, keeping the rest of the JSON.
+--messages-only and --marked-only refresh those rows alone, keeping the rest of the JSON; a full run replaces the
+clean trials and keeps the stored marked and message rows of runs it does not find.
 """
 from __future__ import annotations
 
@@ -295,6 +296,11 @@ def message_row(run: pathlib.Path, clean_ply: str | None, alpha: float, scratch:
   return row
 
 
+def merged_messages(stored: dict, found: dict) -> dict:
+  """Message rows by scene and length: the runs found replace their (scene, length) rows; the others' rows stay."""
+  return {scene: dict(stored.get(scene, {}), **found.get(scene, {})) for scene in sorted(set(stored) | set(found))}
+
+
 def tail_counts(log10_p: np.ndarray) -> list[dict]:
   """Clean trials with a p-value at most 10^-k against the count the null predicts, k = 1 .. 6."""
   return [dict(p_at_most=10.0 ** -k, observed=int(np.sum(log10_p <= -k)), predicted=float(log10_p.size * 10.0 ** -k))
@@ -405,10 +411,8 @@ def main():
   run_files = ("student.ply", "decoder.msgpack", "key.json", "config.json")
   if args.messages_only or args.marked_only:
     result = json.loads((out / "ownership_bench.json").read_text())
-    if args.messages_only:  # the runs found replace their (scene, length) rows; the others' rows stay
-      found, stored = message_rows(), result.get("message", {})
-      result["message"] = {scene: dict(stored.get(scene, {}), **found.get(scene, {}))
-                           for scene in sorted(set(stored) | set(found))}
+    if args.messages_only:
+      result["message"] = merged_messages(result.get("message", {}), message_rows())
     if args.marked_only:
       found = {str(run): marked_trials(run, args.alpha, args.null_views) for run in present(args.marked, run_files)}
       result["marked"] = dict(result["marked"], **found)
@@ -418,6 +422,8 @@ def main():
     fileio.write_json(out / "ownership_bench.json", result)
     return
   runs, marked = present(args.runs, run_files), present(args.marked, run_files)
+  stored = out / "ownership_bench.json"  # the marked and message rows of runs not found here stay
+  stored_result = json.loads(stored.read_text()) if stored.is_file() else {}
   teachers = present(args.clean, ("point_cloud.ply", "config.json"))
   scenes = [clean_scene(path, args.poses, args.test_views) for path in teachers]
   if not runs or not scenes:
@@ -433,7 +439,8 @@ def main():
   own_z = np.array([o["z"] for t in per_run.values() for o in t["own"]])
   pairs = [pair for t in per_run.values() for pair in t["pairs"]]
   top = sorted((row for t in per_run.values() for row in t["top"]), key=lambda row: -row["z"])[:TOP]
-  marked_rows = {str(run): marked_trials(run, args.alpha, args.null_views) for run in marked}
+  marked_rows = dict(stored_result.get("marked", {}),
+                     **{str(run): marked_trials(run, args.alpha, args.null_views) for run in marked})
   tpr = true_positive_rates(marked_rows)
   result = dict(
       device=str(jax.devices()[0]), alpha=args.alpha, clean_trials=int(z.size), false_positives=int(owned.sum()),
@@ -454,7 +461,7 @@ def main():
                       max_z=float(own_z.max()), decided_owned=int(sum(o["owned"] for t in per_run.values()
                                                                        for o in t["own"])),
                       rows={run: t["own"] for run, t in per_run.items()}),
-      marked=marked_rows, message=message_rows())
+      marked=marked_rows, message=merged_messages(stored_result.get("message", {}), message_rows()))
   fileio.write_json(out / "ownership_bench.json", result)
   plot(log_model, log_p, z, own_z, args.alpha, out / "ownership_bench.png")
   plot_marked(marked_rows, args.alpha, out / "ownership_tpr.png")

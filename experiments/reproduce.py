@@ -298,11 +298,12 @@ def message_rows(ownership_bench: dict) -> list[tuple[str, int, dict]]:
 def ownership_test_table(ownership_bench: dict) -> list[str]:
   """verify's decision as a statistical test (bench-ownership's ownership_bench.json): false positives measured over
   the clean trials at alpha beside the rate the null predicts (and with the random-phase model's p-value alone),
-  the (decoder, scene) pairs they come from, the true-positive rate per marked run, and message mode per length."""
+  the (decoder, scene) pairs they come from, the true-positive rate per marked run (given the owner's copy, and
+  without it where measured), and message mode per length."""
   lines = ["### Ownership as a statistical test: false positives at alpha and true positives under the mild and "
            "medium attacks (the paper and the 3D-GS watermarking papers report no false-positive rate)", "",
            "| alpha | clean trials ((decoder, scene) pairs) | false positives (predicted; model p alone) | marked run "
-           "| true positives |",
+           "| true positives (verify given the owner's copy; without it) |",
            "|---|---|---|---|---|"]
   if not ownership_bench:
     return lines + [f"| {NOT_RUN} | | | | |", ""]
@@ -311,9 +312,11 @@ def ownership_test_table(ownership_bench: dict) -> list[str]:
   fp = (f"{ownership_bench['false_positives']} ({alpha * trials:.2g}; "
         f"{ownership_bench.get('false_positives_model', '-')})")
   tpr = ownership_bench["tpr_at_alpha"] or {NOT_RUN: None}
+  unaligned = ownership_bench.get("tpr_at_alpha_unaligned", {})
+  percent = lambda rate: "-" if rate is None else f"{100 * rate:.1f}%"
   for k, (run, rate) in enumerate(tpr.items()):
     head = f"| {alpha:g} | {trials} ({pairs}) | {fp} " if k == 0 else "| | | "
-    lines.append(head + f"| {run} | {'-' if rate is None else f'{100 * rate:.1f}%'} |")
+    lines.append(head + f"| {run} | {percent(rate)}; {percent(unaligned.get(run))} |")
   tail = ", ".join(f"<= {row['p_at_most']:g}: {row['observed']} ({row['predicted']:.3g})"
                    for row in ownership_bench.get("tail_counts", [])[2:])
   top = (ownership_bench.get("top_clean_trials") or [None])[0]

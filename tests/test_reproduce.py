@@ -249,9 +249,10 @@ def test_the_ownership_test_table_counts_pairs_and_shows_message_mode():
                                    verify_clean=dict(bit_accuracy=0.48, owned=False))
   bench = dict(alpha=1e-6, clean_trials=190620, false_positives=1, false_positives_model=12,
                independent_pairs=dict(decoder_scene_pairs=15), tpr_at_alpha={"workdirs/demo/conceal": 1.0},
+               tpr_at_alpha_unaligned={"workdirs/demo/conceal": 0.96875},
                message={"lego": {"48": row("w/lego_48", 1.0)}, "demo": {"48": row("w/demo_48", 0.992)}})
   text = "\n".join(reproduce.ownership_test_table(bench))
-  assert "| 1e-06 | 190620 (15) | 1 (0.19; 12) | workdirs/demo/conceal | 100.0% |" in text
+  assert "| 1e-06 | 190620 (15) | 1 (0.19; 12) | workdirs/demo/conceal | 100.0%; 96.9% |" in text
   assert ("| demo | 48 | BCH(125, 48), shortened from BCH(127, 50) | 99.20% | exact (1 corrected) | 30 of 32 (52.0%) | "
           "30.10 (30.50) | 48.0%, not owned | MarkSplatter 94.41% |") in text
   assert text.index("| demo | 48 |") < text.index("| lego | 48 | BCH(125, 48), shortened from BCH(127, 50) | 100.00%")
