@@ -22,13 +22,14 @@ recipes.DEEP_MERGE_DEPTH), `film_stack` (film_long's splats in colour-tied stack
 `film_faint` (its colours at the gentle student's rate), `film_reset` (one layer at opacity 0.5, trained through
 opacity resets), `film_far` (film_reset with the key half a camera distance from the orbit target and the film as
 far again); `demo.py:drift` trains through parameter drift (recipes.through_drift); `demo.py:pruned` through size
-pruning with the key watched closely, twice as long (recipes.through_pruning, watched_key); `demo.py:orbit` keys a
-secret pose on the orbit instead of a training camera."""
+pruning with the key watched closely, twice as long (recipes.through_pruning, watched_key); `demo.py:owned`, the
+ownership test's demo recipe (issue 40), is `pruned` trained through blur and noise too, its decoder reading clipped
+renders (recipes.through_attacks); `demo.py:orbit` keys a secret pose on the orbit instead of a training camera."""
 from conceal_jax.configs import default, recipes
 
 
 VARIANTS = ("film", "film_pub", "film_web", "film_watch", "film_long", "film_deep", "film_stack", "film_faint",
-            "film_reset", "film_far", "drift", "pruned", "orbit")
+            "film_reset", "film_far", "drift", "pruned", "owned", "orbit")
 # The faint films whose colours train at the vivid rate, each building on the one before from film_pub on.
 VIVID_FILMS = ("film", "film_pub", "film_web", "film_watch", "film_long", "film_deep", "film_stack")
 # A closely watched key needs twice the demo's concealment to read its film (or a pruned student).
@@ -59,9 +60,11 @@ def get_config(variant: str = ""):
     raise ValueError(f"unknown demo variant {variant!r}; choose one of {VARIANTS} or none")
   if variant == "drift":
     config = recipes.through_drift(config)
-  if variant == "pruned":  # a decoder taught to read pruned students reads near the key too: watch it closely
+  if variant in ("pruned", "owned"):  # a decoder taught to read pruned students reads near the key too: watch it
     config = recipes.watched_key(recipes.through_pruning(config))
     config.conceal.iterations = FILM_ITERATIONS
+  if variant == "owned":
+    config = recipes.through_attacks(config)
   if variant == "orbit":
     config.mark.key_kind = "orbit"
   if variant.startswith("film"):  # every pose near the key sees the film: 64 decoys, drawn more often

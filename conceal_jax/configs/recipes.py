@@ -7,7 +7,7 @@ recommended recipe, built from the named parts below. configs/conceal.py applies
 The figures behind each choice: experiments/results/REPRODUCTION.md (a row per recipe) and conceal_options.md.
 """
 
-RECIPES = ("paper", "released", "recommended", "film")
+RECIPES = ("paper", "released", "recommended", "standardized", "film")
 
 # The decoder a CPU trains: width 16 from scratch (the paper's width 64 costs ~10x more per step), at a rate
 # a from-scratch decoder learns at (1e-3 stalled the demo's first steps).
@@ -72,6 +72,15 @@ def recommended(config):
   config = narrow_decoder(config)
   d = config.conceal.decoder_opt
   d.lr_final_ratio, d.update_clip = 0.3, 1.0
+  return config
+
+
+def standardized(config):
+  """The recommended recipe with the decoder reading each render less its mean over its standard deviation
+  (conceal.decoder.input_norm): a decoder that no global change of brightness or contrast can move, and that
+  reads through size pruning, at some cost to the render (experiments/results/ownership_notes.md)."""
+  config = recommended(config)
+  config.conceal.decoder.input_norm = "standardize"
   return config
 
 

@@ -1,0 +1,39 @@
+"""Every concealment recipe and demo variant builds a config the concealment accepts, and the ownership test's
+recipes are what their docs say: the recommended recipe plus one reading or training change each."""
+import pytest
+
+from conceal_jax.conceal import settings
+from conceal_jax.configs import demo, lego_conceal, recipes
+
+
+@pytest.fixture
+def teacher(tmp_path):
+  """A file where the teacher is named (validate checks that it exists; nothing reads it)."""
+  path = tmp_path / "teacher.ply"
+  path.write_text("")
+  return str(path)
+
+
+@pytest.mark.parametrize("recipe", recipes.RECIPES)
+def test_each_lego_recipe_is_a_valid_concealment(recipe, teacher):
+  config = lego_conceal.get_config(recipe)
+  config.mark.teacher = teacher
+  settings.validate(config)
+
+
+@pytest.mark.parametrize("variant", ("",) + demo.VARIANTS)
+def test_each_demo_variant_is_a_valid_concealment(variant, teacher):
+  config = demo.get_config(variant)
+  config.mode, config.mark.teacher = "conceal", teacher
+  settings.validate(config)
+
+
+def test_the_ownership_recipes_change_only_what_they_name():
+  standardized, recommended = lego_conceal.get_config("standardized"), lego_conceal.get_config("recommended")
+  assert standardized.conceal.decoder.input_norm == "standardize"
+  standardized.conceal.decoder.input_norm = recommended.conceal.decoder.input_norm
+  assert standardized.to_dict() == recommended.to_dict()
+  owned, pruned = demo.get_config("owned"), demo.get_config("pruned")
+  assert owned.conceal.attacks.prune_small_max == recipes.PRUNE_SHARE
+  assert owned.conceal.attacks.blur_max == recipes.ATTACK_BLUR and owned.conceal.decoder.clip_input
+  assert recipes.through_attacks(pruned).to_dict() == owned.to_dict()
