@@ -122,16 +122,24 @@ def read_and_decide(reveal_fn, renders: np.ndarray, hidden: np.ndarray, nulls: d
   """Revealed images [V, S, S, 3] of renders [V, H, W, 3] through reveal_fn, and their decisions against hidden
   images [J, S, S, 3] (ownership.decisions), with the null outputs reveal_fn gives of nulls (ownership.null_renders)."""
   revealed = np.asarray(reveal_fn(jnp.asarray(renders)))
-  null = np.concatenate([np.asarray(reveal_fn(jnp.asarray(images))) for images in nulls.values()])
+  null = np.concatenate(list(ownership.read_nulls(reveal_fn, nulls).values()))
   return revealed, ownership.decisions(revealed, hidden, null, alpha, resolve=resolve)
+
+
+def combined(results: list[dict], alpha: float) -> dict:
+  """One decision over several readings' ownership.decisions results: the largest z, and the p-values (the
+  model's and the decision's) of ownership.combined_log10_p."""
+  log_p = ownership.combined_log10_p([r["log10_p"] for r in results])
+  return dict(z=np.max([r["z"] for r in results], axis=0), log10_p=log_p, owned=log_p <= np.log10(alpha),
+              log10_p_model=ownership.combined_log10_p([r["log10_p_model"] for r in results]))
 
 
 def pair_trials(owner, hidden: np.ndarray, scene: dict, alpha: float, null_views: int, marked=None) -> dict:
   """The clean trials of one decoder (owner) on one clean scene: revealed at the decoder's key and at the scene's
   cameras [V], against the hidden images [J] (ownership.decisions, resolved at RESOLVE): z, log10_p_model,
   log10_p (the decision's), owned, each [V, J]. With `marked` (the owner's copy of the marked scene), each view is
-  first mapped onto the tone of the marked scene's render at its camera (align.fit_tone), and its null outputs
-  through the same map, as verify with reveal.owner reads a suspect at its key."""
+  read as verify with reveal.owner reads a suspect at its key: mapped onto the tone of the marked scene's render at
+  its camera (align.fit_tone, its null outputs through the same map) and as rendered, decided on both (combined)."""
   fields = ("z", "log10_p_model", "log10_p", "owned")
   # the key may be another scene's (another image size): rendered apart from the scene's own cameras
   groups = ([owner.check_camera], scene["cameras"])
@@ -142,8 +150,10 @@ def pair_trials(owner, hidden: np.ndarray, scene: dict, alpha: float, null_views
   else:
     references = [np.asarray(evaluate.render_images(marked, cameras, owner.options)) for cameras in groups]
     pairs = [(image, reference) for group, refs in zip(renders, references) for image, reference in zip(group, refs)]
-    results = [read_and_decide(reveal.toned(owner.reveal_renders, align.fit_tone(image, reference)), image[None],
-                               hidden, nulls, alpha, RESOLVE)[1] for image, reference in pairs]
+    results = [combined([read_and_decide(reveal_fn, image[None], hidden, nulls, alpha, RESOLVE)[1]
+                         for reveal_fn in (reveal.toned(owner.reveal_renders, align.fit_tone(image, reference)),
+                                           owner.reveal_renders)], alpha)
+               for image, reference in pairs]
   return {name: np.concatenate([result[name] for result in results]) for name in fields}
 
 
@@ -221,9 +231,10 @@ def decision_row(revealed: np.ndarray, result: dict, hidden: np.ndarray) -> dict
 
 def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict]:
   """The student of `run` under each mild and medium attack (attacked_checks), decided as verify decides given the
-  owner's copy (the untouched student: each check render mapped onto its tone first, align.fit_tone, and the null
-  outputs through the same map), with the null verify would draw from the (attacked) scene; `unaligned`: decided
-  as verify decides without it. One row per attack level."""
+  owner's copy (the untouched student): read toned (each check render mapped onto its tone, align.fit_tone, the
+  null outputs through the same map) and as rendered, on the combined p-value, with the figures of the reading of
+  smaller p; with the null verify would draw from the (attacked) scene. `toned` and `unaligned` (as rendered: what
+  verify decides without the owner's copy) are each reading alone. One row per attack level."""
   _, student, owner = bench_robust.load_run(run)
   student = jax.tree.map(jnp.asarray, student)
   hidden = owner.hidden
@@ -233,10 +244,13 @@ def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict
     if kind != "image" or nulls is None:  # image attacks leave the scene, and so its null, as it is
       nulls = ownership.null_renders(scene, owner.check_camera, owner.options, null_views, hidden)
     tone = align.fit_tone(check, reference)
-    aligned = read_and_decide(reveal.toned(owner.reveal_renders, tone), check[None], hidden[None], nulls, alpha)
-    unaligned = read_and_decide(owner.reveal_renders, check[None], hidden[None], nulls, alpha)
-    rows.append(dict(kind=kind, attack=name, level=level, severity=severity, **decision_row(*aligned, hidden),
-                     tone=tone.report(), unaligned=decision_row(*unaligned, hidden)))
+    toned = read_and_decide(reveal.toned(owner.reveal_renders, tone), check[None], hidden[None], nulls, alpha)
+    plain = read_and_decide(owner.reveal_renders, check[None], hidden[None], nulls, alpha)
+    log_p = float(ownership.combined_log10_p([toned[1]["log10_p"], plain[1]["log10_p"]])[0, 0])
+    best = min(toned, plain, key=lambda reading: reading[1]["log10_p"][0, 0])
+    rows.append(dict(kind=kind, attack=name, level=level, severity=severity,
+                     **dict(decision_row(*best, hidden), log10_p=log_p, owned=bool(log_p <= np.log10(alpha))),
+                     tone=tone.report(), toned=decision_row(*toned, hidden), unaligned=decision_row(*plain, hidden)))
   print(f"{run}: {sum(r['owned'] for r in rows[1:])} of {len(rows) - 1} attacked trials decided owned, lowest z "
         f"{min(r['z'] for r in rows[1:]):.2f} (without the owner's copy: "
         f"{sum(r['unaligned']['owned'] for r in rows[1:])})", flush=True)
@@ -429,7 +443,7 @@ def main():
   if not runs or not scenes:
     raise SystemExit("bench-ownership needs at least one conceal run and one clean teacher")
   settings = (f"poses={args.poses} test_views={args.test_views} alpha={args.alpha} null_views={args.null_views} "
-              f"resolve={RESOLVE} shifts={SHIFTS} crops={CROPS} owner_copy=tone")
+              f"resolve={RESOLVE} shifts={SHIFTS} crops={CROPS} owner_copy=toned+as_rendered")
   per_run = {str(run): clean_trials(run, scenes, args.alpha, args.null_views, pathlib.Path(args.cache), settings)
              for run in runs}
   z = np.concatenate([t["z"] for t in per_run.values()])

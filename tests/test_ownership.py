@@ -217,3 +217,9 @@ def test_verify_renders_enough_turned_views_for_alpha():
   assert ownership.turned_views_needed(1e-6, 64, 168, 32) == 32  # 200 * 8 * 64^2 draws already suffice
   views = ownership.turned_views_needed(1e-6, 16, 168, 32)
   assert 1 / (1 + 8 * (168 + views) * 16 ** 2) <= 1e-6 < 1 / (1 + 8 * (168 + views - 1) * 16 ** 2)
+
+
+def test_a_decision_on_the_best_of_two_readings_pays_a_factor_of_two():
+  log10_ps = np.array([[-7.0, -2.0, -0.1], [-3.0, -5.0, -0.1]])
+  np.testing.assert_allclose(ownership.combined_log10_p(log10_ps), [-7.0 + np.log10(2), -5.0 + np.log10(2), 0.0])
+  np.testing.assert_allclose(ownership.combined_log10_p(log10_ps[:1]), log10_ps[0])

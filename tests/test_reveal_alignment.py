@@ -117,6 +117,8 @@ def test_verify_decides_after_re_alignment(marked, tmp_path):
     config.mode, config.verify.calibration, config.verify.null_views = "verify", str(tmp_path / "cal.json"), 4
     result = main_lib.run(config, str(tmp_path / f"verify_{owned}"))
     assert result["calibration"]["owned"] is owned and ("alignment" in result) is owned
+    assert set(result["readings"]) == ({"toned", "as_rendered"} if owned else {"as_rendered"})
+    assert result["log10_p"] >= min(reading["log10_p"] for reading in result["readings"].values())
     saved = json.loads((tmp_path / f"verify_{owned}" / ownership.VERIFY_FILE).read_text())
     assert saved["calibration"]["owned"] is owned
     z[owned] = result["z"]

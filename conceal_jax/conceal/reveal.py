@@ -143,12 +143,22 @@ def validate(config: ml_collections.ConfigDict) -> None:
 class KeyedScene:
   """A suspect scene with what reveals it (load_keyed_scene): the Gaussians, the key camera and render options
   (moved into the scene's frame when re-aligned), `reveal_fn` (renders [V, H, W, 3] -> revealed [V, S, S, 3],
-  decoder_reveal's after the scene's tone map), and the alignment report or None."""
+  decoder_reveal's after the scene's tone map), the alignment report or None, and `untoned_reveal_fn`, where a tone
+  map is in use, decoder_reveal's reading of the renders as they are."""
   gaussians: Gaussians
   camera: Camera
   options: RenderOptions
   reveal_fn: Any
   alignment: dict | None
+  untoned_reveal_fn: Any = None
+
+  @property
+  def readings(self) -> dict[str, Any]:
+    """The ways to read this scene's renders, by name: "toned" (reveal_fn) and "as_rendered" where re-aligned in
+    tone, else "as_rendered" (reveal_fn) alone."""
+    if self.untoned_reveal_fn is None:
+      return dict(as_rendered=self.reveal_fn)
+    return dict(toned=self.reveal_fn, as_rendered=self.untoned_reveal_fn)
 
   def reveal_at(self, cameras: list[Camera]) -> np.ndarray:
     """[V, S, S, 3] images revealed from the scene's renders at `cameras` (same intrinsics as the key)."""
@@ -173,18 +183,18 @@ def load_keyed_scene(r: ml_collections.ConfigDict) -> KeyedScene:
   suspect, options = ply.load_ply(r.ply), options_from_key(info)
   reveal_fn = decoder_reveal(decoder, int(info.get("decoder_width", 0)), int(info["hidden_size"]),
                              Reading.from_key(info))
-  alignment = None
+  alignment = untoned = None
   if r.get("owner", ""):
     owner = ply.load_ply(r.owner)
     moved, moved_options, registration = align.aligned_key(owner, suspect, camera, options)
     tone = align.tone_at_key(owner, suspect, camera, options, moved, moved_options)
-    camera, options, reveal_fn = moved, moved_options, toned(reveal_fn, tone)
+    camera, options, reveal_fn, untoned = moved, moved_options, toned(reveal_fn, tone), reveal_fn
     alignment = dict(owner=r.owner, **align.registration_report(registration), tone=tone.report())
     if registration.matched_fraction < MIN_MATCHED_FRACTION:
       logging.warning("re-alignment of %s onto %s matched only %.0f%% of its Gaussians (residual %.2g radii): the "
                       "transform found is doubtful", r.ply, r.owner, 100 * registration.matched_fraction,
                       registration.residual)
-  return KeyedScene(jax.tree.map(jnp.asarray, suspect), camera, options, reveal_fn, alignment)
+  return KeyedScene(jax.tree.map(jnp.asarray, suspect), camera, options, reveal_fn, alignment, untoned)
 
 
 def reveal_with_alignment(r: ml_collections.ConfigDict) -> tuple[np.ndarray, dict | None]:
