@@ -246,10 +246,11 @@ def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict
     tone = align.fit_tone(check, reference)
     toned = read_and_decide(reveal.toned(owner.reveal_renders, tone), check[None], hidden[None], nulls, alpha)
     plain = read_and_decide(owner.reveal_renders, check[None], hidden[None], nulls, alpha)
-    log_p = float(ownership.combined_log10_p([toned[1]["log10_p"], plain[1]["log10_p"]])[0, 0])
+    both = combined([toned[1], plain[1]], alpha)
     best = min(toned, plain, key=lambda reading: reading[1]["log10_p"][0, 0])
     rows.append(dict(kind=kind, attack=name, level=level, severity=severity,
-                     **dict(decision_row(*best, hidden), log10_p=log_p, owned=bool(log_p <= np.log10(alpha))),
+                     **dict(decision_row(*best, hidden), log10_p=float(both["log10_p"][0, 0]),
+                            owned=bool(both["owned"][0, 0])),
                      tone=tone.report(), toned=decision_row(*toned, hidden), unaligned=decision_row(*plain, hidden)))
   print(f"{run}: {sum(r['owned'] for r in rows[1:])} of {len(rows) - 1} attacked trials decided owned, lowest z "
         f"{min(r['z'] for r in rows[1:]):.2f} (without the owner's copy: "

@@ -220,13 +220,14 @@ def verify(config: ml_collections.ConfigDict, workdir: str) -> dict:
   r = config.reveal
   scene = reveal.load_keyed_scene(r)
   check = render(scene.gaussians, scene.camera, scene.options).rgb[None]
-  size = int(scene.reveal_fn(check).shape[1])
+  revealed_by = {name: np.asarray(reveal_fn(check))[0] for name, reveal_fn in scene.readings.items()}
+  size = next(iter(revealed_by.values())).shape[0]
   hidden = hidden_lib.load_hidden_image(r.hidden, size)
   views = turned_views_needed(config.verify.alpha, size, len(unrelated_images(hidden)), config.verify.null_views)
   renders = null_renders(scene.gaussians, scene.camera, scene.options, views, hidden)
   readings = {}
   for name, reveal_fn in scene.readings.items():
-    revealed, nulls = np.asarray(reveal_fn(check))[0], read_nulls(reveal_fn, renders)
+    revealed, nulls = revealed_by[name], read_nulls(reveal_fn, renders)
     readings[name] = (revealed, nulls, ownership_test(revealed, hidden, np.concatenate(list(nulls.values())),
                                                       config.verify.alpha))
   revealed, nulls, test = min(readings.values(), key=lambda reading: reading[2]["log10_p"])
