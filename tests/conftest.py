@@ -14,6 +14,8 @@ parallel.host_devices_flag(2)
 if "--xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
   os.environ["XLA_FLAGS"] += " --xla_backend_optimization_level=0"
 
+import gc  # noqa: E402
+
 import jax  # noqa: E402
 import pytest  # noqa: E402
 
@@ -22,6 +24,16 @@ import pytest  # noqa: E402
 def x64():
   with jax.enable_x64(True):
     yield
+
+
+@pytest.fixture(autouse=True, scope="module")
+def release_compiled_programs():
+  """After each test module, JAX's in-memory caches of traced and compiled programs are dropped: a worker keeps
+  every program it ever compiled otherwise, and a full run grows each worker past 6 GB. A later module that
+  needs one of them again loads it from the persistent cache (pytest_configure)."""
+  yield
+  jax.clear_caches()
+  gc.collect()
 
 
 def pytest_configure(config):

@@ -68,6 +68,7 @@ def test_runs_of_one_mark_are_not_each_others_clean_trials(run, tmp_path):
   assert not any(t["trial"].startswith(str(twin)) for t in both["clean_trials"])
 
 
+@pytest.mark.slow  # a concealment compiled for this reading alone; the key's fields: tests/test_unet.py
 def test_owner_reads_the_decoders_input_norm_from_the_key(tiny, tmp_path):  # noqa: F811
   """A run whose decoder centres its clipped input is scored as its own job scored it (the reading comes from
   key.json; the whole bench row on such a run: the slow tests)."""

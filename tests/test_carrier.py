@@ -109,6 +109,7 @@ def test_an_unseen_film_changes_no_normal_view():
     carrier.unseen_film(teacher, cameras[0], cameras, OPTIONS, 2.0, 2.0, 0.5)
 
 
+@pytest.mark.slow  # a whole film run: the film's pieces have their fast tests above
 def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_path):
   """Concealing into the film (through 8-bit colours, opacity resets and decimation, as the film recipe does)
   trains its base colours only, within conceal.carrier.dc_bound (below the white start's 1.77, so every step

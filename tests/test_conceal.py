@@ -252,6 +252,7 @@ def test_demo_robust_config_is_the_demo_trained_through_attacks():
   assert robust.decoder.clip_input and robust.decoder_opt.lr_final_ratio == 1.0
 
 
+@pytest.mark.slow  # a run of its own compiled for two keys
 def test_two_hidden_images_each_at_its_own_key(tiny, tmp_path):
   """Two images, two training-camera keys, one decoder: the steps alternate keys without a retrace,
   key.json lists the second key, metrics.json scores each image at its key and the cross-talk, leakage
@@ -304,7 +305,7 @@ def test_two_hidden_images_each_at_its_own_key(tiny, tmp_path):
 
 @pytest.mark.parametrize("overrides", [
     dict(use_decoder=False), pytest.param(dict(consistency=False, guidance=False), marks=pytest.mark.slow),
-    dict(variant="released", granularity="tensor", key_kind="orbit"),
+    pytest.param(dict(variant="released", granularity="tensor", key_kind="orbit"), marks=pytest.mark.slow),
     pytest.param(dict(identity_on_student=True, identity_on_teacher_check=True, decoy_views=3, decoy_fraction=0.5),
                  marks=pytest.mark.slow),
     pytest.param(dict(decoder_input_norm="center", decoder_clip_input=True, decoder_lr_final_ratio=0.3,

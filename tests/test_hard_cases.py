@@ -318,7 +318,8 @@ def test_every_splat_in_one_tile():
   assert alpha[16:24, 24:32].max() > 0.5 and alpha[:16].max() == 0 and alpha[:, :24].max() == 0
 
 
-@pytest.mark.parametrize("size", [(1, 1), (1, 1000), (1000, 3)])
+@pytest.mark.parametrize("size", [(1, 1), pytest.param((1, 1000), marks=pytest.mark.slow),
+                                  pytest.param((1000, 3), marks=pytest.mark.slow)])
 def test_degenerate_image_sizes(size):
   width, height = size
   focal = max(width, height) / (2 * math.tan(0.35))

@@ -159,7 +159,7 @@ def golden_settings(row):
 
 
 # Rows whose code paths the others cover too: compiled only by `make test-slow`.
-SLOW_ROWS = ("paper", "distorted", "identity_distorted", "no_consistency", "photometric")
+SLOW_ROWS = ("paper", "distorted", "identity_distorted", "no_consistency", "photometric", "released", "no_decoder")
 
 
 @pytest.mark.parametrize("row", [pytest.param(r, marks=pytest.mark.slow) if r in SLOW_ROWS else r
