@@ -117,23 +117,6 @@ def clean_scene(workdir: pathlib.Path, poses: int, test_views: int) -> dict:
               cameras=cameras)
 
 
-def read_and_decide(reveal_fn, renders: np.ndarray, hidden: np.ndarray, nulls: dict, alpha: float,
-                    resolve: float = 1.0) -> tuple[np.ndarray, dict]:
-  """Revealed images [V, S, S, 3] of renders [V, H, W, 3] through reveal_fn, and their decisions against hidden
-  images [J, S, S, 3] (ownership.decisions), with the null outputs reveal_fn gives of nulls (ownership.null_renders)."""
-  revealed = np.asarray(reveal_fn(jnp.asarray(renders)))
-  null = np.concatenate(list(ownership.read_nulls(reveal_fn, nulls).values()))
-  return revealed, ownership.decisions(revealed, hidden, null, alpha, resolve=resolve)
-
-
-def combined(results: list[dict], alpha: float) -> dict:
-  """One decision over several readings' ownership.decisions results: the largest z, and the p-values (the
-  model's and the decision's) of ownership.combined_log10_p."""
-  log_p = ownership.combined_log10_p([r["log10_p"] for r in results])
-  return dict(z=np.max([r["z"] for r in results], axis=0), log10_p=log_p, owned=log_p <= np.log10(alpha),
-              log10_p_model=ownership.combined_log10_p([r["log10_p_model"] for r in results]))
-
-
 def pair_trials(owner, hidden: np.ndarray, scene: dict, alpha: float, null_views: int, marked=None) -> dict:
   """The clean trials of one decoder (owner) on one clean scene: revealed at the decoder's key and at the scene's
   cameras [V], against the hidden images [J] (ownership.decisions, resolved at RESOLVE): z, log10_p_model,
@@ -146,14 +129,13 @@ def pair_trials(owner, hidden: np.ndarray, scene: dict, alpha: float, null_views
   renders = [np.asarray(evaluate.render_images(scene["gaussians"], cameras, owner.options)) for cameras in groups]
   nulls = ownership.null_renders(scene["gaussians"], owner.check_camera, owner.options, null_views, owner.hidden)
   if marked is None:
-    results = [read_and_decide(owner.reveal_renders, group, hidden, nulls, alpha, RESOLVE)[1] for group in renders]
+    results = [ownership.read_and_decide(owner.reveal_renders, group, hidden, nulls, alpha, RESOLVE).result
+               for group in renders]
   else:
     references = [np.asarray(evaluate.render_images(marked, cameras, owner.options)) for cameras in groups]
     pairs = [(image, reference) for group, refs in zip(renders, references) for image, reference in zip(group, refs)]
-    results = [combined([read_and_decide(reveal_fn, image[None], hidden, nulls, alpha, RESOLVE)[1]
-                         for reveal_fn in (reveal.toned(owner.reveal_renders, align.fit_tone(image, reference)),
-                                           owner.reveal_renders)], alpha)
-               for image, reference in pairs]
+    results = [ownership.decide_readings(reveal.readings(owner.reveal_renders, align.fit_tone(image, reference)),
+                                         image[None], hidden, nulls, alpha, RESOLVE)[1] for image, reference in pairs]
   return {name: np.concatenate([result[name] for result in results]) for name in fields}
 
 
@@ -222,8 +204,9 @@ def attacked_checks(student, owner):
                                                                               owner.options))[0], scene
 
 
-def decision_row(revealed: np.ndarray, result: dict, hidden: np.ndarray) -> dict:
-  """z, p-values, the decision and the SSIM of one revealed image [1, S, S, 3] (ownership.decisions' result)."""
+def decision_row(reading: ownership.Reading, hidden: np.ndarray) -> dict:
+  """z, p-values, the decision and the SSIM of a reading of one revealed image (ownership.read_and_decide)."""
+  revealed, result = reading.revealed, reading.result
   return dict(z=float(result["z"][0, 0]), log10_p=float(result["log10_p"][0, 0]),
               log10_p_model=float(result["log10_p_model"][0, 0]), log10_p_null=float(result["log10_p_null"][0, 0]),
               owned=bool(result["owned"][0, 0]), ssim=float(metrics.ssim(revealed[0], hidden)))
@@ -244,14 +227,14 @@ def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict
     if kind != "image" or nulls is None:  # image attacks leave the scene, and so its null, as it is
       nulls = ownership.null_renders(scene, owner.check_camera, owner.options, null_views, hidden)
     tone = align.fit_tone(check, reference)
-    toned = read_and_decide(reveal.toned(owner.reveal_renders, tone), check[None], hidden[None], nulls, alpha)
-    plain = read_and_decide(owner.reveal_renders, check[None], hidden[None], nulls, alpha)
-    both = combined([toned[1], plain[1]], alpha)
-    best = min(toned, plain, key=lambda reading: reading[1]["log10_p"][0, 0])
+    by_name, both = ownership.decide_readings(reveal.readings(owner.reveal_renders, tone), check[None],
+                                              hidden[None], nulls, alpha)
+    best = ownership.strongest(by_name)
     rows.append(dict(kind=kind, attack=name, level=level, severity=severity,
-                     **dict(decision_row(*best, hidden), log10_p=float(both["log10_p"][0, 0]),
+                     **dict(decision_row(best, hidden), log10_p=float(both["log10_p"][0, 0]),
                             owned=bool(both["owned"][0, 0])),
-                     tone=tone.report(), toned=decision_row(*toned, hidden), unaligned=decision_row(*plain, hidden)))
+                     tone=tone.report(), toned=decision_row(by_name["toned"], hidden),
+                     unaligned=decision_row(by_name["as_rendered"], hidden)))
   print(f"{run}: {sum(r['owned'] for r in rows[1:])} of {len(rows) - 1} attacked trials decided owned, lowest z "
         f"{min(r['z'] for r in rows[1:]):.2f} (without the owner's copy: "
         f"{sum(r['unaligned']['owned'] for r in rows[1:])})", flush=True)

@@ -23,8 +23,10 @@ is skipped with a note. Attacks (`level` in brackets):
 - extraction (views; `steps` in the row), with --extraction only: renders of the student at its training
   cameras and random poses on their orbit, a fresh 3D-GS trained on them from random points.
 
-`decided` is robust.ownership's decision (hidden SSIM at or above the threshold chosen from --calibration, which
-`make bench-robust` writes). Rows are merged into <out>/survive_bench.json ({"rows": [...]}, one per scene,
+`owned` and `log10_p` are verify's decision given the owner's copy (robust.ownership: the suspect re-aligned in
+frame and tone, read toned and as rendered, at --alpha), `verify` each reading's figures; `decided` the
+calibrated threshold's (hidden SSIM at or above the threshold chosen from --calibration, which `make bench-robust`
+writes). Rows are merged into <out>/survive_bench.json ({"rows": [...]}, one per scene,
 recipe, attack, level and steps) with survive_bench.md and survive_bench.png; finished rows are kept and not
 recomputed (--redo recomputes them), and each attack's files are cached under --workdir/<scene>/.
 """
@@ -42,6 +44,7 @@ import ml_collections
 import numpy as np
 
 from conceal_jax.conceal import align, key as key_lib
+from conceal_jax.configs import default
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, similarity as sim, train
@@ -148,16 +151,22 @@ class Scene:
   targets: list
   calibration: dict
   cache: pathlib.Path
+  alpha: float
+  null_views: int
   carrier: int = 0
 
-  def row(self, attack: str, level, scores: dict, **extra) -> dict:
-    """A result row: scores holds render_psnr, hidden_psnr and hidden_ssim; decided from hidden_ssim."""
+  def row(self, attack: str, level, scores: dict, test: dict, **extra) -> dict:
+    """A result row: scores holds render_psnr, hidden_psnr and hidden_ssim; owned, log10_p and `verify` (each
+    reading's figures) from `test`, verify's decision given the owner's copy (aligned); decided from hidden_ssim
+    by the calibrated threshold."""
+    test = dict(test)
     return dict(scene=self.name, recipe=self.recipe, attack=attack, level=level, **scores,
+                owned=test.pop("owned"), log10_p=test.pop("log10_p"), verify=test,
                 decided=ownership.decide(scores["hidden_ssim"], self.calibration), **extra)
 
 
 def load_scene(name: str, run: pathlib.Path, recipe: str, test_views: int, calibration: dict,
-               cache: pathlib.Path) -> Scene:
+               cache: pathlib.Path, alpha: float, null_views: int) -> Scene:
   """The conceal run in `run` under test, its attacked scenes cached in `cache` (claimed for this run: ValueError if
   another run's attacks are there)."""
   claim_cache(cache, run)
@@ -165,7 +174,7 @@ def load_scene(name: str, run: pathlib.Path, recipe: str, test_views: int, calib
   cameras, targets, _ = evaluate.held_out_views(evaluate.load_scene_data(config), test_views)
   summary = json.loads((run / "conceal.json").read_text()) if (run / "conceal.json").is_file() else {}
   return Scene(name, recipe, run, config, jax.tree.map(np.asarray, student), owner, cameras, targets, calibration,
-               cache, int(summary.get("num_carrier", 0)))
+               cache, alpha, null_views, int(summary.get("num_carrier", 0)))
 
 
 def render_loss(run: pathlib.Path) -> float | None:
@@ -201,14 +210,15 @@ def registration_errors(found: dict, applied: sim.Similarity, radius: float) -> 
 
 
 def aligned(scene: Scene, suspect, applied: sim.Similarity | None = None) -> dict:
-  """hidden_psnr, hidden_ssim, decided and registration of `suspect` revealed after re-alignment (with its
-  errors against the applied similarity, identity if None)."""
-  scores = scene.owner.aligned_scores(scene.student, suspect)
+  """hidden_psnr, hidden_ssim, decided, registration (with its errors against the applied similarity, identity
+  if None) and `test` (verify's decision given the owner's copy) of `suspect` revealed after re-alignment."""
+  scores = scene.owner.aligned_scores(scene.student, suspect, scene.alpha, scene.null_views)
   registration = scores["registration"]
   registration.update(registration_errors(registration, applied or sim.Similarity.identity(),
                                           registration["owner_radius"]))
   return dict(hidden_psnr=scores["hidden_psnr"], hidden_ssim=scores["hidden_ssim"], hidden_z=scores["hidden_z"],
-              decided=ownership.decide(scores["hidden_ssim"], scene.calibration), registration=registration)
+              decided=ownership.decide(scores["hidden_ssim"], scene.calibration), registration=registration,
+              test=scores["test"])
 
 
 CACHE_SOURCE = "source.json"
@@ -251,9 +261,10 @@ def transform_rows(scene: Scene, todo) -> list[dict]:
     unaligned = {name: plain.pop(name) for name in ("hidden_psnr", "hidden_ssim", "hidden_z")}
     unaligned["decided"] = ownership.decide(unaligned["hidden_ssim"], scene.calibration)
     realigned = aligned(scene, moved, applied)
-    registration = realigned.pop("registration")
+    registration, test = realigned.pop("registration"), realigned.pop("test")
     realigned.pop("decided")
-    rows.append(scene.row(attack, level, dict(plain, **realigned), unaligned=unaligned, registration=registration))
+    rows.append(scene.row(attack, level, dict(plain, **realigned), test, unaligned=unaligned,
+                          registration=registration))
     print(json.dumps({k: v for k, v in rows[-1].items() if not isinstance(v, dict)}), flush=True)
   return rows
 
@@ -280,7 +291,8 @@ def converter_rows(scene: Scene, todo) -> list[dict]:
     padded = robustness.pad_like(published, max(scene.student.num, published.num), scene.student.sh_degree)
     scores = scores_of(scene, padded)
     scores["num_gaussians"] = int(published.num)
-    rows.append(scene.row(attack, level, scores, aligned=aligned(scene, published),
+    realigned = aligned(scene, published)
+    rows.append(scene.row(attack, level, scores, realigned.pop("test"), aligned=realigned,
                           moved=dict(aligned(scene, moved, applied), similarity=align.similarity_report(applied))))
     print(json.dumps({k: v for k, v in rows[-1].items() if not isinstance(v, dict)}), flush=True)
   return rows
@@ -298,13 +310,13 @@ def finetune_rows(scene: Scene, steps: list[int], densify: bool, test_views: int
     config.train.densify.until = 0  # no densification and no opacity reset
   workdir = scene.cache / f"finetune_{'densify' if densify else 'fixed'}_{max(steps)}"
   attack = "finetune_densify" if densify else "finetune"
-  return [scene.row(attack, length, scores) for length, scores in snapshot_scores(scene, config, workdir, steps,
-                                                                                  test_views)]
+  return [scene.row(attack, length, scores, test) for length, scores, test in snapshot_scores(scene, config, workdir,
+                                                                                              steps, test_views)]
 
 
 def snapshot_scores(scene: Scene, config, workdir: pathlib.Path, steps: list[int], test_views: int) -> list:
-  """(length, scores) at each of `steps` of one train run of `config` for max(steps) in `workdir` (resumable),
-  its snapshots saved at the others."""
+  """(length, scores, test: verify's decision given the owner's copy) at each of `steps` of one train run of
+  `config` for max(steps) in `workdir` (resumable), its snapshots saved at the others."""
   config.train.iterations = max(steps)
   config.train.snapshots = tuple(sorted(set(steps) - {max(steps)}))
   config.train.log_every = math.gcd(int(config.train.log_every), *steps)  # snapshots fall on logged steps
@@ -317,8 +329,10 @@ def snapshot_scores(scene: Scene, config, workdir: pathlib.Path, steps: list[int
   for length in sorted(steps):
     name = "point_cloud.ply" if length == max(steps) else train.snapshot_name(length)
     tuned = jax.tree.map(np.asarray, ply.load_ply(str(workdir / name)))
-    out.append((length, dict(scores_of(scene, tuned), changed=change_profile(scene.student, tuned, scene.carrier))))
-    print(json.dumps(dict(step=length, hidden_ssim=out[-1][1].get("hidden_ssim"))), flush=True)
+    out.append((length, dict(scores_of(scene, tuned), changed=change_profile(scene.student, tuned, scene.carrier)),
+                aligned(scene, tuned)["test"]))
+    print(json.dumps(dict(step=length, hidden_ssim=out[-1][1].get("hidden_ssim"), owned=out[-1][2]["owned"])),
+          flush=True)
   return out
 
 
@@ -380,14 +394,32 @@ def extraction_rows(scene: Scene, views: int, steps: list[int], test_views: int)
   config.data.path = str(folder / "views")
   config.data.downscale = 1
   config.init.kind = "random"
-  return [scene.row("extraction", views, scores, steps=length)
-          for length, scores in snapshot_scores(scene, config, folder / f"train_{max(steps)}", steps, test_views)]
+  return [scene.row("extraction", views, scores, test, steps=length)
+          for length, scores, test in snapshot_scores(scene, config, folder / f"train_{max(steps)}", steps, test_views)]
 
 
 def level_label(row: dict) -> str:
   level = row["level"]
   text = "" if level is None else f"{level:g}" if isinstance(level, (int, float)) else str(level)
   return text + (f" x{row['steps']}" if row.get("steps") is not None else "")
+
+
+def owned_cell(row: dict) -> str:
+  if row.get("owned") is None:
+    return ""
+  return f"{'yes' if row['owned'] else 'no'} ({row['log10_p']:.1f})"
+
+
+def true_positive_lines(rows: list[dict]) -> list[str]:
+  """Per scene and recipe, how many of its attacked rows verify decided owned (rows with the decision only)."""
+  lines = []
+  for name, recipe in dict.fromkeys((r["scene"], r["recipe"]) for r in rows):
+    tested = [r for r in rows if (r["scene"], r["recipe"]) == (name, recipe) and r["attack"] != "none"
+              and r.get("owned") is not None]
+    if tested:
+      lines.append(f"- {name} ({recipe}): owned at alpha in {sum(r['owned'] for r in tested)} of {len(tested)} "
+                   f"attacked rows")
+  return lines + [""] if lines else []
 
 
 def table(rows: list[dict]) -> str:
@@ -403,12 +435,15 @@ def table(rows: list[dict]) -> str:
            "own training recipe continued on its training views; finetune_densify densifies from that recipe's "
            "densify.start, so its shorter rows equal finetune's. z: the ownership test's statistic of the revealed "
            "image against I (robust/phase_statistic.py; N(0, 1) where the scene does not carry I, 4.75 is the "
-           "one-sided 1e-6 level; rows measured before it have none).", "", "Recipes:", "",
+           "one-sided 1e-6 level; rows measured before it have none). owned: verify's decision given the owner's "
+           "copy (robust/ownership.py: re-aligned in frame and tone, read toned and as rendered, at alpha "
+           "--alpha), with its log10 p-value; rows measured before it have none.", "", "Recipes:", "",
            *[f"- {name}: {note}" for name, note in RECIPE_NOTES.items()
              if any(r["recipe"] == name for r in rows)], "",
-           "| scene | recipe | attack | level | render PSNR | hidden PSNR | hidden SSIM | z | decided | unaligned SSIM "
-           "| aligned SSIM | moved SSIM | registration |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           *true_positive_lines(rows),
+           "| scene | recipe | attack | level | render PSNR | hidden PSNR | hidden SSIM | z | owned (log10 p) "
+           "| decided | unaligned SSIM | aligned SSIM | moved SSIM | registration |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
   cell = lambda x, digits=3: "" if x is None else f"{x:.{digits}f}"
   for r in rows:
     registration = r.get("registration") or (r.get("moved") or {}).get("registration")
@@ -416,7 +451,7 @@ def table(rows: list[dict]) -> str:
                                            f"{registration['residual']:.1e}")
     lines.append(f"| {r['scene']} | {r['recipe']} | {r['attack']} | {level_label(r)} | {r['render_psnr']:.2f} "
                  f"| {r['hidden_psnr']:.2f} | {r['hidden_ssim']:.3f} "
-                 f"| {cell(r.get('hidden_z'), 1)} | {'yes' if r['decided'] else 'no'} "
+                 f"| {cell(r.get('hidden_z'), 1)} | {owned_cell(r)} | {'yes' if r['decided'] else 'no'} "
                  f"| {cell((r.get('unaligned') or {}).get('hidden_ssim'))} "
                  f"| {cell((r.get('aligned') or {}).get('hidden_ssim'))} "
                  f"| {cell((r.get('moved') or {}).get('hidden_ssim'))} | {reg} |")
@@ -435,7 +470,8 @@ def plot(rows: list[dict], path: pathlib.Path) -> None:
   for ax, (name, recipe) in zip(axes[:, 0], scenes):
     mine = [r for r in rows if (r["scene"], r["recipe"]) == (name, recipe)]
     x = np.arange(len(mine))
-    ax.bar(x, [r["hidden_ssim"] for r in mine], color=["C0" if r["decided"] else "C3" for r in mine])
+    ax.bar(x, [r["hidden_ssim"] for r in mine],
+           color=["C0" if (r["decided"] if r.get("owned") is None else r["owned"]) else "C3" for r in mine])
     for field, marker, label in (("unaligned", "kx", "without re-alignment"),
                                  ("moved", "g^", "moved first, re-aligned")):
       points = [(i, r[field]["hidden_ssim"]) for i, r in enumerate(mine) if r.get(field)]
@@ -447,7 +483,8 @@ def plot(rows: list[dict], path: pathlib.Path) -> None:
     ax.set_xticks(x, [f"{r['attack']}\n{level_label(r)}" for r in mine], fontsize=6, rotation=90)
     ax.set_ylim(0, 1.02)
     ax.set_ylabel("hidden SSIM")
-    ax.set_title(f"{name} ({recipe}): bars decided (blue) or not (red)", fontsize=9)
+    ax.set_title(f"{name} ({recipe}): bars owned by verify (blue) or not (red); the threshold's decision where "
+                 "measured before verify's test", fontsize=9)
     ax.grid(axis="y", alpha=0.3)
     ax.legend(fontsize=7, loc="lower left")
   fileio.save_figure(fig, path)
@@ -507,6 +544,9 @@ def main(argv=None):
   parser.add_argument("--extraction-steps", default="10000", help="comma-separated training lengths")
   parser.add_argument("--test-views", type=int, default=10, help="test views of render_psnr")
   parser.add_argument("--calibration", default="experiments/results/ownership_calibration.json")
+  verify = default.get_config().verify
+  parser.add_argument("--alpha", type=float, default=verify.alpha, help="verify's decision level (owned)")
+  parser.add_argument("--null-views", type=int, default=verify.null_views, help="verify's turned views, at least")
   parser.add_argument("--redo", action="store_true", help="recompute rows already in the results")
   args = parser.parse_args(argv)
   out, workdir = pathlib.Path(args.out), pathlib.Path(args.workdir)
@@ -537,10 +577,11 @@ def main(argv=None):
       continue
     # a run given by path caches under its own folder's name: a label alone would share a named scene's cache
     cache = workdir / (f"{label}_{run.name}" if path else label)
-    scene = load_scene(name, run, recipe, args.test_views, calibration, cache)
+    scene = load_scene(name, run, recipe, args.test_views, calibration, cache, args.alpha, args.null_views)
     missing = lambda attack, level, steps=None: (name, recipe, attack, json.dumps(level), steps) not in done
     if "none" in groups and missing("none", None):
-      save([scene.row("none", None, scores_of(scene, scene.student), render_loss_db=render_loss(run))])
+      save([scene.row("none", None, scores_of(scene, scene.student), aligned(scene, scene.student)["test"],
+                      render_loss_db=render_loss(run))])
     if "transforms" in groups:
       save(transform_rows(scene, [(a, l) for a, l in TRANSFORMS if missing(a, l)]))
     conversions = [c for c in CONVERSIONS if "converter" in groups or c[0] in groups]

@@ -18,7 +18,8 @@ from conceal_jax.splat.render import RenderOptions
 from experiments import bench_survive
 from tests.test_reveal_alignment import blobs
 
-FIELDS = {"scene", "recipe", "attack", "level", "render_psnr", "hidden_psnr", "hidden_ssim", "decided"}
+FIELDS = {"scene", "recipe", "attack", "level", "render_psnr", "hidden_psnr", "hidden_ssim", "owned", "log10_p",
+          "verify", "decided"}
 
 
 @pytest.fixture(scope="module")
@@ -53,7 +54,8 @@ def bench(folder, monkeypatch, *arguments):
   monkeypatch.setattr(bench_survive, "TRANSFORMS", [("rotate", 180.0)])
   monkeypatch.setattr(bench_survive, "CONVERSIONS", [("decimate", 0.5, dict(fmt="ply", decimate=0.5))])
   bench_survive.main([f"--out={folder / 'out'}", f"--workdir={folder / 'work'}", f"--scenes=tiny={folder / 'run'}",
-                      f"--calibration={folder / 'cal.json'}", "--test-views=1", *arguments])
+                      f"--calibration={folder / 'cal.json'}", "--test-views=1", "--alpha=1e-3", "--null-views=4",
+                      *arguments])
   return json.loads((folder / "out" / "survive_bench.json").read_text())["rows"]
 
 
@@ -71,6 +73,9 @@ def test_transforms_and_round_trips_are_revealed_after_re_alignment(run, monkeyp
     assert row["registration"]["rotation_error_deg"] < 0.01 and row["registration"]["scale_error"] < 1e-4
     assert row["unaligned"]["hidden_ssim"] < row["hidden_ssim"] - 0.03 and row["decided"]
     assert not row["unaligned"]["decided"]
+    # verify's test given the owner's copy: the moved scene re-aligned is tested as the untouched one is
+    assert row["owned"] == none["owned"] and row["log10_p"] == pytest.approx(none["log10_p"], abs=0.05)
+    assert set(row["verify"]["readings"]) == {"toned", "as_rendered"}
   if converter.available():
     row = by["decimate", 0.5]
     # the converter merges Gaussians as it decimates: 400 left of 800 register to within a degree
@@ -106,7 +111,7 @@ def test_finetune_and_extraction_rows_at_each_length(run, monkeypatch):
 def test_extraction_views_form_a_blender_dataset(run, tmp_path):
   from conceal_jax.data import datasets
   scene = bench_survive.load_scene("tiny", run / "run", "recommended", 1,
-                                   dict(threshold=0.5), tmp_path)
+                                   dict(threshold=0.5), tmp_path, 1e-3, 4)
   cameras = bench_survive.extraction_cameras(scene, 7)
   assert len(cameras) == 7
   bench_survive.write_blender_views(tmp_path / "views", scene.student, cameras, scene.cameras, scene.owner.options)
@@ -179,3 +184,15 @@ def test_round_trips_can_be_asked_for_by_name(run, monkeypatch, tmp_path):
   bench_survive.main([f"--out={tmp_path / 'out'}", f"--workdir={tmp_path / 'work'}", f"--scenes=tiny={run / 'run'}",
                       f"--calibration={run / 'cal.json'}", "--test-views=1", "--attacks=decimate"])
   assert [(attack, level) for attack, level, _ in asked] == [("decimate", 0.5)]
+
+
+def test_true_positives_count_the_attacked_rows_verify_decided():
+  """Per scene and recipe, the attacked rows verify decided owned; the untouched row and rows measured before
+  verify's test (no `owned`) are left out, as is a scene without any."""
+  rows = [dict(scene="demo", recipe="film", attack="none", owned=True),
+          dict(scene="demo", recipe="film", attack="rotate", owned=True),
+          dict(scene="demo", recipe="film", attack="finetune", owned=False),
+          dict(scene="demo", recipe="film", attack="sog"),
+          dict(scene="lego", recipe="recommended", attack="sog", decided=True)]
+  assert bench_survive.true_positive_lines(rows) == ["- demo (film): owned at alpha in 1 of 2 attacked rows", ""]
+  assert bench_survive.true_positive_lines(rows[-1:]) == []

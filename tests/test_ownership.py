@@ -129,7 +129,8 @@ def test_decisions_are_batched_over_revealed_and_hidden_images():
   d = ownership.decisions(revealed, hidden, nulls, 1e-5)
   assert d["z"].shape == d["log10_p"].shape == d["owned"].shape == (2, 2) and d["null_max"].shape == (2,)
   assert d["owned"][0, 0] and d["owned"][1, 1] and not d["owned"][0, 1] and not d["owned"][1, 0]
-  single = ownership.ownership_test(revealed[0], hidden[0], nulls, 1e-5)
+  reading = ownership.read_and_decide(lambda images: images, revealed[:1], hidden[:1], dict(pictures=nulls), 1e-5)
+  single = ownership.ownership_test(reading, hidden[0], 1e-5)
   assert single["z"] == pytest.approx(d["z"][0, 0]) and single["log10_p"] == pytest.approx(d["log10_p"][0, 0])
   # resolve: the empirical p-value only where the model's is at most resolve; the decisions stay the same
   partial = ownership.decisions(revealed, hidden, nulls, 1e-5, resolve=1e-3)
@@ -217,6 +218,9 @@ def test_verify_renders_enough_turned_views_for_alpha():
   assert ownership.turned_views_needed(1e-6, 64, 168, 32) == 32  # 200 * 8 * 64^2 draws already suffice
   views = ownership.turned_views_needed(1e-6, 16, 168, 32)
   assert 1 / (1 + 8 * (168 + views) * 16 ** 2) <= 1e-6 < 1 / (1 + 8 * (168 + views - 1) * 16 ** 2)
+  # decided on the best of two readings (twice the smaller p-value): enough draws for the pair to reach alpha
+  two = ownership.turned_views_needed(1e-6, 16, 168, 32, readings=2)
+  assert 2 / (1 + 8 * (168 + two) * 16 ** 2) <= 1e-6 < 2 / (1 + 8 * (168 + two - 1) * 16 ** 2)
 
 
 def test_a_decision_on_the_best_of_two_readings_pays_a_factor_of_two():

@@ -139,36 +139,45 @@ def validate(config: ml_collections.ConfigDict) -> None:
   settings.check_count("reveal.key_number", config.reveal.key_number, minimum=0)
 
 
+def toned(reveal_fn, tone: align.Tone):
+  """reveal_fn reading renders [V, H, W, 3] after `tone` (align.Tone.apply)."""
+  return lambda renders: reveal_fn(tone.apply(renders))
+
+
+def readings(reveal_fn, tone: align.Tone | None = None) -> dict[str, Any]:
+  """The ways a suspect's renders are read, by name: with a tone map (re-alignment in tone), "toned" (reveal_fn
+  after the map) and "as_rendered", since a tone fitted to a blurred render also sharpens what the decoder reads;
+  without one, "as_rendered" alone."""
+  if tone is None:
+    return dict(as_rendered=reveal_fn)
+  return dict(toned=toned(reveal_fn, tone), as_rendered=reveal_fn)
+
+
 @dataclasses.dataclass(frozen=True)
 class KeyedScene:
   """A suspect scene with what reveals it (load_keyed_scene): the Gaussians, the key camera and render options
-  (moved into the scene's frame when re-aligned), `reveal_fn` (renders [V, H, W, 3] -> revealed [V, S, S, 3],
-  decoder_reveal's after the scene's tone map), the alignment report or None, and `untoned_reveal_fn`, where a tone
-  map is in use, decoder_reveal's reading of the renders as they are."""
+  (moved into the scene's frame when re-aligned), `decoder_fn` (decoder_reveal: renders [V, H, W, 3] -> revealed
+  [V, S, S, 3]), the alignment report or None, and the tone map onto the owner's copy or None."""
   gaussians: Gaussians
   camera: Camera
   options: RenderOptions
-  reveal_fn: Any
+  decoder_fn: Any
   alignment: dict | None
-  untoned_reveal_fn: Any = None
+  tone: align.Tone | None = None
 
   @property
   def readings(self) -> dict[str, Any]:
-    """The ways to read this scene's renders, by name: "toned" (reveal_fn) and "as_rendered" where re-aligned in
-    tone, else "as_rendered" (reveal_fn) alone."""
-    if self.untoned_reveal_fn is None:
-      return dict(as_rendered=self.reveal_fn)
-    return dict(toned=self.reveal_fn, as_rendered=self.untoned_reveal_fn)
+    return readings(self.decoder_fn, self.tone)
+
+  @property
+  def reveal_fn(self):
+    """The first of the readings: after the tone map where there is one."""
+    return next(iter(self.readings.values()))
 
   def reveal_at(self, cameras: list[Camera]) -> np.ndarray:
     """[V, S, S, 3] images revealed from the scene's renders at `cameras` (same intrinsics as the key)."""
     renders = jnp.stack([render(self.gaussians, camera, self.options).rgb for camera in cameras])
     return np.asarray(self.reveal_fn(renders))
-
-
-def toned(reveal_fn, tone: align.Tone):
-  """reveal_fn reading renders [V, H, W, 3] after `tone` (align.Tone.apply)."""
-  return lambda renders: reveal_fn(tone.apply(renders))
 
 
 def load_keyed_scene(r: ml_collections.ConfigDict) -> KeyedScene:
@@ -183,18 +192,18 @@ def load_keyed_scene(r: ml_collections.ConfigDict) -> KeyedScene:
   suspect, options = ply.load_ply(r.ply), options_from_key(info)
   reveal_fn = decoder_reveal(decoder, int(info.get("decoder_width", 0)), int(info["hidden_size"]),
                              Reading.from_key(info))
-  alignment = untoned = None
+  alignment = tone = None
   if r.get("owner", ""):
     owner = ply.load_ply(r.owner)
     moved, moved_options, registration = align.aligned_key(owner, suspect, camera, options)
     tone = align.tone_at_key(owner, suspect, camera, options, moved, moved_options)
-    camera, options, reveal_fn, untoned = moved, moved_options, toned(reveal_fn, tone), reveal_fn
+    camera, options = moved, moved_options
     alignment = dict(owner=r.owner, **align.registration_report(registration), tone=tone.report())
     if registration.matched_fraction < MIN_MATCHED_FRACTION:
       logging.warning("re-alignment of %s onto %s matched only %.0f%% of its Gaussians (residual %.2g radii): the "
                       "transform found is doubtful", r.ply, r.owner, 100 * registration.matched_fraction,
                       registration.residual)
-  return KeyedScene(jax.tree.map(jnp.asarray, suspect), camera, options, reveal_fn, alignment, untoned)
+  return KeyedScene(jax.tree.map(jnp.asarray, suspect), camera, options, reveal_fn, alignment, tone)
 
 
 def reveal_with_alignment(r: ml_collections.ConfigDict) -> tuple[np.ndarray, dict | None]:

@@ -1,7 +1,7 @@
 """The ownership test: is this scene marked with my hidden image? `--config.mode=verify`.
 
 The decoder reveals R from the scene's render at the owner's key. The decoder's outputs on inputs that do not
-carry the hidden image I (null_reveals: the scene turned well away from the key, unrelated pictures) are its null
+carry the hidden image I (null_renders: the scene turned well away from the key, unrelated pictures) are its null
 behaviour; decisions (the one formulation verify and `make bench-ownership` decide with) correlates what R holds
 beyond their mean with I (robust.phase_statistic) and takes the larger of two p-values: the random-phase
 model's and the Monte-Carlo p-value against those outputs correlated with I at every shift and turn. The scene
@@ -16,10 +16,12 @@ transform, the tone map and each reading's figures.
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 from typing import Sequence
 
+import jax
 import jax.numpy as jnp
 import ml_collections
 import numpy as np
@@ -120,12 +122,6 @@ def read_nulls(reveal_fn, renders: dict[str, np.ndarray]) -> dict[str, np.ndarra
   return {name: np.asarray(reveal_fn(jnp.asarray(images))) for name, images in renders.items()}
 
 
-def null_reveals(gaussians, camera: Camera, options: RenderOptions, reveal_fn, views: int,
-                 hidden: np.ndarray) -> dict[str, np.ndarray]:
-  """read_nulls of null_renders' inputs [K + views, S, S, 3]."""
-  return read_nulls(reveal_fn, null_renders(gaussians, camera, options, views, hidden))
-
-
 def combined_log10_p(log10_ps) -> np.ndarray:
   """log10 of the p-value of a decision on the best of k readings of one scene [k, ...], each with its own valid
   p-value: k times the smallest (Bonferroni), at most 1. A scene re-aligned in tone is read both toned and as
@@ -134,10 +130,52 @@ def combined_log10_p(log10_ps) -> np.ndarray:
   return np.minimum(log10_ps.min(0) + np.log10(len(log10_ps)), 0.0)
 
 
-def turned_views_needed(alpha: float, size: int, unrelated: int, null_views: int) -> int:
+@dataclasses.dataclass(frozen=True)
+class Reading:
+  """One reading's test: the revealed images [V, S, S, 3], the null outputs by source ({name: [K, S, S, 3]}) and
+  decisions' result against the hidden images."""
+  revealed: np.ndarray
+  nulls: dict
+  result: dict
+
+
+def read_and_decide(reveal_fn, checks, hidden: np.ndarray, renders: dict, alpha: float,
+                    resolve: float = 1.0) -> Reading:
+  """The check renders [V, H, W, 3] revealed through reveal_fn (renders -> [V, S, S, 3]) and decided against the
+  hidden images [J, S, S, 3] (decisions), with the null outputs reveal_fn gives of `renders` (null_renders)."""
+  revealed = np.asarray(reveal_fn(jnp.asarray(checks)))
+  nulls = read_nulls(reveal_fn, renders)
+  return Reading(revealed, nulls, decisions(revealed, hidden, np.concatenate(list(nulls.values())), alpha, resolve))
+
+
+def decide_readings(readings: dict, checks, hidden: np.ndarray, renders: dict, alpha: float,
+                    resolve: float = 1.0) -> tuple[dict, dict]:
+  """The test as verify takes it of a scene with several readings ({name: reveal_fn}, reveal.KeyedScene.readings):
+  each reading's read_and_decide, and their combination, one decision [V, J] on combined_log10_p: z (the largest),
+  log10_p_model and log10_p (combined), owned (log10_p at most log10 alpha)."""
+  by_name = {name: read_and_decide(fn, checks, hidden, renders, alpha, resolve) for name, fn in readings.items()}
+  results = [reading.result for reading in by_name.values()]
+  log_p = combined_log10_p([r["log10_p"] for r in results])
+  return by_name, dict(z=np.max([r["z"] for r in results], axis=0), log10_p=log_p, owned=log_p <= np.log10(alpha),
+                       log10_p_model=combined_log10_p([r["log10_p_model"] for r in results]))
+
+
+def strongest(by_name: dict) -> Reading:
+  """The reading of smallest p-value among decide_readings' readings of one image against one hidden image."""
+  return min(by_name.values(), key=lambda reading: reading.result["log10_p"][0, 0])
+
+
+def summary(result: dict) -> dict:
+  """z, log10_p and owned of one revealed image against one hidden image (a decisions or decide_readings
+  result [1, 1]), as Python numbers."""
+  return {name: result[name][0, 0].item() for name in ("z", "log10_p", "owned")}
+
+
+def turned_views_needed(alpha: float, size: int, unrelated: int, null_views: int, readings: int = 1) -> int:
   """How many turned views verify renders: null_views, or more where the null outputs (`unrelated` pictures and
-  the turned views) would give too few draws (8 K size^2, decisions) for a Monte-Carlo p-value at most alpha."""
-  return max(null_views, int(np.ceil((1.0 / alpha - 1.0) / (8 * size * size))) - unrelated)
+  the turned views) would give too few draws (8 K size^2, decisions) for a Monte-Carlo p-value at most alpha /
+  readings, so that a decision on the best of `readings` readings (combined_log10_p) can still reach alpha."""
+  return max(null_views, int(np.ceil((readings / alpha - 1.0) / (8 * size * size))) - unrelated)
 
 
 def decisions(revealed: np.ndarray, hidden: np.ndarray, null_revealed: np.ndarray, alpha: float,
@@ -184,20 +222,21 @@ def decisions(revealed: np.ndarray, hidden: np.ndarray, null_revealed: np.ndarra
               null_draws=draws, null_max=null_max)
 
 
-def ownership_test(revealed: np.ndarray, hidden: np.ndarray, null_revealed: np.ndarray, alpha: float) -> dict:
-  """The decision for one revealed image [S, S, 3] against the hidden image [S, S, 3] (decisions), with the
-  number of independent terms z sums, the p-value and what the null rests on: how many outputs and draws, and
-  the largest draw."""
-  d = decisions(revealed[None], hidden[None], null_revealed, alpha)
+def ownership_test(reading: Reading, hidden: np.ndarray, alpha: float) -> dict:
+  """The report of a reading of one revealed image against the hidden image [S, S, 3] (read_and_decide): the
+  statistic, the number of independent terms it sums, the p-values, the decision and what the null rests on:
+  how many outputs and draws, and the largest draw."""
+  d, null_revealed = reading.result, np.concatenate(list(reading.nulls.values()))
   mean = np.asarray(null_revealed, np.float64).mean(0)
-  samples = phase_statistic.effective_samples(phase_statistic.whitened_spectra((revealed - mean)[None]),
+  samples = phase_statistic.effective_samples(phase_statistic.whitened_spectra(reading.revealed[:1] - mean),
                                               phase_statistic.whitened_spectra(hidden[None]))
   return dict(z=float(d["z"][0, 0]), effective_samples=float(samples[0, 0]),
               log10_p_model=float(d["log10_p_model"][0, 0]), log10_p_null=float(d["log10_p_null"][0, 0]),
               log10_p=float(d["log10_p"][0, 0]), p_value=float(10.0 ** d["log10_p"][0, 0]), alpha=float(alpha),
               owned=bool(d["owned"][0, 0]),
               null=dict(rests_on=NULL_RESTS_ON, count=int(len(null_revealed)), draws=int(d["null_draws"]),
-                        max=float(d["null_max"][0])))
+                        max=float(d["null_max"][0]),
+                        sources={name: int(images.shape[0]) for name, images in reading.nulls.items()}))
 
 
 def validate(config: ml_collections.ConfigDict) -> None:
@@ -220,22 +259,17 @@ def verify(config: ml_collections.ConfigDict, workdir: str) -> dict:
   r = config.reveal
   scene = reveal.load_keyed_scene(r)
   check = render(scene.gaussians, scene.camera, scene.options).rgb[None]
-  revealed_by = {name: np.asarray(reveal_fn(check))[0] for name, reveal_fn in scene.readings.items()}
-  size = next(iter(revealed_by.values())).shape[0]
+  size = jax.eval_shape(scene.reveal_fn, check).shape[1]  # the decoder's output size, without decoding
   hidden = hidden_lib.load_hidden_image(r.hidden, size)
-  views = turned_views_needed(config.verify.alpha, size, len(unrelated_images(hidden)), config.verify.null_views)
+  views = turned_views_needed(config.verify.alpha, size, len(unrelated_images(hidden)), config.verify.null_views,
+                              len(scene.readings))
   renders = null_renders(scene.gaussians, scene.camera, scene.options, views, hidden)
-  readings = {}
-  for name, reveal_fn in scene.readings.items():
-    revealed, nulls = revealed_by[name], read_nulls(reveal_fn, renders)
-    readings[name] = (revealed, nulls, ownership_test(revealed, hidden, np.concatenate(list(nulls.values())),
-                                                      config.verify.alpha))
-  revealed, nulls, test = min(readings.values(), key=lambda reading: reading[2]["log10_p"])
-  log10_p = float(combined_log10_p([reading[2]["log10_p"] for reading in readings.values()]))
-  test.update(log10_p=log10_p, p_value=10.0 ** log10_p, owned=bool(log10_p <= np.log10(config.verify.alpha)),
-              readings={name: {k: reading[2][k] for k in ("z", "log10_p", "owned")}
-                        for name, reading in readings.items()})
-  test["null"]["sources"] = {name: int(images.shape[0]) for name, images in nulls.items()}
+  by_name, both = decide_readings(scene.readings, check, hidden[None], renders, config.verify.alpha)
+  best = strongest(by_name)
+  revealed, nulls, test = best.revealed[0], best.nulls, ownership_test(best, hidden, config.verify.alpha)
+  log10_p = float(both["log10_p"][0, 0])
+  test.update(log10_p=log10_p, p_value=10.0 ** log10_p, owned=bool(both["owned"][0, 0]),
+              readings={name: summary(reading.result) for name, reading in by_name.items()})
   score = float(metrics.ssim(revealed, hidden))
   result = dict(ply=r.ply, key=r.key, decoder=r.decoder, hidden=r.hidden, **test, ssim=score)
   if config.verify.calibration:

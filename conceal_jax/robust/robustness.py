@@ -15,7 +15,7 @@ import numpy as np
 
 from conceal_jax.conceal import align, reveal, scoring
 from conceal_jax.gs import evaluate, train
-from conceal_jax.robust import image_attacks, model_attacks, phase_statistic
+from conceal_jax.robust import image_attacks, model_attacks, ownership, phase_statistic
 from conceal_jax.splat import gaussians as gaussians_lib
 from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.gaussians import Gaussians
@@ -62,15 +62,26 @@ class Owner:
                                  phase_statistic.whitened_spectra(np.asarray(self.hidden)[None]))
     return dict(hidden_psnr=float(scores["psnr"][0]), hidden_ssim=float(scores["ssim"][0]), hidden_z=float(z[0, 0]))
 
-  def aligned_scores(self, marked: Gaussians, suspect: Gaussians) -> dict:
+  def aligned_scores(self, marked: Gaussians, suspect: Gaussians, alpha: float, null_views: int) -> dict:
     """What `suspect` reveals at the key after re-alignment against the owner's copy `marked` (the scene the
     key was made for; align.aligned_key, then align.tone_at_key): hidden_psnr, hidden_ssim, `registration`, the
-    transform found and its fit (align.registration_report), and `tone`, the colour map found."""
+    transform found and its fit (align.registration_report), `tone`, the colour map found, and `test`, verify's
+    decision at `alpha` given the owner's copy (ownership.decide_readings: read toned and as rendered, the null
+    outputs from the suspect at the moved key, at least `null_views` turned views): z, log10_p, owned, and each
+    reading's."""
     camera, options, registration = align.aligned_key(marked, suspect, self.check_camera, self.options)
     suspect = jax.tree.map(jnp.asarray, suspect)
     tone = align.tone_at_key(marked, suspect, self.check_camera, self.options, camera, options)
+    readings = reveal.readings(self.reveal_renders, tone)
+    views = ownership.turned_views_needed(alpha, self.hidden_size, len(ownership.unrelated_images(self.hidden)),
+                                          null_views, len(readings))
+    renders = ownership.null_renders(suspect, camera, options, views, self.hidden)
+    by_name, both = ownership.decide_readings(readings,
+                                              render(suspect, camera, options).rgb[None], self.hidden[None],
+                                              renders, alpha)
+    test = dict(ownership.summary(both), readings={name: ownership.summary(r.result) for name, r in by_name.items()})
     return dict(self.check_scores(suspect, camera, options, tone),
-                registration=align.registration_report(registration), tone=tone.report())
+                registration=align.registration_report(registration), tone=tone.report(), test=test)
 
 
 def scene_scores(gaussians: Gaussians, owner: Owner, test_cameras: Sequence[Camera], test_images) -> dict:
