@@ -107,6 +107,8 @@ RECIPE_NOTES = {
     "film_long_epyc": "film_long concealed again (the same config and seed) on another 2-core CPU (AMD EPYC), where "
                       "the demo teacher, the same code and seed, trains to 30.85 dB rather than 30.53: a second "
                       "sample of the design (workdirs/survive_runs/demo_film_long, concealed 2026-11-26)",
+    "film_epyc": "lego_conceal.py:film concealed again for 10000 steps on the 2-core CPU (AMD EPYC), resumed from its "
+                 "checkpoint at 5000 (workdirs/survive_runs/lego_film, 2026-11-27)",
     "film_deep": "film_long trained through merges up to 1.5 rounds deep (recipes.DEEP_MERGE_DEPTH; demo.py:film_deep)",
     "film_stack": "film_long with the film's splats in stacks of two at each grid position, their colours trained as "
                   "one at half the rate, and half as many grids (recipes.stacked_film; demo.py:film_stack)",
