@@ -227,3 +227,21 @@ def test_a_decision_on_the_best_of_two_readings_pays_a_factor_of_two():
   log10_ps = np.array([[-7.0, -2.0, -0.1], [-3.0, -5.0, -0.1]])
   np.testing.assert_allclose(ownership.combined_log10_p(log10_ps), [-7.0 + np.log10(2), -5.0 + np.log10(2), 0.0])
   np.testing.assert_allclose(ownership.combined_log10_p(log10_ps[:1]), log10_ps[0])
+
+
+def test_decide_readings_combines_each_reading_and_refuses_too_few_draws_for_the_pair():
+  """Each reading is read_and_decide's; the decision is on combined_log10_p of theirs; a null that lets one reading
+  reach alpha but not the best of two (2 / (1 + draws) > alpha) is refused rather than never deciding owned."""
+  hidden = hidden_lib.load_hidden_image("astronaut", 16)[None]
+  nulls = dict(pictures=hidden_lib.load_hidden_image("camera", 16)[None])  # 8 * 16^2 = 2048 draws
+  readings = dict(plain=lambda images: images, mirrored=lambda images: images[:, :, ::-1])
+  by_name, both = ownership.decide_readings(readings, hidden, hidden, nulls, 1e-3)
+  for name, fn in readings.items():
+    alone = ownership.read_and_decide(fn, hidden, hidden, nulls, 1e-3)
+    np.testing.assert_array_equal(by_name[name].result["log10_p"], alone.result["log10_p"])
+  np.testing.assert_allclose(both["log10_p"], ownership.combined_log10_p([r.result["log10_p"]
+                                                                          for r in by_name.values()]))
+  assert both["owned"][0, 0] and ownership.strongest(by_name) is by_name["plain"]
+  ownership.read_and_decide(readings["plain"], hidden, hidden, nulls, 6e-4)  # one reading: 1/2049 <= 6e-4
+  with pytest.raises(ValueError, match="best of 2 readings"):
+    ownership.decide_readings(readings, hidden, hidden, nulls, 6e-4)

@@ -152,8 +152,14 @@ def decide_readings(readings: dict, checks, hidden: np.ndarray, renders: dict, a
                     resolve: float = 1.0) -> tuple[dict, dict]:
   """The test as verify takes it of a scene with several readings ({name: reveal_fn}, reveal.KeyedScene.readings):
   each reading's read_and_decide, and their combination, one decision [V, J] on combined_log10_p: z (the largest),
-  log10_p_model and log10_p (combined), owned (log10_p at most log10 alpha)."""
+  log10_p_model and log10_p (combined), owned (log10_p at most log10 alpha). ValueError where the null draws are
+  too few for the combined p-value ever to reach alpha."""
   by_name = {name: read_and_decide(fn, checks, hidden, renders, alpha, resolve) for name, fn in readings.items()}
+  draws = next(iter(by_name.values())).result["null_draws"]
+  if len(readings) / (1 + draws) > alpha:
+    raise ValueError(f"{draws} null draws cannot decide on the best of {len(readings)} readings at alpha {alpha} "
+                     f"(its smallest p-value is {len(readings)}/{draws + 1}): more null outputs are needed "
+                     f"(turned_views_needed with readings={len(readings)})")
   results = [reading.result for reading in by_name.values()]
   log_p = combined_log10_p([r["log10_p"] for r in results])
   return by_name, dict(z=np.max([r["z"] for r in results], axis=0), log10_p=log_p, owned=log_p <= np.log10(alpha),

@@ -47,28 +47,30 @@ class Owner:
     """PSNR and SSIM [V] of revealed images [V, S, S, 3] to I."""
     return scoring.scores_to_hidden(revealed, self.hidden)
 
-  def check_scores(self, gaussians: Gaussians, camera: Camera | None = None, options: RenderOptions | None = None,
-                   tone: align.Tone | None = None) -> dict[str, float]:
+  def revealed_scores(self, revealed) -> dict[str, float]:
     """hidden_psnr, hidden_ssim and hidden_z (phase_statistic.z_scores of the revealed image itself, not less the
-    decoder's mean output as the ownership test takes it: no null outputs are rendered here) of what `gaussians`
-    reveal at the key (or at `camera` with `options`: the key moved into a transformed scene's frame,
-    align.moved_key), the render mapped by `tone` first when given (align.Tone)."""
-    camera = self.check_camera if camera is None else camera
-    options = self.options if options is None else options
-    check = render(gaussians, camera, options).rgb[None]
-    revealed = np.asarray(self.reveal_renders(check if tone is None else tone.apply(check)))
+    decoder's mean output as the ownership test takes it) of one revealed image [1, S, S, 3]."""
+    revealed = np.asarray(revealed)
     scores = self.scores(revealed)
     z = phase_statistic.z_scores(phase_statistic.whitened_spectra(revealed),
                                  phase_statistic.whitened_spectra(np.asarray(self.hidden)[None]))
     return dict(hidden_psnr=float(scores["psnr"][0]), hidden_ssim=float(scores["ssim"][0]), hidden_z=float(z[0, 0]))
 
+  def check_scores(self, gaussians: Gaussians, camera: Camera | None = None,
+                   options: RenderOptions | None = None) -> dict[str, float]:
+    """revealed_scores of what `gaussians` reveal at the key (or at `camera` with `options`: the key moved into a
+    transformed scene's frame, align.moved_key)."""
+    camera = self.check_camera if camera is None else camera
+    options = self.options if options is None else options
+    return self.revealed_scores(self.reveal_renders(render(gaussians, camera, options).rgb[None]))
+
   def aligned_scores(self, marked: Gaussians, suspect: Gaussians, alpha: float, null_views: int) -> dict:
     """What `suspect` reveals at the key after re-alignment against the owner's copy `marked` (the scene the
-    key was made for; align.aligned_key, then align.tone_at_key): hidden_psnr, hidden_ssim, `registration`, the
-    transform found and its fit (align.registration_report), `tone`, the colour map found, and `test`, verify's
-    decision at `alpha` given the owner's copy (ownership.decide_readings: read toned and as rendered, the null
-    outputs from the suspect at the moved key, at least `null_views` turned views): z, log10_p, owned, and each
-    reading's."""
+    key was made for; align.aligned_key, then align.tone_at_key): revealed_scores of the toned reading,
+    `registration`, the transform found and its fit (align.registration_report), `tone`, the colour map found,
+    and `test`, verify's decision at `alpha` given the owner's copy (ownership.decide_readings: read toned and as
+    rendered, the null outputs from the suspect at the moved key, at least `null_views` turned views): z,
+    log10_p, owned, and each reading's."""
     camera, options, registration = align.aligned_key(marked, suspect, self.check_camera, self.options)
     suspect = jax.tree.map(jnp.asarray, suspect)
     tone = align.tone_at_key(marked, suspect, self.check_camera, self.options, camera, options)
@@ -76,12 +78,11 @@ class Owner:
     views = ownership.turned_views_needed(alpha, self.hidden_size, len(ownership.unrelated_images(self.hidden)),
                                           null_views, len(readings))
     renders = ownership.null_renders(suspect, camera, options, views, self.hidden)
-    by_name, both = ownership.decide_readings(readings,
-                                              render(suspect, camera, options).rgb[None], self.hidden[None],
-                                              renders, alpha)
+    by_name, both = ownership.decide_readings(readings, render(suspect, camera, options).rgb[None],
+                                              self.hidden[None], renders, alpha)
     test = dict(ownership.summary(both), readings={name: ownership.summary(r.result) for name, r in by_name.items()})
-    return dict(self.check_scores(suspect, camera, options, tone),
-                registration=align.registration_report(registration), tone=tone.report(), test=test)
+    return dict(self.revealed_scores(by_name["toned"].revealed), registration=align.registration_report(registration),
+                tone=tone.report(), test=test)
 
 
 def scene_scores(gaussians: Gaussians, owner: Owner, test_cameras: Sequence[Camera], test_images) -> dict:
