@@ -91,7 +91,8 @@ DECODER_LR = {64: 1e-4, recipes.NARROW_DECODER_WIDTH: recipes.NARROW_DECODER_LR}
 WIDTH_FREE_ROWS = ("no_decoder",)  # without a decoder the width does not matter: run once
 # The concealment issue's targets (lego: widths 16 and 64; the time for width 16).
 TARGETS = dict(lego=dict(hidden_psnr=34.0, hidden_ssim=0.99, student_psnr_loss=0.3, leakage=0.2, minutes_width16=60.0),
-               beer=dict(hidden_psnr=37.5, hidden_ssim=0.99, student_psnr_loss=0.2))
+               beer=dict(hidden_psnr=37.5, hidden_ssim=0.99, student_psnr_loss=0.2),
+               beer_llff=dict(hidden_psnr=37.5, hidden_ssim=0.99, student_psnr_loss=0.2, leakage=0.2))
 CURVE_EVERY, CURVE_VIEWS = lego_conceal.EVAL_EVERY, lego_conceal.EVAL_VIEWS
 
 
@@ -258,7 +259,7 @@ def main():
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
   parser.add_argument("--out", default="experiments/results")
   parser.add_argument("--workdir", default="workdirs/bench")
-  parser.add_argument("--scenes", default="lego", help="comma-separated bench-train scenes (lego, beer)")
+  parser.add_argument("--scenes", default="lego", help="comma-separated bench-train scenes (lego, beer, beer_llff)")
   parser.add_argument("--rows", default=",".join(ROWS))
   parser.add_argument("--widths", default="16,64")
   parser.add_argument("--iterations", type=int, default=0, help="0: the config's 10k")

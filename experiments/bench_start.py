@@ -7,14 +7,13 @@ cameras' frustums).
 
 A forward-facing capture's background fills every image, so its splats cover more tiles than an object's and its
 first steps cost more per pixel than lego's; the start (random points in the cameras' frustums, splats of a few
-pixels) sets how many more. Each scene trains its config (lego.py; beer.py
-with data.format=llff and lego's random start count) for --steps iterations into <workdir>/first<steps>/<scene>
-(resumable), then scores 5 test views. Merges its rows into start_bench.json (per scene and length: image size,
-median step and step time per pixel over the run's log windows, the first window's, pairs and Gaussians; beer's
-time per pixel over lego's of as many steps, against the target) and rewrites start_bench.md and start_bench.png
-(time per pixel and pairs against the step) in --out. Scenes whose data is missing are skipped with a note. A run
-of N steps uses N as its schedule's length (learning-rate decay, densification stop), so its first steps are those
-of an N-step teacher.
+pixels) sets how many more. Each scene trains its config (lego.py; beer_llff.py) for --steps iterations into
+<workdir>/first<steps>/<scene> (resumable), then scores 5 test views. Merges its rows into start_bench.json (per
+scene and length: image size, median step and step time per pixel over the run's log windows, the first window's,
+pairs and Gaussians; beer's time per pixel over lego's of as many steps, against the target) and rewrites
+start_bench.md and start_bench.png (time per pixel and pairs against the step) in --out. Scenes whose data is
+missing are skipped with a note. A run of N steps uses N as its schedule's length (learning-rate decay,
+densification stop), so its first steps are those of an N-step teacher.
 """
 from __future__ import annotations
 
@@ -23,15 +22,12 @@ import pathlib
 
 import numpy as np
 
-from conceal_jax.configs import lego
 from conceal_jax.core import fileio
 from conceal_jax.gs import evaluate, train
-from experiments import bench_conceal, bench_train, results_io
+from experiments import bench_train, results_io
 
-# The scenes: bench_train's config of each, beer read through its LLFF poses. Without points beer starts at random
-# in its cameras' frustums from as many points as lego's CPU config starts from (lego.py; 3D-GS's 100k otherwise).
-LEGO_START = lego.get_config().init.num_random_points
-SCENES = {"lego": ("lego", {}), "beer_llff": ("beer", {"data.format": "llff", "init.num_random_points": LEGO_START})}
+# The scenes: bench_train's config of each, beer read through its LLFF poses (configs/beer_llff.py).
+SCENES = ("lego", "beer_llff")
 NAME = "start_bench"
 REFERENCE = "lego"
 TARGET_RATIO = 2.0  # the capture issue's bound: a step on beer costs at most 2x lego's per pixel
@@ -39,10 +35,7 @@ EVAL_VIEWS = 5
 
 
 def scene_config(name: str, steps: int):
-  base, overrides = SCENES[name]
-  config = bench_train.scene_config(base, steps, EVAL_VIEWS)
-  for dotted, value in overrides.items():
-    bench_conceal.set_dotted(config, dotted, value)
+  config = bench_train.scene_config(name, steps, EVAL_VIEWS)
   config.train.eval_every = 0
   return config
 

@@ -18,12 +18,12 @@ import pathlib
 
 from conceal_jax.core import fileio
 from conceal_jax.gs import evaluate, train
-from conceal_jax.configs import beer, lego
+from conceal_jax.configs import beer, beer_llff, lego
 from experiments import results_io
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 # The benchmark scenes are named config variants (the configs' docstrings say why they differ from the recipe).
-SCENES = {"lego": lego, "beer": beer}
+SCENES = {"lego": lego, "beer": beer, "beer_llff": beer_llff}
 
 
 def scene_config(name: str, iterations: int | None, eval_views: int = 0):

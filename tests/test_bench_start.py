@@ -1,6 +1,7 @@
 """bench-start's arithmetic: step times per log window and the per-pixel ratio against lego."""
 import pytest
 
+from conceal_jax.configs import lego
 from experiments import bench_start
 
 
@@ -23,5 +24,5 @@ def test_the_ratio_is_per_pixel_against_lego_of_as_many_steps():
 def test_beer_is_read_through_its_llff_poses_with_the_steps_asked():
   config = bench_start.scene_config("beer_llff", 300)
   assert config.data.format == "llff" and config.train.iterations == 300
-  assert config.init.num_random_points == bench_start.lego.get_config().init.num_random_points
+  assert config.init.num_random_points == lego.get_config().init.num_random_points
   assert bench_start.scene_config("lego", 300).data.format == "auto"
