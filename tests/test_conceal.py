@@ -10,14 +10,15 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conceal_jax.conceal import key, near, reveal, settings as settings_lib, train as conceal_train, views as views_lib
+from conceal_jax.conceal import key, near, reveal, scoring, settings as settings_lib, train as conceal_train
+from conceal_jax.conceal import views as views_lib
 from conceal_jax.data import demo_scene, ply
 from conceal_jax.gs import init, losses
 from conceal_jax import main as main_lib
 from conceal_jax.splat.camera import Camera, camera_centers, look_at
 from conceal_jax.configs import demo, demo_robust
 from conceal_jax.core import fileio, workdir as workdir_lib
-from experiments import bench_baselines, bench_conceal, results_io, tradeoff
+from experiments import bench_baselines, bench_conceal, rescore, results_io, tradeoff
 
 
 @pytest.fixture(scope="module")
@@ -109,6 +110,59 @@ def test_decoys_lie_near_the_key_within_their_ranges():
   np.testing.assert_array_equal(np.asarray(again[4].world_to_camera), np.asarray(decoys[4].world_to_camera))
 
 
+def test_near_poses_move_along_and_turn_about_the_keys_own_axes_then_random_ones():
+  """The leakage figure's poses: per value, the six moves along (turns about) the key's axes both ways, forward along
+  the optical axis among them (a zoom, the move the image changes least under), then the random ones."""
+  check = Camera.from_intrinsics(look_at([0.0, -4.0, 1.0], [0.0, 0.0, 0.0]), 40.0, 40.0, 16.0, 16.0, 32, 32)
+  w2c = np.asarray(check.world_to_camera, np.float64)
+  center = camera_centers([check])[0]
+  poses = near.nearby_cameras(check, 2.0, (0.0, 0.05), (3.0,), 4)
+  kinds = [("translation", 0.0)] + [("translation", 0.05)] * 10 + [("rotation", 3.0)] * 10
+  assert [(k, v) for k, v, _ in poses] == kinds
+  np.testing.assert_allclose(np.asarray(poses[0][2].world_to_camera), w2c, atol=1e-12)
+  moved = [camera_centers([c])[0] - center for _, _, c in poses[1:11]]
+  for axis, move in zip(near.KEY_AXES, moved):
+    np.testing.assert_allclose(move, 0.1 * w2c[:3, :3].T @ np.asarray(axis), atol=1e-6)
+  np.testing.assert_allclose(moved[4], 0.1 * w2c[2, :3], atol=1e-6)  # forward along the optical axis
+  assert all(abs(np.linalg.norm(m) - 0.1) < 1e-6 for m in moved[6:])
+  assert max(abs(m @ w2c[2, :3]) / 0.1 for m in moved[6:]) < 0.999  # the random ones are not the axes
+  pitched = np.asarray(poses[11][2].world_to_camera, np.float64)  # turned about x by 3 degrees, not moved
+  np.testing.assert_allclose(pitched[:3, :3], key.rotation_about(np.array([1.0, 0.0, 0.0]), np.radians(3.0))
+                             @ w2c[:3, :3], atol=1e-9)
+  np.testing.assert_allclose(camera_centers([poses[11][2]])[0], center, atol=1e-6)
+  roll = np.asarray(poses[15][2].world_to_camera, np.float64)[:3, :3]  # about the optical axis: the same view axis
+  np.testing.assert_allclose(roll[2], w2c[2, :3], atol=1e-9)
+
+
+def test_decoys_moved_along_the_keys_axes_take_each_axis_in_turn():
+  check = Camera.from_intrinsics(look_at([0.0, -4.0, 1.0], [0.0, 0.0, 0.0]), 40.0, 40.0, 16.0, 16.0, 32, 32)
+  w2c = np.asarray(check.world_to_camera, np.float64)
+  center = camera_centers([check])[0]
+  plain = near.decoy_cameras(check, 2.0, 24, (0.05, 0.1), (3.0, 6.0), seed=1)
+  decoys = near.decoy_cameras(check, 2.0, 24, (0.05, 0.1), (3.0, 6.0), seed=1, key_axes=True)
+  for k, (decoy, other) in enumerate(zip(decoys, plain)):
+    move = camera_centers([decoy])[0] - center
+    if k % 3:  # turned, or moved and turned: as without key_axes
+      np.testing.assert_array_equal(np.asarray(decoy.world_to_camera), np.asarray(other.world_to_camera))
+      continue
+    axis = np.asarray(near.KEY_AXES[(k // 3) % 6])
+    np.testing.assert_allclose(move / np.linalg.norm(move), w2c[:3, :3].T @ axis, atol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(move), np.linalg.norm(camera_centers([other])[0] - center), atol=1e-6)
+    np.testing.assert_allclose(np.asarray(decoy.world_to_camera)[:3, :3], w2c[:3, :3], atol=1e-6)
+
+
+def test_bench_conceal_marks_rows_scored_before_the_key_axes():
+  scores = dict(psnr=30.0, ssim=0.9, lpips=0.1)
+  row = dict(scene="lego", row="recommended", decoder_width=16, iterations=10, wall_time_s=60.0, median_step_s=0.1,
+             student_vs_ground_truth=scores, teacher_vs_ground_truth=scores, student_vs_teacher=scores, hidden=scores,
+             student_psnr_loss=0.0, leakage=dict(max_ssim_student_test_views=0.1, ssim_teacher_check_view=0.1,
+                                                 max_ssim_near_check=0.1))
+  new = bench_conceal.table([dict(row, near_poses=dict(key_axes=6, random_directions=4))])
+  old = bench_conceal.table([row, dict(row, near_poses=dict(key_axes=6, random_directions=4))])
+  assert " *" not in new and "4 random directions only" not in new
+  assert old.count("0.100 / 0.100 / 0.100 * |") == 1 and "4 random directions only" in old
+
+
 def test_normal_views_draw_decoys_at_their_rate():
   rng = np.random.default_rng(0)
   views = np.array([views_lib.draw_normal_view(rng, 10, 5, 0.3) for _ in range(4000)])
@@ -135,6 +189,7 @@ def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
   assert [(r["kind"], r["value"]) for r in metrics["near_check"]] == [
       ("translation", 0.02), ("translation", 0.05), ("rotation", 2.0), ("rotation", 5.0)]
   assert metrics["leakage"]["max_ssim_near_check"] == max(r["max_ssim"] for r in metrics["near_check"])
+  assert metrics["near_poses"] == dict(key_axes=len(near.KEY_AXES), random_directions=scoring.NEAR_DIRECTIONS)
   floor = metrics["leakage_floor"]
   assert -1 <= floor["ssim_teacher_at_worst_test_view"] <= floor["max_ssim_teacher_test_views"] <= 1
   assert np.isfinite(metrics["hidden"]["psnr"]) and "VGG16" in metrics["lpips_net"]
@@ -161,6 +216,36 @@ def joint_run(tiny, tmp_path_factory):
   """(result, folder) of a finished 20-step run of the paper's method."""
   folder = tmp_path_factory.mktemp("joint") / "run"
   return conceal_train.train_and_evaluate(tiny_config(tiny, iterations=20), str(folder)), folder
+
+
+def finished_copy(tiny, joint_run, run):
+  """A copy of joint_run's folder with the config.json that main writes beside it."""
+  shutil.copytree(joint_run[1], run)
+  (run / "config.json").write_text(tiny_config(tiny, iterations=20).to_json())
+  return run
+
+
+def test_rescore_reproduces_a_finished_runs_metrics_and_keeps_the_old_file(tiny, joint_run, tmp_path):
+  """experiments/rescore.py: a finished run scored again from its saved files gives the figures its own scoring
+  wrote, and keeps the metrics.json it replaces."""
+  run = finished_copy(tiny, joint_run, tmp_path / "run")
+  original = json.loads((run / "metrics.json").read_text())
+  (run / "metrics.json").write_text(json.dumps(dict(original, hidden=dict(psnr=1.0, ssim=0.0))))
+  result = rescore.rescore(run)
+  assert result["before"]["hidden"] == dict(psnr=1.0, ssim=0.0)
+  assert result["after"]["hidden"] == pytest.approx(original["hidden"], abs=1e-4)
+  assert result["after"]["leakage"] == pytest.approx(original["leakage"], abs=1e-4)
+  assert json.loads((run / "metrics.json").read_text())["hidden"] == result["after"]["hidden"]
+  assert json.loads((run / rescore.PREVIOUS_FILE).read_text())["hidden"] == dict(psnr=1.0, ssim=0.0)
+
+
+def test_rescore_refuses_an_unfinished_run_before_writing(tiny, joint_run, tmp_path):
+  finished = finished_copy(tiny, joint_run, tmp_path / "finished")
+  unfinished = finished_copy(tiny, joint_run, tmp_path / "unfinished")
+  (unfinished / "student.ply").unlink()
+  with pytest.raises(SystemExit, match="unfinished: missing student.ply"):
+    rescore.main([str(finished), str(unfinished)])
+  assert not (finished / rescore.PREVIOUS_FILE).exists()
 
 
 @pytest.mark.slow  # two runs of 40 steps; no recipe polishes (conceal.decoder_opt.polish_steps is 0 in each)

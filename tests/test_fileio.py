@@ -41,6 +41,15 @@ def test_a_setting_added_since_a_run_was_saved_is_no_change_at_its_default(tmp_p
   assert workdir.differing_keys({"a": 1}, {}, defaults={"a": 1}) == ["a"]  # a key the config lost is a change
 
 
+def test_a_saved_config_takes_the_keys_added_since_at_their_defaults():
+  from conceal_jax.core import workdir
+  saved = {"conceal": {"iterations": 10, "leakage": {"decoy_views": 4}}, "gone": 1}
+  defaults = {"conceal": {"iterations": 5, "leakage": {"decoy_views": 0, "decoy_key_axes": False}}, "seed": 0}
+  assert workdir.with_defaults(saved, defaults) == {
+      "conceal": {"iterations": 10, "leakage": {"decoy_views": 4, "decoy_key_axes": False}}, "gone": 1, "seed": 0}
+  assert workdir.differing_keys(saved, workdir.with_defaults(saved, defaults), defaults=defaults) == []
+
+
 def test_a_setting_retired_since_a_run_was_saved_is_no_change_at_its_retired_value(tmp_path):
   """core.workdir.claim: a saved config holding a key the code removed since resumes when the run had it at the
   value the code now always has (`retired`), and is refused at any other value; the package's retired settings

@@ -51,7 +51,7 @@ ADDED = {"conceal.carrier.film": False, "conceal.carrier.distance": 0.1, "concea
          "conceal.attacks.merge_fraction": 0.0, "train.views_per_step": 1, "mark.message_bits": 0, "mark.message": "",
          "conceal.carrier.dc_bound": 0.0, "conceal.attacks.merge_depth": 1.0,
          "conceal.carrier.stack": 1, "conceal.carrier.spread": 0.6, "train.time_limit_min": 0.0,
-         "conceal.attacks.prune_small_max": 0.0}
+         "conceal.attacks.prune_small_max": 0.0, "conceal.leakage.decoy_key_axes": False}
 # Rows that used a removed option (their results stay in conceal_bench.json and REPRODUCTION's appendix).
 RETIRED_ROWS = {"recommended_no_update_clip_decoder_amsgrad", "recommended_polished_running_average",
                 "recommended_colour_only_student", "recommended_colour_only_student_polished"}

@@ -3,7 +3,8 @@
 "Near the key" (the poses the leakage figure scores, and the decoys the decoder is trained to the identity at)
 means the key turned by degrees about its centre, or moved by a fraction of near_length: the depth of the
 scene as the key sees it, so that a fraction means about the same pixel motion on an object-centred orbit
-and on a forward-facing capture.
+and on a forward-facing capture. The leakage figure scores the moves along and turns about the key's own axes
+(KEY_AXES: forward along the optical axis is the move the image changes least under) and random ones.
 """
 from __future__ import annotations
 
@@ -17,12 +18,24 @@ from conceal_jax.conceal.key import camera_distance, rotation_about
 from conceal_jax.splat.camera import Camera, camera_centers
 
 
-def nearby_camera(camera: Camera, translation: float, rotation_deg: float, seed: int) -> Camera:
+# The key's own axes both ways, in its camera frame (x right, y down, z the optical axis): the leakage figure moves
+# and turns the key along / about each besides its random directions, since a move along the optical axis (a zoom)
+# changes the image least, and a few random directions seldom come close to it.
+KEY_AXES = ((1.0, 0.0, 0.0), (-1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, -1.0, 0.0), (0.0, 0.0, 1.0), (0.0, 0.0, -1.0))
+
+
+def nearby_camera(camera: Camera, translation: float, rotation_deg: float, seed: int,
+                  key_axis: Sequence[float] | None = None) -> Camera:
   """`camera` moved by `translation` (world units) in a random direction and turned by `rotation_deg`
-  about a random axis through its centre; same intrinsics. A pose an attacker might guess near the key."""
+  about a random axis through its centre, both drawn from `seed`; with `key_axis` (a unit vector in the camera's
+  frame, one of KEY_AXES) moved along it and turned about it instead. Same intrinsics. A pose an attacker might
+  guess near the key."""
   rng = np.random.default_rng(seed)
-  direction, axis = rng.normal(size=3), rng.normal(size=3)
+  direction, axis = rng.normal(size=3), rng.normal(size=3)  # world frame; camera frame
   w2c = np.asarray(camera.world_to_camera, np.float64)
+  if key_axis is not None:
+    axis = np.asarray(key_axis, np.float64)
+    direction = w2c[:3, :3].T @ axis
   rotation = rotation_about(axis, math.radians(rotation_deg)) @ w2c[:3, :3]  # turned in the camera frame
   center = camera_centers([camera])[0] + translation * direction / np.linalg.norm(direction)
   moved = np.eye(4)
@@ -81,13 +94,15 @@ def near_length(teacher, camera: Camera, cameras: Sequence[Camera]) -> tuple[flo
 
 def nearby_cameras(camera: Camera, length: float, translations: Sequence[float], rotations_deg: Sequence[float],
                    directions: int) -> list[tuple[str, float, Camera]]:
-  """(kind, value, camera) for `directions` random cameras per translation (a fraction of the key's near-key
-  `length`, near_length; not turned) and per rotation (degrees about the camera centre, which mean the same
-  on any geometry; not moved); a zero value gives the key itself once."""
+  """(kind, value, camera) per translation (a fraction of the key's near-key `length`, near_length; not turned)
+  and per rotation (degrees about the camera centre, which mean the same on any geometry; not moved): the six
+  along / about the key's own axes (KEY_AXES), then `directions` random ones; a zero value gives the key itself
+  once."""
   poses = [("translation", t) for t in translations] + [("rotation", r) for r in rotations_deg]
+  ways = [dict(seed=0, key_axis=axis) for axis in KEY_AXES] + [dict(seed=seed) for seed in range(directions)]
   return [(kind, value, nearby_camera(camera, value * length if kind == "translation" else 0.0,
-                                      value if kind == "rotation" else 0.0, seed))
-          for kind, value in poses for seed in range(directions if value else 1)]
+                                      value if kind == "rotation" else 0.0, **way))
+          for kind, value in poses for way in (ways if value else ways[:1])]
 
 
 # Decoy directions come from seeds far from the 0 .. directions-1 that `nearby_cameras` scores leakage
@@ -96,12 +111,14 @@ DECOY_SEED_BASE = 1_000_000
 
 
 def decoy_cameras(camera: Camera, length: float, count: int, translation: Sequence[float],
-                  rotation_deg: Sequence[float], seed: int = 0) -> list[Camera]:
+                  rotation_deg: Sequence[float], seed: int = 0, key_axes: bool = False) -> list[Camera]:
   """`count` cameras near the key, for training the decoder to stay the identity there (conceal.leakage.decoy_*).
 
   Each is moved by a fraction of the key's near-key `length` (near_length, the unit the leakage figure's
   translations use) drawn uniformly from `translation` (lo, hi), turned by degrees drawn from `rotation_deg`
-  (lo, hi), or both, the three kinds in turn; directions are random.
+  (lo, hi), or both, the three kinds in turn; directions are random, except with `key_axes`, where the decoys
+  that are only moved go along the key's own axes in turn (KEY_AXES: forward and back along the optical axis among
+  them, the moves a decoder trained on random directions reveals its image at).
   """
   cameras = []
   for k in range(count):
@@ -109,5 +126,6 @@ def decoy_cameras(camera: Camera, length: float, count: int, translation: Sequen
     kind = k % 3  # 0: moved, 1: turned, 2: both
     moved = rng.uniform(*translation) * length if kind in (0, 2) else 0.0
     turned = rng.uniform(*rotation_deg) if kind in (1, 2) else 0.0
-    cameras.append(nearby_camera(camera, moved, turned, DECOY_SEED_BASE + seed * count + k))
+    axis = KEY_AXES[(k // 3) % len(KEY_AXES)] if key_axes and kind == 0 else None
+    cameras.append(nearby_camera(camera, moved, turned, DECOY_SEED_BASE + seed * count + k, key_axis=axis))
   return cameras

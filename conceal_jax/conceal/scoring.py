@@ -24,8 +24,8 @@ from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.render import RenderOptions, render
 
 # Leakage near the key: the student at the check pose moved by these fractions of the key's near-key length
-# (near.near_length: the depth of the scene as the key sees it), or turned by these degrees, each in
-# NEAR_DIRECTIONS random directions.
+# (near.near_length: the depth of the scene as the key sees it), or turned by these degrees, each along / about the
+# key's own axes both ways (near.KEY_AXES) and in NEAR_DIRECTIONS random directions.
 NEAR_TRANSLATIONS = (0.02, 0.05)
 NEAR_ROTATIONS_DEG = (2.0, 5.0)
 NEAR_DIRECTIONS = 4
@@ -47,7 +47,7 @@ def near_key_rows(gaussians, check_camera: Camera, options: RenderOptions, revea
                   translations=NEAR_TRANSLATIONS, rotations_deg=NEAR_ROTATIONS_DEG,
                   directions: int = NEAR_DIRECTIONS) -> list[dict]:
   """What `reveal_fn` reveals at poses near the key (near.nearby_cameras): per (kind, value), the mean and max
-  SSIM and the mean PSNR to I over the random directions (to the best of several hidden images); translations
+  SSIM and the mean PSNR to I over the directions (to the best of several hidden images); translations
   are fractions of `length`, the key's near.near_length."""
   poses = near.nearby_cameras(check_camera, length, translations, rotations_deg, directions)
   renders = evaluate.render_images(gaussians, [camera for _, _, camera in poses], options)
@@ -96,7 +96,8 @@ def leakage_scores(config, workdir: str, scene, teacher, student, reveal_fn, key
   every hidden image [K, S, S, 3]; writes the student's test renders and normal_revealed.png (the test
   view whose decoder output looks most like a hidden image). `near_key_length` per key: the length its
   near-key translations are fractions of (near.near_length of the clean `teacher`), what it is, and the
-  scene extent beside it."""
+  scene extent beside it; `near_poses`: the directions each near-key move and turn is scored in (the key's
+  own axes, random ones), which figures scored before the axes were added lack."""
   eval_opts = evaluate.eval_options(config, scene.background)
   cameras, targets, names = evaluate.held_out_views(scene, config.eval.max_views)
   student_renders = evaluate.render_images(student, cameras, eval_opts)
@@ -121,6 +122,7 @@ def leakage_scores(config, workdir: str, scene, teacher, student, reveal_fn, key
       near_rows=near_rows, num_test_views=len(names), lpips_net=metrics.LPIPS_NET_NAME[net],
       near_key_length=[dict(length=length, source=source, scene_extent=scene.scene_extent())
                        for length, source in lengths],
+      near_poses=dict(key_axes=len(near.KEY_AXES), random_directions=NEAR_DIRECTIONS),
       eval_render_options=repr(eval_opts))
 
 

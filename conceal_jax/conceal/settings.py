@@ -109,8 +109,8 @@ class ConcealSettings:
 class RunPlan:
   """What a concealment job reads from its config, checked: the step's settings, the loop (the joint
   iterations then conceal.decoder_opt.polish_steps decoder-only steps), the sources of the hidden images
-  (mark.hidden then mark.extra_hidden), the key's kind, the decoys' (count, translation and rotation
-  ranges) and the carrier film's (None: the student is the teacher's Gaussians)."""
+  (mark.hidden then mark.extra_hidden), the key's kind, the decoys' (count, ranges, whether the moved ones go
+  along the key's axes) and the carrier film's (None: the student is the teacher's Gaussians)."""
   settings: ConcealSettings
   loop: loop.LoopSettings
   iterations: int
@@ -124,6 +124,7 @@ class RunPlan:
   decoy_translation: tuple[float, float]
   decoy_rotation_deg: tuple[float, float]
   film: Film | None = None
+  decoy_key_axes: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -209,7 +210,8 @@ def plan(config: ml_collections.ConfigDict) -> RunPlan:
     raise ValueError("conceal.carrier.dc_bound bounds the carrier film's colours: it needs conceal.carrier.film")
   return RunPlan(settings, dataclasses.replace(joint, iterations=joint.iterations + polish), c.iterations, polish,
                  sources, m.key_kind, m.key_index, m.key_seed, key_offset(config), lk.decoy_views,
-                 ranges["decoy_translation"], ranges["decoy_rotation_deg"], film_plan(config))
+                 ranges["decoy_translation"], ranges["decoy_rotation_deg"], film_plan(config),
+                 bool(lk.decoy_key_axes))
 
 
 def extra_hidden(extra, use_decoder: bool) -> tuple[str, ...]:

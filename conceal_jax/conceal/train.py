@@ -70,7 +70,7 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
           for (camera, info), (length, source) in zip(keys, lengths)]
   decoys = [decoy for k, (camera, info) in enumerate(keys)
             for decoy in near.decoy_cameras(camera, info["near_length"], plan.decoy_views, plan.decoy_translation,
-                                               plan.decoy_rotation_deg, plan.key_seed + k)]
+                                               plan.decoy_rotation_deg, plan.key_seed + k, plan.decoy_key_axes)]
   # the released variant's check-view L1 target: the training image at a training-camera key, else the
   # teacher's render (an orbit pose has no image)
   key_images = ([scene.train_images[info["index"]] for _, info in keys] if plan.key_kind == "train_index" else None)
@@ -191,3 +191,16 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
     scored = dict(scored, message=message_lib.read_message(np.asarray(revealed), run.message))
     fileio.write_json(os.path.join(workdir, MESSAGE_FILE), scored["message"])
   return dict(summary, metrics=scored)
+
+
+def score_saved(config: ml_collections.ConfigDict, workdir: str) -> dict:
+  """metrics.json of a finished run scored again from its saved student.ply and decoder.msgpack, with the keys,
+  hidden images and render options `prepare` chooses for `config` (the run's config.json): for runs trained before
+  the scoring changed."""
+  plan = settings_lib.plan(config)
+  run = prepare(config, plan)
+  student = ply.load_ply(os.path.join(workdir, STUDENT_FILE))
+  decoder = reveal.load_decoder(os.path.join(workdir, DECODER_FILE)) if plan.settings.use_decoder else {}
+  return scoring.evaluate_concealment(config, workdir, run.scene, run.teacher, student,
+                                      reveal_fn(plan.settings, decoder), [camera for camera, _ in run.keys],
+                                      run.hiddens, run.options)

@@ -244,7 +244,9 @@ def conceal_leakage_section() -> ml_collections.ConfigDict:
   (near.near_length) is the opacity-weighted median depth of the teacher's Gaussians in its image (the camera
   distance for a key that sees almost none): the unit of the near-key leakage figure's translations too, so that
   a fraction means about the same pixel motion on an object-centred orbit and on a forward-facing capture, where
-  the 3D-GS extent (the spread of the camera centres) is small against the depth."""
+  the 3D-GS extent (the spread of the camera centres) is small against the depth. decoy_key_axes: the decoys that
+  are only moved go along the key's own axes in turn (forward and back along its optical axis among them) rather
+  than in random directions."""
   c = ml_collections.ConfigDict()
   c.identity_on_student = False
   c.identity_on_teacher_check = False
@@ -252,6 +254,7 @@ def conceal_leakage_section() -> ml_collections.ConfigDict:
   c.decoy_fraction = 0.0
   c.decoy_translation = (0.01, 0.1)
   c.decoy_rotation_deg = (1.0, 10.0)
+  c.decoy_key_axes = False
   return c
 
 

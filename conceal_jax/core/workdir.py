@@ -27,6 +27,16 @@ def flatten(tree: dict, prefix: str = "") -> dict:
   return flat
 
 
+def with_defaults(saved: dict, defaults: dict) -> dict:
+  """`saved` (a run's config.json) with the keys `defaults` holds and it lacks (those added since it was written)
+  at their default values."""
+  merged = dict(defaults)
+  for name, value in saved.items():
+    below = defaults.get(name)
+    merged[name] = with_defaults(value, below) if isinstance(value, dict) and isinstance(below, dict) else value
+  return merged
+
+
 def differing_keys(saved: dict, config: dict, defaults: dict | None = None, retired: dict | None = None) -> list[str]:
   """The dotted keys whose values differ between two configs (missing on one side counts, except a key `saved`
   lacks that `config` holds at its value in `defaults`, and a dotted key `config` lacks that `saved` holds at its

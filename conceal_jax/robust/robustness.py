@@ -145,8 +145,8 @@ def pose_tolerance_rows(gaussians: Gaussians, owner: Owner, length: float,
                         rotations_deg: Sequence[float] = (0.0, 0.25, 0.5, 1.0, 2.0, 5.0),
                         directions: int = 4) -> list[dict]:
   """Hidden SSIM / PSNR with the check camera moved by fractions of `length` (the key's near.near_length, the
-  depth of the scene as it sees it; rotation 0) and turned by a few degrees (translation 0), each over
-  `directions` random directions or axes: how precisely the key must be kept, and how much a guessed nearby
-  pose reveals."""
+  depth of the scene as it sees it; rotation 0) and turned by a few degrees (translation 0), each along / about the
+  key's own axes both ways and `directions` random directions or axes (near.nearby_cameras): how precisely the key
+  must be kept, and how much a guessed nearby pose reveals."""
   return scoring.near_key_rows(gaussians, owner.check_camera, owner.options, owner.reveal_renders, owner.hidden,
                               length, translations, rotations_deg, directions)
