@@ -134,7 +134,7 @@ def test_near_poses_move_along_and_turn_about_the_keys_own_axes_then_random_ones
   np.testing.assert_allclose(roll[2], w2c[2, :3], atol=1e-9)
 
 
-def test_decoys_moved_along_the_keys_axes_take_each_axis_in_turn():
+def test_decoys_moved_along_or_turned_about_the_keys_axes_take_each_axis_in_turn():
   check = Camera.from_intrinsics(look_at([0.0, -4.0, 1.0], [0.0, 0.0, 0.0]), 40.0, 40.0, 16.0, 16.0, 32, 32)
   w2c = np.asarray(check.world_to_camera, np.float64)
   center = camera_centers([check])[0]
@@ -142,10 +142,17 @@ def test_decoys_moved_along_the_keys_axes_take_each_axis_in_turn():
   decoys = near.decoy_cameras(check, 2.0, 24, (0.05, 0.1), (3.0, 6.0), seed=1, key_axes=True)
   for k, (decoy, other) in enumerate(zip(decoys, plain)):
     move = camera_centers([decoy])[0] - center
-    if k % 3:  # turned, or moved and turned: as without key_axes
+    axis = np.asarray(near.KEY_AXES[(k // 3) % 6])
+    if k % 3 == 2:  # moved and turned: as without key_axes
       np.testing.assert_array_equal(np.asarray(decoy.world_to_camera), np.asarray(other.world_to_camera))
       continue
-    axis = np.asarray(near.KEY_AXES[(k // 3) % 6])
+    if k % 3 == 1:  # turned about the axis by the plain decoy's angle, not moved
+      r0, r1 = w2c[:3, :3], np.asarray(other.world_to_camera, np.float64)[:3, :3]
+      angle = np.arccos(np.clip((np.trace(r1 @ r0.T) - 1) / 2, -1, 1))
+      np.testing.assert_allclose(np.asarray(decoy.world_to_camera)[:3, :3], key.rotation_about(axis, angle) @ r0,
+                                 atol=1e-5)
+      assert np.linalg.norm(move) < 1e-5
+      continue
     np.testing.assert_allclose(move / np.linalg.norm(move), w2c[:3, :3].T @ axis, atol=1e-5)
     np.testing.assert_allclose(np.linalg.norm(move), np.linalg.norm(camera_centers([other])[0] - center), atol=1e-6)
     np.testing.assert_allclose(np.asarray(decoy.world_to_camera)[:3, :3], w2c[:3, :3], atol=1e-6)

@@ -117,8 +117,9 @@ def decoy_cameras(camera: Camera, length: float, count: int, translation: Sequen
   Each is moved by a fraction of the key's near-key `length` (near_length, the unit the leakage figure's
   translations use) drawn uniformly from `translation` (lo, hi), turned by degrees drawn from `rotation_deg`
   (lo, hi), or both, the three kinds in turn; directions are random, except with `key_axes`, where the decoys
-  that are only moved go along the key's own axes in turn (KEY_AXES: forward and back along the optical axis among
-  them, the moves a decoder trained on random directions reveals its image at).
+  that are only moved go along, and those only turned turn about, the key's own axes in turn (KEY_AXES: a move
+  along the optical axis and a roll about it among them, the poses a decoder trained on random directions reveals
+  its image at).
   """
   cameras = []
   for k in range(count):
@@ -126,6 +127,6 @@ def decoy_cameras(camera: Camera, length: float, count: int, translation: Sequen
     kind = k % 3  # 0: moved, 1: turned, 2: both
     moved = rng.uniform(*translation) * length if kind in (0, 2) else 0.0
     turned = rng.uniform(*rotation_deg) if kind in (1, 2) else 0.0
-    axis = KEY_AXES[(k // 3) % len(KEY_AXES)] if key_axes and kind == 0 else None
+    axis = KEY_AXES[(k // 3) % len(KEY_AXES)] if key_axes and kind in (0, 1) else None
     cameras.append(nearby_camera(camera, moved, turned, DECOY_SEED_BASE + seed * count + k, key_axis=axis))
   return cameras

@@ -245,8 +245,8 @@ def conceal_leakage_section() -> ml_collections.ConfigDict:
   distance for a key that sees almost none): the unit of the near-key leakage figure's translations too, so that
   a fraction means about the same pixel motion on an object-centred orbit and on a forward-facing capture, where
   the 3D-GS extent (the spread of the camera centres) is small against the depth. decoy_key_axes: the decoys that
-  are only moved go along the key's own axes in turn (forward and back along its optical axis among them) rather
-  than in random directions."""
+  are only moved go along, and those only turned turn about, the key's own axes in turn (a zoom and a roll among
+  them) rather than random ones."""
   c = ml_collections.ConfigDict()
   c.identity_on_student = False
   c.identity_on_teacher_check = False
