@@ -82,3 +82,23 @@ def test_gradients_match_central_differences(x64, n, antialiased):
       fd[idx] = (_reference_loss(plus, weights, cam, options) - _reference_loss(minus, weights, cam, options)) / (2 * h)
     assert np.max(np.abs(fd)) > 1e-3, f"leaf {k}: the scene must depend on these parameters"
     np.testing.assert_allclose(np.asarray(grad), fd, rtol=1e-3, atol=1e-3 * np.max(np.abs(fd)))
+
+
+@pytest.mark.parametrize("tile_size", [4, 16])
+def test_splats_beside_the_image_report_radius_zero_and_render_nothing(tile_size):
+  """A splat in front of the camera whose 3-sigma square touches no tile reports radius 0, as the 3D-GS
+  rasterizer does (densification reads radii as visibility and screen size); the image is the same with and
+  without it, and splats on the image keep their radii."""
+  camera = make_camera(32, 24)
+  scene = random_gaussians(3, 20, degree=1)
+  w2c = np.asarray(camera.world_to_camera, np.float64)
+  beside = w2c[:3, :3].T @ (np.array([6.0, 0.0, 4.0]) - w2c[:3, 3])  # 6 units right of the axis at depth 4
+  lone = random_gaussians(4, 1, degree=1).replace(means=jnp.asarray(beside[None], jnp.float32),
+                                                 log_scales=jnp.full((1, 3), -2.3))
+  joined = jax.tree.map(lambda a, b: jnp.concatenate([a, b]), scene, lone)
+  options = RenderOptions(tile_size=tile_size)
+  alone, together = render(scene, camera, options), render(joined, camera, options)
+  assert int(together.radii[-1]) == 0
+  np.testing.assert_array_equal(np.asarray(together.radii[:-1]), np.asarray(alone.radii))
+  assert int(jnp.sum(alone.radii > 0)) > 10
+  np.testing.assert_allclose(np.asarray(together.rgb), np.asarray(alone.rgb), atol=1e-6)

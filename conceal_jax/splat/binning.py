@@ -51,6 +51,14 @@ def tile_rects(means2d: jax.Array, radii: jax.Array, tile_size: int,
   return lo.astype(jnp.int32), hi.astype(jnp.int32)
 
 
+def on_tile_radii(means2d: jax.Array, radii: jax.Array, tile_size: int, grid: tuple[int, int]) -> jax.Array:
+  """[N] `radii`, 0 for splats whose 3-sigma square touches no tile of the image (in front of the camera but
+  beside its image): the screen radius the 3D-GS rasterizer reports (zero where its tile rectangle is empty),
+  which densification reads as visibility and prunes screen-large splats by."""
+  lo, hi = tile_rects(means2d, radii, tile_size, grid)
+  return jnp.where(jnp.all(hi > lo, axis=-1), radii, 0)
+
+
 def alpha_level(opacities: jax.Array) -> jax.Array:
   """[N] opacities -> [N] 2 ln(255 o): alpha = o exp(-q/2) >= 1/255 exactly where q <= this level.
 

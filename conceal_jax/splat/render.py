@@ -95,7 +95,7 @@ class RenderOptions:
 class RenderOutput:
   """rgb: [H, W, 3]; alpha: [H, W] or None; depth: [H, W] or None (expected z of the visible splats);
   num_overflow_tiles: int32, tiles with more than max_per_tile pairs (0 in the exact default);
-  radii: [N] int32 3D-GS screen radius (3 sigma) of every Gaussian in pixels, 0 where culled;
+  radii: [N] int32 3D-GS screen radius (3 sigma) of every Gaussian in pixels, 0 where culled or beside the image;
   num_pairs: int32 splat-tile pairs the image needs; pair_capacity: static int, the capacity used."""
   rgb: jax.Array
   alpha: jax.Array | None
@@ -219,7 +219,8 @@ def _render(gaussians: Gaussians, camera: Camera, options: RenderOptions,
   depth = tile_values[..., 3] / jnp.maximum(alpha, _DEPTH_ALPHA_FLOOR) if options.with_depth else None
   untile = lambda x: _untile(x, grid, ts, camera) if x is not None else None
   return RenderOutput(rgb=untile(rgb), alpha=untile(alpha) if options.with_alpha else None,
-                      depth=untile(depth), num_overflow_tiles=overflow_tiles, radii=splats.radii,
+                      depth=untile(depth), num_overflow_tiles=overflow_tiles,
+                      radii=binning.on_tile_radii(splats.means2d, splats.radii, ts, grid),
                       num_pairs=pairs.num_pairs, pair_capacity=capacity)
 
 
