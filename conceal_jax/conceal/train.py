@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -51,23 +52,40 @@ class Run:
   message: np.ndarray | None = None  # the bits hidden in message mode (mark.message_bits), hiddens[0] their image
 
 
-def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Run:
-  """Loads the teacher, the scene and the hidden images, chooses the keys (and decoys around each, from its
-  own seed) and renders what the step reads of the teacher."""
-  s = plan.settings
+class Marking(NamedTuple):
+  """What a concealment hides where, and what it is scored against: the teacher, the scene, the hidden images
+  [K][S, S, 3], the key cameras [K] with their key.json descriptions, the render options, and the bits hidden in
+  message mode (mark.message_bits; hiddens[0] their image)."""
+  teacher: object
+  scene: object
+  hiddens: list
+  keys: list
+  options: render_lib.RenderOptions
+  message: np.ndarray | None
+
+
+def marking(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Marking:
+  """Loads the teacher, the scene and the hidden images and chooses the keys (nothing rendered)."""
   teacher = ply.load_ply(config.mark.teacher)
-  hiddens = [hidden_lib.load_hidden_image(source, s.hidden_size) for source in plan.sources]
+  hiddens = [hidden_lib.load_hidden_image(source, plan.settings.hidden_size) for source in plan.sources]
   message = message_lib.configured_message(config.mark, config.seed)
   if message is not None:
-    hiddens[0] = message_lib.message_image(message, s.hidden_size)
+    hiddens[0] = message_lib.message_image(message, plan.settings.hidden_size)
   scene = evaluate.load_scene_data(config)
   keys = key_lib.key_cameras(scene.train_cameras, plan.key_kind, plan.key_index, plan.key_seed, len(hiddens) - 1,
                              plan.key_offset)
-  options = evaluate.render_options(config, scene.background)
   # each key records the length its decoys' (and the leakage figure's) translations are fractions of
   lengths = [near.near_length(teacher, camera, scene.train_cameras) for camera, _ in keys]
   keys = [(camera, dict(info, near_length=length, near_length_from=source))
           for (camera, info), (length, source) in zip(keys, lengths)]
+  return Marking(teacher, scene, hiddens, keys, evaluate.render_options(config, scene.background), message)
+
+
+def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Run:
+  """The marking, decoys around each key (from its own seed), the carrier film, and what the step reads of the
+  teacher, rendered."""
+  s = plan.settings
+  teacher, scene, hiddens, keys, options, message = marking(config, plan)
   decoys = [decoy for k, (camera, info) in enumerate(keys)
             for decoy in near.decoy_cameras(camera, info["near_length"], plan.decoy_views, plan.decoy_translation,
                                                plan.decoy_rotation_deg, plan.key_seed + k, plan.decoy_key_axes)]
@@ -183,9 +201,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
                  pair_capacity=steps.capacity, capacity_reruns=steps.reruns, capacity_shrinks=steps.shrinks,
                  history=result.history)
   fileio.write_json(os.path.join(workdir, SUMMARY_FILE), summary)
-  scored = scoring.evaluate_concealment(config, workdir, run.scene, run.teacher, state.student,
-                                        reveal_fn(s, state.decoder), [camera for camera, _ in run.keys], run.hiddens,
-                                        run.options)
+  scored = score_student(config, workdir, run, s, state.student, state.decoder)
   if run.message is not None:  # what the key reveals from the student, read as the message (message.json)
     revealed = scoring.reveal_at_keys(state.student, [run.keys[0][0]], run.options, reveal_fn(s, state.decoder))[0]
     scored = dict(scored, message=message_lib.read_message(np.asarray(revealed), run.message))
@@ -193,14 +209,18 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   return dict(summary, metrics=scored)
 
 
+def score_student(config: ml_collections.ConfigDict, workdir: str, marked: Marking | Run,
+                  settings: settings_lib.ConcealSettings, student, decoder) -> dict:
+  """metrics.json (scoring.evaluate_concealment) of `student` read with `decoder` at the keys of `marked`."""
+  return scoring.evaluate_concealment(config, workdir, marked.scene, marked.teacher, student,
+                                      reveal_fn(settings, decoder), [camera for camera, _ in marked.keys],
+                                      marked.hiddens, marked.options)
+
+
 def score_saved(config: ml_collections.ConfigDict, workdir: str) -> dict:
-  """metrics.json of a finished run scored again from its saved student.ply and decoder.msgpack, with the keys,
-  hidden images and render options `prepare` chooses for `config` (the run's config.json): for runs trained before
-  the scoring changed."""
+  """metrics.json of a finished run scored again from its saved student.ply and decoder.msgpack, at the keys
+  `marking` chooses for `config` (the run's config.json): for runs trained before the scoring changed."""
   plan = settings_lib.plan(config)
-  run = prepare(config, plan)
   student = ply.load_ply(os.path.join(workdir, STUDENT_FILE))
   decoder = reveal.load_decoder(os.path.join(workdir, DECODER_FILE)) if plan.settings.use_decoder else {}
-  return scoring.evaluate_concealment(config, workdir, run.scene, run.teacher, student,
-                                      reveal_fn(plan.settings, decoder), [camera for camera, _ in run.keys],
-                                      run.hiddens, run.options)
+  return score_student(config, workdir, marking(config, plan), plan.settings, student, decoder)

@@ -54,7 +54,7 @@ def tile_rects(means2d: jax.Array, radii: jax.Array, tile_size: int,
 def on_tile_radii(means2d: jax.Array, radii: jax.Array, tile_size: int, grid: tuple[int, int]) -> jax.Array:
   """[N] `radii`, 0 for splats whose 3-sigma square touches no tile of the image (in front of the camera but
   beside its image): the screen radius the 3D-GS rasterizer reports (zero where its tile rectangle is empty),
-  which densification reads as visibility and prunes screen-large splats by."""
+  which binning then skips and densification reads as visibility and prunes screen-large splats by."""
   lo, hi = tile_rects(means2d, radii, tile_size, grid)
   return jnp.where(jnp.all(hi > lo, axis=-1), radii, 0)
 

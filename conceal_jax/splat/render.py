@@ -203,6 +203,7 @@ def _render(gaussians: Gaussians, camera: Camera, options: RenderOptions,
     splats = splats.replace(means2d=splats.means2d + jnp.where(splats.radii[:, None] > 0, means2d_offset, 0))
   ts, length = options.tile_size, options.segment_size
   grid = binning.tile_grid(camera.width, camera.height, ts)
+  splats = splats.replace(radii=binning.on_tile_radii(splats.means2d, splats.radii, ts, grid))
   num_tiles = grid[0] * grid[1]
   pairs = binning.bin_pairs(splats.means2d, splats.cov2d, splats.depths, splats.opacities, splats.radii, ts,
                             grid, capacity)
@@ -219,8 +220,7 @@ def _render(gaussians: Gaussians, camera: Camera, options: RenderOptions,
   depth = tile_values[..., 3] / jnp.maximum(alpha, _DEPTH_ALPHA_FLOOR) if options.with_depth else None
   untile = lambda x: _untile(x, grid, ts, camera) if x is not None else None
   return RenderOutput(rgb=untile(rgb), alpha=untile(alpha) if options.with_alpha else None,
-                      depth=untile(depth), num_overflow_tiles=overflow_tiles,
-                      radii=binning.on_tile_radii(splats.means2d, splats.radii, ts, grid),
+                      depth=untile(depth), num_overflow_tiles=overflow_tiles, radii=splats.radii,
                       num_pairs=pairs.num_pairs, pair_capacity=capacity)
 
 
