@@ -138,7 +138,7 @@ bench-falloff: $(STAMP)
 	$(PY) -m experiments.bench_falloff --out=experiments/results $(BENCH_ARGS)
 
 # the survival designs' runs that bench-survive scores: demo.py's variants in the demo teacher of `make demo`
-# (trained first if missing), and lego_conceal.py:film in bench-train's lego teacher when present (LEGO_FILM_STEPS)
+# (trained first if missing), and lego_conceal.py:recommended in bench-train's lego teacher when present (LEGO_FILM_STEPS)
 SURVIVE_RUNS := workdirs/survive_runs
 LEGO_TEACHER := workdirs/bench/lego/teacher/point_cloud.ply
 LEGO_FILM_STEPS ?= 10000
@@ -150,7 +150,7 @@ survive-runs: $(STAMP) | $(WORKDIR)/teacher/point_cloud.ply
 	  $(PY) -m conceal_jax.main --config=conceal_jax/configs/demo.py:$$variant --workdir=$(SURVIVE_RUNS)/demo_$$variant \
 	  --config.mode=conceal --config.mark.teacher=$(WORKDIR)/teacher/point_cloud.ply || exit 1; done
 	test -f $(SURVIVE_RUNS)/lego_film/metrics.json || if [ -f $(LEGO_TEACHER) ]; then \
-	  $(PY) -m conceal_jax.main --config=conceal_jax/configs/lego_conceal.py:film --workdir=$(SURVIVE_RUNS)/lego_film \
+	  $(PY) -m conceal_jax.main --config=conceal_jax/configs/lego_conceal.py:recommended --workdir=$(SURVIVE_RUNS)/lego_film \
 	  --config.mark.teacher=$(LEGO_TEACHER) --config.conceal.iterations=$(LEGO_FILM_STEPS); \
 	  else echo "no lego teacher ($(LEGO_TEACHER)): make bench-train"; fi
 

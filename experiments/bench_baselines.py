@@ -48,7 +48,7 @@ ROWS.update({f"steganerf_{p}": {"method": "steganerf", "steganerf.protocol": p,
                                 "steganerf.decoder_lr": STEGANERF_NETWORKS_LR,
                                 "steganerf.classifier_lr": STEGANERF_NETWORKS_LR}
              for p in ("all_views", "check_view")})
-# ... the check-view row at 12k steps: bench-conceal's recommended_polished trains its decoder 2000
+# ... the check-view row at 12k steps: bench-conceal's in_scene_polished trains its decoder 2000
 # steps past the 10k joint ones, so this is StegaNeRF given as long (its rates decay over the 12k)
 ROWS["steganerf_check_view_12k"] = dict(ROWS["steganerf_check_view"], iterations=12_000)
 # ... and the 10k check-view row again from another seed (its networks' start and its order of views): the 10k

@@ -29,13 +29,13 @@ from experiments.bench_train import scene_config
 
 
 def leakage_control(config):
-  """The paper with leakage control and the gentle student: the recommended recipe's first steps."""
+  """The paper with leakage control and the gentle student: the in_scene recipe's first steps."""
   return recipes.gentle_student(recipes.leakage_control(recipes.paper(config), recipes.DECOY_VIEWS))
 
 
 def through_attacks(clip_input: bool):
   """leakage_control trained through attacks, the decoder reading renders clipped to [0, 1] (`clip_input`) or as
-  they are. With the clip it is the recommended recipe before its decoder schedule (the rate decaying to 0.3x, each
+  they are. With the clip it is the in_scene recipe before its decoder schedule (the rate decaying to 0.3x, each
   tensor's step clipped to RMS 1)."""
   return lambda config: recipes.through_attacks(leakage_control(config), clip_input=clip_input)
 
@@ -59,17 +59,18 @@ ROWS = {
     "leakage_control_through_attacks_centered_input": (through_attacks(False),
                                                        {DECODER_DECAY: 0.1, "conceal.decoder.input_norm": "center"}),
     "leakage_control_through_attacks_clipped_input": (through_attacks(True), {DECODER_DECAY: 0.1}),
-    "recommended_steganerf_decoder_schedule": (through_attacks(True), {DECODER_DECAY: 0.1,
-                                                                       "conceal.decoder_opt.lr": 1e-3,
-                                                                       "conceal.decoder_opt.adam_eps": 1e-8}),
-    "recommended_no_update_clip": (through_attacks(True), {DECODER_DECAY: 0.3}),
-    "recommended_no_update_clip_decoder_decay05": (through_attacks(True), {DECODER_DECAY: 0.5}),
+    "in_scene_steganerf_decoder_schedule": (through_attacks(True), {DECODER_DECAY: 0.1,
+                                                                    "conceal.decoder_opt.lr": 1e-3,
+                                                                    "conceal.decoder_opt.adam_eps": 1e-8}),
+    "in_scene_no_update_clip": (through_attacks(True), {DECODER_DECAY: 0.3}),
+    "in_scene_no_update_clip_decoder_decay05": (through_attacks(True), {DECODER_DECAY: 0.5}),
+    "in_scene": ("in_scene", {}),
     "recommended": ("recommended", {}),
-    "recommended_decoder_decay05": ("recommended", {DECODER_DECAY: 0.5}),
-    "recommended_polished": ("recommended", POLISHED),
-    "recommended_decoder_lr3e4": ("recommended", {"conceal.decoder_opt.lr": 3e-4}),
-    "recommended_no_update_clip_seed1": (through_attacks(True), {DECODER_DECAY: 0.3, "seed": 1}),
-    "recommended_no_update_clip_seed1_polished": (through_attacks(True), {DECODER_DECAY: 0.3, "seed": 1, **POLISHED}),
+    "in_scene_decoder_decay05": ("in_scene", {DECODER_DECAY: 0.5}),
+    "in_scene_polished": ("in_scene", POLISHED),
+    "in_scene_decoder_lr3e4": ("in_scene", {"conceal.decoder_opt.lr": 3e-4}),
+    "in_scene_no_update_clip_seed1": (through_attacks(True), {DECODER_DECAY: 0.3, "seed": 1}),
+    "in_scene_no_update_clip_seed1_polished": (through_attacks(True), {DECODER_DECAY: 0.3, "seed": 1, **POLISHED}),
     "released_polished": ("released", POLISHED),
     "released_seed1": ("released", {"seed": 1}),
     "released_decoder_decay03_update_clip": ("released", {DECODER_DECAY: 0.3, **UPDATE_CLIP}),
@@ -82,12 +83,14 @@ ROWS = {
 }
 # A row that continues another's run starts from that run's checkpoint at the end of its joint steps, where its
 # config is the other's up to the continuation (the polish steps), so it costs only its extra steps.
-CONTINUES = dict(released_polished="released", recommended_polished="recommended",
-                 recommended_no_update_clip_seed1_polished="recommended_no_update_clip_seed1")
+CONTINUES = dict(released_polished="released", in_scene_polished="in_scene",
+                 in_scene_no_update_clip_seed1_polished="in_scene_no_update_clip_seed1")
 CONTINUATION_KEY = "conceal.decoder_opt.polish_steps"
 # The released decoder (width 64) starts from VGG16 with lr 1e-4; a narrow one starts from scratch at
 # recipes.NARROW_DECODER_LR.
 DECODER_LR = {64: 1e-4, recipes.NARROW_DECODER_WIDTH: recipes.NARROW_DECODER_LR}
+# A carrier film's grid spacing per scene, in pixels of its key image (as the scene's conceal config sets it).
+FILM_SPACING = dict(lego=lego_conceal.FILM_SPACING)
 WIDTH_FREE_ROWS = ("no_decoder",)  # without a decoder the width does not matter: run once
 # The concealment issue's targets (lego: widths 16 and 64; the time for width 16).
 TARGETS = dict(lego=dict(hidden_psnr=34.0, hidden_ssim=0.99, student_psnr_loss=0.3, leakage=0.2, minutes_width16=60.0),
@@ -130,6 +133,8 @@ def run_config(scene: str, teacher: pathlib.Path, row: str, width: int, iteratio
   config.eval.max_views = eval_views
   recipe, overrides = ROWS[row]
   config = recipes.apply(config, recipe) if isinstance(recipe, str) else recipe(config)
+  if config.conceal.carrier.film and scene in FILM_SPACING:
+    config.conceal.carrier.spacing = FILM_SPACING[scene]
   d = config.conceal.decoder
   d.width, d.vgg_init = width, width == 64
   config.conceal.decoder_opt.lr = DECODER_LR.get(width, config.conceal.decoder_opt.lr)

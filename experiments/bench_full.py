@@ -8,7 +8,7 @@
 2. render: forward and forward+backward time, compile time and XLA's buffer estimate of that teacher on
    the first test view at 400x400 and at 800x800 (the same camera, intrinsics doubled: the original
    NeRF-Synthetic size);
-3. conceal: lego_full.py:recommended in that teacher for --conceal-steps steps: the median step time, and
+3. conceal: lego_full.py:in_scene in that teacher for --conceal-steps steps: the median step time, and
    the 10k-step run it implies.
 gsplat's CUDA rasterizer is not compared: it builds its kernels on install, and the machines this runs on
 reach no package index. Writes full_bench.json and full_bench.md to --out, every row naming its device.
@@ -72,16 +72,16 @@ def render_rows(config, scene_ply: pathlib.Path, repeats: int) -> list[dict]:
 
 def conceal_row(data: pathlib.Path, scene_ply: pathlib.Path, workdir: pathlib.Path, steps: int,
                 lpips_net: str) -> dict:
-  """`steps` steps of the recommended recipe at full resolution: the median step time from the loop's
+  """`steps` steps of the in_scene recipe at full resolution: the median step time from the loop's
   windows (the checkpoint written at the last step holds them)."""
-  config = full_config("recommended", data, lpips_net)
+  config = full_config("in_scene", data, lpips_net)
   config.mark.teacher = str(scene_ply)
   workdir.mkdir(parents=True, exist_ok=True)
   conceal_train.train_and_evaluate(config, str(workdir), max_steps=steps)
   _, meta, _ = checkpoint.load_latest(str(workdir / loop.CHECKPOINT_DIR))
   median = loop.median_step_s(meta["windows"])
   teacher = json.loads((scene_ply.parent / train.TRAIN_FILE).read_text())
-  return dict(kind="conceal", scene="lego_full", recipe="recommended", steps=sum(n for n, _ in meta["windows"]),
+  return dict(kind="conceal", scene="lego_full", recipe="in_scene", steps=sum(n for n, _ in meta["windows"]),
               teacher_iterations=teacher["iterations"], teacher_gaussians=teacher["num_gaussians"],
               median_step_s=median, implied_minutes=median * config.conceal.iterations / 60,
               planned_iterations=config.conceal.iterations, step_devices=meta["step_devices"])

@@ -56,9 +56,9 @@ from experiments import bench_robust
 
 DEFAULT_RUNS = ("workdirs/demo/conceal,workdirs/survive_runs/demo_film,workdirs/survive_runs/demo_film_far_sh,"
                 "workdirs/survive_runs/demo_drift,workdirs/survive_runs/demo_orbit,workdirs/survive_runs/lego_film,"
-                "workdirs/bench/lego/conceal_recommended_w16")
+                "workdirs/bench/lego/conceal_in_scene_w16")
 DEFAULT_MARKED = ("workdirs/demo/conceal,workdirs/survive_runs/demo_pruned,workdirs/survive_runs/lego_film,"
-                  "workdirs/bench/lego/conceal_recommended_w16")
+                  "workdirs/bench/lego/conceal_in_scene_w16")
 DEFAULT_CLEAN = "workdirs/demo/teacher,workdirs/demo_seed1/teacher,workdirs/bench/lego/teacher"
 # message mode (mark.message_bits): demo concealments of 32 and 48 bits and lego's of 48, e.g.
 #   python -m conceal_jax.main --config=conceal_jax/configs/demo.py --workdir=workdirs/message/demo_32 \

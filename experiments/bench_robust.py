@@ -39,7 +39,7 @@ from conceal_jax.robust import image_attacks, ownership, robustness
 
 # The demo trained through attacks (configs/demo_robust.py; the Makefile trains it when missing) and bench-conceal's
 # lego run of the best student, which reads clipped renders too
-DEFAULT_RUNS = "workdirs/demo_robust/conceal,workdirs/bench/lego/conceal_recommended_w16"
+DEFAULT_RUNS = "workdirs/demo_robust/conceal,workdirs/bench/lego/conceal_in_scene_w16"
 # The paper's mild levels (blur sigma <= 1, JPEG quality >= 70) and its finding: mean SSIM drop ~0.02.
 PAPER_MILD = (("blur", lambda s: s <= 1.0), ("jpeg", lambda q: q >= 70))
 

@@ -53,10 +53,10 @@ from conceal_jax.splat.camera import opengl_camera_to_world
 from experiments import bench_robust, results_io
 
 NAME = "survive_bench"
-# label -> (scene, conceal workdir, recipe): the demo's recommended run is configs/demo.py's short recommended recipe
-# (make demo), lego's bench-conceal's recommended row; the survival designs' runs are `make survive-runs`'
-# (configs/demo.py's variants, lego_conceal.py:film)
-SCENES = {"demo": ("demo", "workdirs/demo/conceal", "recommended"),
+# label -> (scene, conceal workdir, recipe): the demo's in_scene run is configs/demo.py's short in_scene recipe
+# (make demo), lego's bench-conceal's in_scene row; the survival designs' runs are `make survive-runs`'
+# (configs/demo.py's variants, lego_conceal.py:recommended)
+SCENES = {"demo": ("demo", "workdirs/demo/conceal", "in_scene"),
           "demo_film": ("demo", "workdirs/survive_runs/demo_film", "film"),
           "demo_film_pub": ("demo", "workdirs/survive_runs/demo_film_pub", "film_pub"),
           "demo_film_web": ("demo", "workdirs/survive_runs/demo_film_web", "film_web"),
@@ -70,7 +70,7 @@ SCENES = {"demo": ("demo", "workdirs/demo/conceal", "recommended"),
           "demo_film_far": ("demo", "workdirs/survive_runs/demo_film_far", "film_far"),
           "demo_drift": ("demo", "workdirs/survive_runs/demo_drift", "drift"),
           "demo_orbit": ("demo", "workdirs/survive_runs/demo_orbit", "orbit"),
-          "lego": ("lego", "workdirs/bench/lego/conceal_recommended_w16", "recommended"),
+          "lego": ("lego", "workdirs/bench/lego/conceal_in_scene_w16", "in_scene"),
           "lego_film": ("lego", "workdirs/survive_runs/lego_film", "film"),
           "lego_film_reset": ("lego", "workdirs/survive_runs/lego_film_reset", "film_reset")}
 TRANSFORMS = ([("rotate", d) for d in (1.0, 5.0, 45.0, 180.0)] + [("translate", f) for f in (0.026, 1.0)]
@@ -81,12 +81,14 @@ CONVERSIONS = ([("sog", None, dict(fmt="sog")), ("spz", None, dict(fmt="spz")),
                + [("decimate", k, dict(fmt="ply", decimate=k)) for k in (0.8, 0.5)]
                + [("sh_bands", d, dict(fmt="ply", sh_degree=d)) for d in (2, 1, 0)])
 CONVERTER_TIMEOUT_S = 3600  # per converter call: .sog clusters a lego scene for many minutes on a CPU
-# What each recipe label of the rows is (the survival designs of issue 39 beside the recommended recipe).
+# What each recipe label of the rows is (the survival designs of issue 39 beside the in_scene recipe).
 RECIPE_NOTES = {
-    "recommended": "the mark in the teacher's Gaussians, refined (configs/demo.py; bench-conceal's recommended lego "
-                   "row)",
-    "film": "the faint carrier film (demo.py:film; recipes.film before it became film_watch's): the key looks where "
-            "no camera looks, one camera distance out from their orbit target, and the film 0.1 camera distances "
+    "in_scene": "the mark in the teacher's Gaussians, refined (recipes.in_scene; configs/demo.py; bench-conceal's "
+                "in_scene lego row)",
+    "recommended": "recipes.recommended: the carrier film (configs/conceal.py's default; the label of a run given by "
+                   "path)",
+    "film": "the faint carrier film (demo.py:film; the film recipe before it became film_watch's): the key looks "
+            "where no camera looks, one camera distance out from their orbit target, and the film 0.1 camera distances "
             "before it, 22 grids of splats at opacity 0.01 (the opacity reset's ceiling); its base colours trained at "
             "rate 1e-2 through 8-bit colours a quarter of the steps, the decoder reading standardized renders, 64 "
             "decoys within 1-10 degrees of the key",
@@ -102,13 +104,13 @@ RECIPE_NOTES = {
                   "weighted 1.5 (recipes.watched_key at 192 decoys; demo.py:film_watch)",
     "film_watch768_2600": "film_watch with 768 decoys, concealed for 2600 steps (demo.py:film_watch with "
                           "--config.conceal.leakage.decoy_views=768 --config.conceal.iterations=2600)",
-    "film_long": "recipes.film's design on the demo: film_watch with 768 decoys for 2600 steps, the check render's "
-                 "8-bit grids including .compressed.ply's of the higher SH bands (demo.py:film_long)",
+    "film_long": "recipes.recommended's design on the demo: film_watch with 768 decoys for 2600 steps, the check "
+                 "render's 8-bit grids including .compressed.ply's of the higher SH bands (demo.py:film_long)",
     "film_long_epyc": "film_long concealed again (the same config and seed) on another 2-core CPU (AMD EPYC), where "
                       "the demo teacher, the same code and seed, trains to 30.85 dB rather than 30.53: a second "
                       "sample of the design (workdirs/survive_runs/demo_film_long, concealed 2026-11-26)",
-    "film_epyc": "lego_conceal.py:film concealed again for 10000 steps on the 2-core CPU (AMD EPYC), resumed from its "
-                 "checkpoint at 5000 (workdirs/survive_runs/lego_film, 2026-11-27)",
+    "film_epyc": "lego_conceal.py:recommended concealed again for 10000 steps on the 2-core CPU (AMD EPYC), resumed "
+                 "from its checkpoint at 5000 (workdirs/survive_runs/lego_film, 2026-11-27)",
     "film_deep": "film_long trained through merges up to 1.5 rounds deep (recipes.DEEP_MERGE_DEPTH; demo.py:film_deep)",
     "film_stack": "film_long with the film's splats in stacks of two at each grid position, their colours trained as "
                   "one at half the rate, and half as many grids (recipes.stacked_film; demo.py:film_stack)",
@@ -123,9 +125,9 @@ RECIPE_NOTES = {
     "film_far": "film_reset with the key half a camera distance out and the film as far again (demo.py:film_far)",
     "film_far_sh": "film_far with the film's SH bands above DC trained too (demo.py:film at commit faa029a; retired: "
                    "the mark went into those bands, which publishing formats drop or coarsen)",
-    "drift": "recommended, the check render drawn from students noised by up to 0.15 of each field's spread "
+    "drift": "in_scene, the check render drawn from students noised by up to 0.15 of each field's spread "
              "(demo.py:drift)",
-    "orbit": "recommended with the key a secret pose on the training orbit (demo.py:orbit)",
+    "orbit": "in_scene with the key a secret pose on the training orbit (demo.py:orbit)",
 }
 # The second figure: fine-tuning curves and the survival-against-render-loss frontier at this many steps.
 CURVES_FIGURE, FRONTIER_STEPS = "survive_curves.png", 1000

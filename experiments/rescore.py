@@ -1,7 +1,7 @@
 """Scores finished concealments again with today's scoring (conceal.train.score_saved), for runs trained before
 the scoring changed (the near-key poses, a leakage figure):
 
-  python -m experiments.rescore workdirs/bench/lego/conceal_recommended_w16 workdirs/demo/conceal
+  python -m experiments.rescore workdirs/bench/lego/conceal_in_scene_w16 workdirs/demo/conceal
 
 Each run's metrics.json is rewritten; the one it replaces is kept as metrics_previous.json (once: a second
 rescore keeps the first original). Prints each run's hidden PSNR / SSIM and leakage before and after. `make

@@ -212,10 +212,22 @@ def test_a_film_needs_an_unseen_key(tiny, tmp_path):
     conceal_train.train_and_evaluate(tiny_config(tiny, **{"carrier.film": True}), str(tmp_path))
   with pytest.raises(ValueError, match="conceal.carrier.dc_bound bounds the carrier film's colours"):
     conceal_train.train_and_evaluate(tiny_config(tiny, **{"carrier.dc_bound": 3.0}), str(tmp_path))
-  for bad in ({"carrier.opacity": 1.0}, {"carrier.spread": 0.0}):
-    with pytest.raises(ValueError, match="conceal.carrier.distance, spacing and spread"):
+  for bad in ({"carrier.opacity": 1.0}, {"carrier.spread": 0.0}, {"carrier.spacing": -1.0}):
+    with pytest.raises(ValueError, match="conceal.carrier.distance and spread must be positive, spacing not"):
       conceal_train.train_and_evaluate(tiny_config(tiny, key_kind="unseen", **{"carrier.film": True, **bad}),
                                        str(tmp_path))
+
+
+def test_a_zero_spacing_follows_the_decoder_input_whatever_the_key_resolution():
+  """spacing 0: two pixels of the decoder's input along the key's shorter side, so the film's splat count does not
+  grow with the key's resolution; a positive spacing is pixels of the key's image as given."""
+  wide = Camera.from_intrinsics(np.eye(4), 400.0, 400.0, 252.0, 189.0, 504, 378)
+  assert carrier.key_spacing(0.0, wide, 64) == pytest.approx(2.0 * 378 / 64)
+  assert carrier.key_spacing(6.0, wide, 64) == 6.0
+  counts = [carrier.film(Camera.from_intrinsics(np.eye(4), 2.0 * n, 2.0 * n, n / 2, n / 2, n, n), 1.0,
+                         carrier.key_spacing(0.0, Camera.from_intrinsics(np.eye(4), 1.0, 1.0, 0.0, 0.0, n, n), 32),
+                         0.3, (0.5, 0.5, 0.5), 0).num for n in (64, 256)]
+  assert counts[0] == counts[1] == 16 * 16
 
 
 def test_layers_are_grids_shifted_within_a_cell_each_splat_at_its_own_depth():

@@ -53,8 +53,8 @@ ADDED = {"conceal.carrier.film": False, "conceal.carrier.distance": 0.1, "concea
          "conceal.carrier.stack": 1, "conceal.carrier.spread": 0.6, "train.time_limit_min": 0.0,
          "conceal.attacks.prune_small_max": 0.0, "conceal.leakage.decoy_key_axes": False}
 # Rows that used a removed option (their results stay in conceal_bench.json and REPRODUCTION's appendix).
-RETIRED_ROWS = {"recommended_no_update_clip_decoder_amsgrad", "recommended_polished_running_average",
-                "recommended_colour_only_student", "recommended_colour_only_student_polished"}
+RETIRED_ROWS = {"in_scene_no_update_clip_decoder_amsgrad", "in_scene_polished_running_average",
+                "in_scene_colour_only_student", "in_scene_colour_only_student_polished"}
 SECTIONS = ("seed", "mode", "data", "render", "eval", "conceal", "mark", "baseline", "train", "init")
 
 
@@ -112,12 +112,14 @@ def test_dataset_configs_resolve_as_frozen(name):
 
 
 def test_recipes_are_the_rows_they_are_measured_by():
-  """configs/lego_conceal.py's recipes are bench-conceal's rows at width 16: recommended and released are the rows
-  of their names, paper is full (the decoder's width and rate aside)."""
+  """configs/lego_conceal.py's recipes are bench-conceal's rows at width 16: recommended, in_scene and released are
+  the rows of their names, paper is full (the decoder's width and rate aside)."""
   lego_conceal = importlib.import_module("conceal_jax.configs.lego_conceal")
-  for recipe, row in (("recommended", "recommended"), ("paper", "full"), ("released", "released")):
+  for recipe, row in (("recommended", "recommended"), ("in_scene", "in_scene"), ("paper", "full"),
+                      ("released", "released")):
     config = lego_conceal.get_config(recipe)
-    expected = bench_conceal.run_config("lego", TEACHER, row, 16 if recipe == "recommended" else 64, 0, 0)
+    narrow = recipe in ("recommended", "in_scene")
+    expected = bench_conceal.run_config("lego", TEACHER, row, 16 if narrow else 64, 0, 0)
     # the bench's paths are absolute and it scores every test view
     config.mark.teacher, config.data.path, config.eval.max_views = str(TEACHER), expected.data.path, 0
     assert workdir.differing_keys(expected.to_dict(), config.to_dict()) == []
@@ -132,16 +134,17 @@ def test_the_generic_conceal_config_takes_a_scene_and_a_teacher(tmp_path):
   lego_conceal = importlib.import_module("conceal_jax.configs.lego_conceal")
   teacher = tmp_path / "teacher.ply"
   teacher.write_bytes(b"ply")  # validation checks that the file exists; the job reads it
-  for recipe in ("recommended", "paper", "released"):
+  for recipe in ("recommended", "in_scene", "paper", "released"):
     config = conceal.get_config(recipe)
     assert config.mode == "conceal" and config.data.path == ""
     with pytest.raises(ValueError, match="mark.teacher"):
       main_lib.MODES["conceal"][0](config)
     config.data.path, config.mark.teacher = "demo", str(teacher)
     conceal_settings.validate(config)
-    # the same recipe as lego's, which records its curves besides
+    # the same recipe as lego's, which records its curves besides and sets its film's grid in lego's pixels
     expected = lego_conceal.get_config(recipe).conceal.to_dict()
-    assert workdir.differing_keys(expected, config.conceal.to_dict()) == ["eval_every", "eval_views"]
+    film = ["carrier.spacing"] if config.conceal.carrier.film else []
+    assert workdir.differing_keys(expected, config.conceal.to_dict()) == film + ["eval_every", "eval_views"]
   assert conceal.get_config().conceal.to_dict() == conceal.get_config("recommended").conceal.to_dict()
   with pytest.raises(ValueError, match="unknown concealment recipe 'best'"):
     conceal.get_config("best")

@@ -1,5 +1,5 @@
 """Every concealment recipe and demo variant builds a config the concealment accepts, and the ownership test's
-recipes are what their docs say: the recommended recipe plus one reading or training change each."""
+recipes are what their docs say: the in_scene recipe plus one reading or training change each."""
 import pytest
 
 from conceal_jax.conceal import settings
@@ -29,10 +29,10 @@ def test_each_demo_variant_is_a_valid_concealment(variant, teacher):
 
 
 def test_the_ownership_recipes_change_only_what_they_name():
-  standardized, recommended = lego_conceal.get_config("standardized"), lego_conceal.get_config("recommended")
+  standardized, in_scene = lego_conceal.get_config("standardized"), lego_conceal.get_config("in_scene")
   assert standardized.conceal.decoder.input_norm == "standardize"
-  standardized.conceal.decoder.input_norm = recommended.conceal.decoder.input_norm
-  assert standardized.to_dict() == recommended.to_dict()
+  standardized.conceal.decoder.input_norm = in_scene.conceal.decoder.input_norm
+  assert standardized.to_dict() == in_scene.to_dict()
   owned, pruned = demo.get_config("owned"), demo.get_config("pruned")
   assert owned.conceal.attacks.prune_small_max == recipes.PRUNE_SHARE
   assert owned.conceal.attacks.blur_max == recipes.ATTACK_BLUR and owned.conceal.decoder.clip_input

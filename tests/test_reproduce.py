@@ -38,7 +38,7 @@ def test_report_puts_ours_beside_the_paper_and_names_missing_rows(tmp_path):
   assert "| ConcealGS | |  | - | - | released: not run yet |" in table1
   for method in reproduce.BASELINES:
     assert f"| {method} | " in table1 and f"| - | - | {reproduce.NOT_RUN} |" in table1
-  assert table1.count(reproduce.NOT_RUN) == 5  # the three baselines, two recipes
+  assert table1.count(reproduce.NOT_RUN) == 6  # the three baselines, three recipes
   table3 = text[text.index("Table 3"):text.index("Leakage")]
   assert "| no_guidance | 26.93 / 0.9043 / 0.0812 | 37.43 / 0.9912 | 32.50 / 0.9700 / 0.0300 | 34.00 / 0.9950 | " \
       "16, 10000, 1 seed (0) |" in table3
@@ -204,11 +204,11 @@ def test_recipes_from_several_seeds_are_compared_on_their_means():
 def test_each_recipe_is_one_row_over_its_seeds_and_every_other_run_is_in_the_appendix(tmp_path):
   assert reproduce.recipe_of_row() == {"full": ("paper", 0), "released": ("released", 0),
                                        "released_seed1": ("released", 1),
-                                       "recommended": ("recommended", 0)}
+                                       "in_scene": ("in_scene", 0), "recommended": ("recommended", 0)}
   conceal_rows = [_conceal_row("released", 16, 33.4, 42.5), _conceal_row("released_seed1", 16, 33.3, 39.0),
                   _conceal_row("recommended", 16, 33.0, 40.4),
                   _conceal_row("released_plus_weight2", 16, 33.3, 42.9),
-                  _conceal_row("recommended_no_update_clip_decoder_amsgrad", 16, 32.9, 37.1)]  # retired: not in ROWS
+                  _conceal_row("in_scene_no_update_clip_decoder_amsgrad", 16, 32.9, 37.1)]  # retired: not in ROWS
   baseline_rows = [_steganerf_row("steganerf_check_view", 10_000, 32.5, 41.7),
                    _steganerf_row("steganerf_check_view_seed1", 10_000, 32.8, 41.0),
                    _steganerf_row("steganerf_check_view_12k", 12_000, 32.8, 45.3)]
@@ -224,10 +224,10 @@ def test_each_recipe_is_one_row_over_its_seeds_and_every_other_run_is_in_the_app
           "released (released, released_seed1), width 16, 10000 steps, 2 seeds (0, 1) |") in table1
   assert ("| StegaNeRF | 30.33 / 0.9381 / 0.0787 | 24.60 / 0.9026 | 32.65 (32.50-32.80) / 0.9700 / 0.0300 | "
           "41.35 (41.00-41.70) / 0.9950 | check_view, 10000 steps, 2 seeds (0, 1) |") in table1
-  for other in ("released_plus_weight2", "recommended_no_update_clip_decoder_amsgrad", "steganerf_check_view_12k"):
+  for other in ("released_plus_weight2", "in_scene_no_update_clip_decoder_amsgrad", "steganerf_check_view_12k"):
     assert other not in body and f"| {other} |" in appendix
   assert "| lego | released_plus_weight2 | experiment | 16 |" in appendix
-  assert "| lego | recommended_no_update_clip_decoder_amsgrad | retired | 16 |" in appendix
+  assert "| lego | in_scene_no_update_clip_decoder_amsgrad | retired | 16 |" in appendix
   leakage = body[body.index("### Leakage"):]
   assert ("| lego | released (released, released_seed1) | 2 seeds (0, 1) | 0.110 (0.110-0.110) | 0.120 (0.120-0.120) "
           "| 0.130 (0.130-0.130) | - |") in leakage

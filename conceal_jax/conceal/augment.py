@@ -12,9 +12,9 @@ never retraces) within the maxima of conceal.attacks, as watermarking methods tr
   rounding at a point drawn anew, since the formats round to the nearest or down; the gradient passes straight
   through), every opacity at most densify.RESET_CEILING (3D-GS's opacity reset), or the carrier film's
   neighbouring splats merged as a converter's decimation merges them (decimate.merge_rounds).
-A decoder taught to read distorted check renders also reads views near the key more readily. The recommended
-recipe (configs/recipes.through_attacks) trains through blur and noise only: what each distortion gained and cost
-is in experiments/results/conceal_options.md.
+A decoder taught to read distorted check renders also reads views near the key more readily. The in_scene
+recipe (configs/recipes.through_attacks) trains through blur and noise only, the recommended one through neither
+(recipes.owner_rendered): what each distortion gained and cost is in experiments/results/conceal_options.md.
 """
 from __future__ import annotations
 

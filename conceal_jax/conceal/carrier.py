@@ -27,6 +27,9 @@ THICKNESS = 0.01
 # Film splats overlap their neighbours: in-plane sigma as a fraction of the grid spacing (conceal.carrier.spread's
 # default).
 SPREAD = 0.6
+# The film's grid spacing where conceal.carrier.spacing is 0, in pixels of the decoder's input (the key's render is
+# resized to mark.hidden_size square): a grid position every other decoder pixel, whatever the key's resolution.
+DECODER_SPACING = 2.0
 # Each splat a little deeper than the one before (this fraction of the distance across the film), so that no two
 # are at the same depth: the renderer would blend a tie in storage order, which a reordering of the file changes.
 STAGGER = 0.01
@@ -88,6 +91,12 @@ def _colour_gradient(extra_dc, scene, extra, camera, options):
   constants XLA would fold; one trace serves every call of a shape)."""
   joined = concatenate([scene, extra.replace(sh=extra.sh.at[:, 0].set(extra_dc))])
   return jnp.sum(render(joined, camera, options).rgb)
+
+
+def key_spacing(spacing: float, key: Camera, hidden_size: int) -> float:
+  """The film's grid spacing in pixels of `key`'s image: `spacing` where positive, else DECODER_SPACING pixels of
+  the decoder's [hidden_size, hidden_size] input along the key's shorter side."""
+  return spacing if spacing > 0 else DECODER_SPACING * min(key.width, key.height) / hidden_size
 
 
 def unseen_film(teacher: Gaussians, key: Camera, cameras: Sequence[Camera], options: RenderOptions, distance: float,

@@ -1,10 +1,9 @@
 """The settings of one concealment run, read from the config once and checked there.
 
-`ConcealSettings` holds what shapes the traced step (hashable, static); `RunPlan` adds what the job reads
-besides (the loop, the optimisers' settings, the decoys, the keys). Both are built by `plan(config)`, which
-`validate` calls before anything runs and the job calls again to run: one reading of the config, each bad
-value one ValueError naming its key.
-"""
+`ConcealSettings` holds what shapes the traced step (hashable, static); `RunPlan` adds what the job reads besides
+(the loop, the optimisers' settings, the decoys, the keys). Both are built by `plan(config)`, which `validate` calls
+before anything runs and the job calls again to run: one reading of the config, each bad value one ValueError
+naming its key."""
 from __future__ import annotations
 
 import dataclasses
@@ -130,8 +129,8 @@ class RunPlan:
 @dataclasses.dataclass(frozen=True)
 class Film:
   """conceal.carrier with film on: the carrier film's distance from the key (in median camera distances from the
-  orbit target, key.camera_distance), grid spacing (pixels of the key's image), opacity, in-plane sigma in grid
-  spacings, number of grids and splats stacked at each grid position (carrier.film)."""
+  orbit target, key.camera_distance), grid spacing (pixels of the key's image; 0: carrier.key_spacing's), opacity,
+  in-plane sigma in grid spacings, number of grids and splats stacked at each grid position (carrier.film)."""
   distance: float
   spacing: float
   opacity: float
@@ -155,9 +154,10 @@ def film_plan(config: ml_collections.ConfigDict) -> Film | None:
     return None
   if config.mark.key_kind != "unseen":
     raise ValueError(f"conceal.carrier.film needs mark.key_kind='unseen', got {config.mark.key_kind!r}")
-  if not (c.distance > 0 and c.spacing > 0 and c.spread > 0 and 0 < c.opacity < 1 and c.layers >= 1 and c.stack >= 1):
-    raise ValueError("conceal.carrier.distance, spacing and spread must be positive, opacity in (0, 1), layers and "
-                     f"stack at least 1, got {c.distance}, {c.spacing}, {c.spread}, {c.opacity}, {c.layers}, {c.stack}")
+  if not (c.distance > 0 and c.spacing >= 0 and c.spread > 0 and 0 < c.opacity < 1 and c.layers >= 1 <= c.stack):
+    raise ValueError("conceal.carrier.distance and spread must be positive, spacing not negative, opacity in (0, 1), "
+                     f"layers and stack at least 1, got {c.distance}, {c.spacing}, {c.spread}, {c.opacity}, "
+                     f"{c.layers}, {c.stack}")
   return Film(distance=float(c.distance), spacing=float(c.spacing), opacity=float(c.opacity), spread=float(c.spread),
               layers=int(c.layers), stack=int(c.stack))
 

@@ -95,7 +95,8 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
   start, trainable, merges, ties = teacher, None, None, None
   if plan.film is not None:  # before the first key, unseen from every training and test view
     film = carrier.unseen_film(teacher, keys[0][0], list(scene.train_cameras) + list(scene.test_cameras), options,
-                               plan.film.distance * key_lib.camera_distance(scene.train_cameras), plan.film.spacing,
+                               plan.film.distance * key_lib.camera_distance(scene.train_cameras),
+                               carrier.key_spacing(plan.film.spacing, keys[0][0], s.hidden_size),
                                plan.film.opacity, plan.film.layers, plan.film.stack, plan.film.spread)
     start, trainable = concatenate([teacher, film]), carrier.trainable_fields(teacher.num, film)
     ties = carrier.tied_rows(teacher.num, film.num, plan.film.stack) if plan.film.stack > 1 else None

@@ -177,7 +177,7 @@ def mark_section() -> ml_collections.ConfigDict:
 
 def conceal_section(train_lr: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
   """Conceal mode: ConcealGS on a trained teacher. The defaults are the paper as written; the recipes a user
-  chooses between are configs/conceal.py's (paper, released, recommended)."""
+  chooses between are configs/conceal.py's (recipes.RECIPES)."""
   c = ml_collections.ConfigDict()
   c.iterations = 10_000
   c.variant = "paper"     # 'paper' or 'released' (the authors' code; see conceal/settings.py)
@@ -290,9 +290,10 @@ def conceal_attacks_section() -> ml_collections.ConfigDict:
 def conceal_carrier_section() -> ml_collections.ConfigDict:
   """Where the mark lives (beyond the paper, conceal/carrier.py). film off: in the teacher's Gaussians, refined
   (the paper). film on (needs mark.key_kind='unseen'): in a film of flat Gaussians `distance` camera distances
-  before the key (mark.key_offset's unit), `layers` grids of one splat every `spacing` pixels of the key's image,
-  of `opacity`, in the space only the key sees; only the film's base colours train, so the normal views are the
-  teacher's and fine-tuning on them leaves the mark as it is. Splats at opacity 0.01 or less, as many layers as
+  before the key (mark.key_offset's unit), `layers` grids of one splat every `spacing` pixels of the key's image
+  (0: two pixels of the decoder's input, whatever the key's resolution; carrier.key_spacing), of `opacity`, in the
+  space only the key sees; only the film's base colours train, so the normal views are the teacher's and
+  fine-tuning on them leaves the mark as it is. Splats at opacity 0.01 or less, as many layers as
   make the film opaque enough, outlive 3D-GS's opacity reset (it lowers every opacity to at most 0.01). dc_bound > 0
   clips the film's base colours (SH DC) to [-dc_bound, dc_bound] after each update (a format's range; 0: none).
   stack > 1 puts that many splats at each position of the grids, their colours trained as one: a converter's

@@ -10,21 +10,22 @@
       --config.reveal.decoder=workdirs/demo/conceal/decoder.msgpack \
       --config.reveal.key=workdirs/demo/conceal/key.json --config.reveal.hidden=astronaut
 
-Its concealment is a short recommended recipe: leakage control (32 decoys), the gentle student and the narrow
-decoder at a constant rate (a decaying one costs a 1300-step run more than it gains). The survival bench's variants
-(issue 39): `demo.py:film` is the first faint film (the mark in a carrier film only an unseen key sees, of faint
-layers whose colours train at a higher rate, through 8-bit colours) with 64 decoys near the key; the designs beside
-it: `film_pub` (film trained through decimation too, recipes.through_decimation), `film_web` (film_pub at an
-opacity and within colours the publishing formats store unchanged, recipes.publishable_film), `film_watch`
-(film_web with 192 decoys on most steps, recipes.watched_key), `film_long` (recipes.film's design: film_watch with
-768 decoys and twice as long, FILM_ITERATIONS), `film_deep` (film_long trained through merges deeper than pairs,
-recipes.DEEP_MERGE_DEPTH), `film_stack` (film_long's splats in colour-tied stacks of two, recipes.stacked_film),
-`film_faint` (its colours at the gentle student's rate), `film_reset` (one layer at opacity 0.5, trained through
-opacity resets), `film_far` (film_reset with the key half a camera distance from the orbit target and the film as
-far again); `demo.py:drift` trains through parameter drift (recipes.through_drift); `demo.py:pruned` through size
-pruning with the key watched closely, twice as long (recipes.through_pruning, watched_key); `demo.py:owned`, the
-ownership test's demo recipe (issue 40), is `pruned` trained through blur and noise too, its decoder reading clipped
-renders (recipes.through_attacks); `demo.py:orbit` keys a secret pose on the orbit instead of a training camera."""
+Its concealment is a short in_scene recipe (the mark in the teacher's Gaussians): leakage control (32 decoys), the
+gentle student and the narrow decoder at a constant rate (a decaying one costs a 1300-step run more than it gains).
+The survival bench's variants (issue 39): `demo.py:film` is the first faint film (the mark in a carrier film only an
+unseen key sees, of faint layers whose colours train at a higher rate, through 8-bit colours) with 64 decoys near the
+key; the designs beside it: `film_pub` (film trained through decimation too, recipes.through_decimation), `film_web`
+(film_pub at an opacity and within colours the publishing formats store unchanged, recipes.publishable_film),
+`film_watch` (film_web with 192 decoys on most steps, recipes.watched_key), `film_long` (recipes.recommended's
+design: film_watch with 768 decoys and twice as long, FILM_ITERATIONS), `film_deep` (film_long trained through merges
+deeper than pairs, recipes.DEEP_MERGE_DEPTH), `film_stack` (film_long's splats in colour-tied stacks of two,
+recipes.stacked_film), `film_faint` (its colours at the gentle student's rate), `film_reset` (one layer at opacity
+0.5, trained through opacity resets), `film_far` (film_reset with the key half a camera distance from the orbit
+target and the film as far again); `demo.py:drift` trains through parameter drift (recipes.through_drift);
+`demo.py:pruned` through size pruning with the key watched closely, twice as long (recipes.through_pruning,
+watched_key); `demo.py:owned`, the ownership test's demo recipe (issue 40), is `pruned` trained through blur and
+noise too, its decoder reading clipped renders (recipes.through_attacks); `demo.py:orbit` keys a secret pose on the
+orbit instead of a training camera."""
 from conceal_jax.configs import default, recipes
 
 

@@ -5,6 +5,7 @@ runs it (curve points every 500 steps on 10 test views):
   python -m conceal_jax.main --config=conceal_jax/configs/lego_conceal.py --workdir=workdirs/lego/conceal \
       --config.mark.teacher=workdirs/lego/teacher/point_cloud.ply
   python -m conceal_jax.main --config=conceal_jax/configs/lego_conceal.py:paper ...
+  python -m conceal_jax.main --config=conceal_jax/configs/lego_conceal.py:in_scene ...  # the mark in the teacher
 """
 from conceal_jax.configs import lego, recipes
 
@@ -19,6 +20,6 @@ def get_config(recipe: str = "recommended"):
   config.mode = "conceal"
   config.conceal.eval_every, config.conceal.eval_views = EVAL_EVERY, EVAL_VIEWS
   config = recipes.apply(config, recipe or "recommended")
-  if recipe == "film":
+  if config.conceal.carrier.film:
     config.conceal.carrier.spacing = FILM_SPACING
   return config

@@ -4,7 +4,7 @@ steps without a cap, 8-pixel tiles. It is meant for an accelerator (`make bench-
 1000 steps on 10 test views draws its curve.
 
   python -m conceal_jax.main --config=conceal_jax/configs/lego_full.py --workdir=workdirs/full/lego/teacher
-  python -m conceal_jax.main --config=conceal_jax/configs/lego_full.py:recommended \
+  python -m conceal_jax.main --config=conceal_jax/configs/lego_full.py:in_scene \
       --workdir=workdirs/full/lego/conceal --config.mark.teacher=workdirs/full/lego/teacher/point_cloud.ply
 
 With a recipe of recipes.py after the colon it conceals in such a teacher at the same resolution.

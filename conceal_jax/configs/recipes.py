@@ -1,5 +1,6 @@
-"""The concealment recipes, as edits of a config: the paper as written, the authors' released code, and our
-recommended recipe, built from the named parts below. configs/conceal.py applies one by name:
+"""The concealment recipes, as edits of a config: the paper as written, the authors' released code, our refinement
+of the paper (the mark in the teacher's Gaussians) and our recommended recipe (the mark in a carrier film only the
+key sees), built from the named parts below. configs/conceal.py applies one by name:
 
   python -m conceal_jax.main --config=conceal_jax/configs/conceal.py:recommended --workdir=W \\
       --config.data.path=SCENE --config.mark.teacher=TEACHER.ply
@@ -7,7 +8,7 @@ recommended recipe, built from the named parts below. configs/conceal.py applies
 The figures behind each choice: experiments/results/REPRODUCTION.md (a row per recipe) and conceal_options.md.
 """
 
-RECIPES = ("paper", "released", "recommended", "standardized", "film")
+RECIPES = ("paper", "released", "in_scene", "standardized", "recommended")
 
 # The decoder a CPU trains: width 16 from scratch (the paper's width 64 costs ~10x more per step), at a rate
 # a from-scratch decoder learns at (1e-3 stalled the demo's first steps).
@@ -16,7 +17,7 @@ NARROW_DECODER_WIDTH, NARROW_DECODER_LR = 16, 5e-4
 MIN_WARMUP_STEPS, WARMUP_FRACTION = 200, 0.1
 # Training through attacks: blur and noise maxima of the check render.
 ATTACK_BLUR, ATTACK_NOISE = 1.5, 0.02
-# Decoys around the key in the recommended recipe.
+# Decoys around the key in the in_scene recipe.
 DECOY_VIEWS = 64
 # Training through drift: the largest relative parameter noise of the perturbed student, about what the first
 # hundred steps of 3D-GS fine-tuning move a student's opacities (experiments/results/survive_bench.md).
@@ -62,9 +63,11 @@ def released(config):
   return config
 
 
-def recommended(config):
-  """Our recommended recipe: the paper with leakage control, a gentle student, training through attacks,
-  a decoder reading clipped renders, and a narrow decoder on a decaying, clipped rate."""
+def in_scene(config):
+  """The paper refined, the mark kept in the teacher's Gaussians as the paper keeps it: leakage control, a gentle
+  student, training through attacks, a decoder reading clipped renders, and a narrow decoder on a decaying, clipped
+  rate. Fine-tuning on the training views reaches those Gaussians and erases the mark; `recommended` moves it into a
+  carrier film no training view sees."""
   config = paper(config)
   config = leakage_control(config, DECOY_VIEWS, decoy_fraction=0.25)
   config = gentle_student(config)
@@ -76,22 +79,24 @@ def recommended(config):
 
 
 def standardized(config):
-  """The recommended recipe with the decoder reading each render less its mean over its standard deviation
+  """in_scene with the decoder reading each render less its mean over its standard deviation
   (conceal.decoder.input_norm): a decoder that no global change of brightness or contrast can move, and that
   reads through size pruning, at some cost to the render (experiments/results/ownership_notes.md)."""
-  config = recommended(config)
+  config = in_scene(config)
   config.conceal.decoder.input_norm = "standardize"
   return config
 
 
-def film(config):
-  """The recommended recipe with the mark in a carrier film that only an unseen key sees (unseen_carrier), made of
-  faint layers that 3D-GS's opacity reset leaves as they are (faint_film) of colours free to move (vivid_film)
-  that the publishing formats store as they are (publishable_film), trained through 8-bit colours and decimation
-  (through_quantization, through_decimation), read by the decoder from standardized renders only at the key
-  (watched_key), and not through image distortions (owner_rendered)."""
-  config = owner_rendered(recommended(config))
-  config = publishable_film(vivid_film(faint_film(unseen_carrier(config))))
+def recommended(config):
+  """Our recommended recipe: in_scene with the mark in a carrier film that only an unseen key sees (unseen_carrier),
+  made of faint layers that 3D-GS's opacity reset leaves as they are (faint_film) of colours free to move
+  (vivid_film) that the publishing formats store as they are (publishable_film), trained through 8-bit colours and
+  decimation (through_quantization, through_decimation), read by the decoder from standardized renders only at the
+  key (watched_key), and not through image distortions (owner_rendered). The film's grid follows the decoder's
+  input (conceal.carrier.spacing 0: a position every other pixel of it, so the film's size does not grow with the
+  key's resolution)."""
+  config = owner_rendered(in_scene(config))
+  config = publishable_film(vivid_film(faint_film(unseen_carrier(config), spacing=0.0)))
   config = watched_key(through_decimation(through_quantization(config)))
   config.conceal.decoder.input_norm = "standardize"
   return config
@@ -117,9 +122,10 @@ def unseen_carrier(config):
 
 
 def faint_film(config, spacing: float = FAINT_SPACING):
-  """The carrier film made of FAINT_LAYERS grids of splats at FAINT_OPACITY, one every `spacing` pixels (its
-  opacity comes from many faint layers): 3D-GS's opacity reset, which lowers every opacity to at most FAINT_OPACITY,
-  leaves it as it is, so no training through resets is needed."""
+  """The carrier film made of FAINT_LAYERS grids of splats at FAINT_OPACITY, one every `spacing` pixels of the key's
+  image (0: every other pixel of the decoder's input; its opacity comes from many faint layers): 3D-GS's opacity
+  reset, which lowers every opacity to at most FAINT_OPACITY, leaves it as it is, so no training through resets is
+  needed."""
   c = config.conceal.carrier
   c.opacity, c.spacing, c.layers = FAINT_OPACITY, spacing, FAINT_LAYERS
   return config
