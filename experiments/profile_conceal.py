@@ -52,7 +52,7 @@ def step_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
   runs, num_views = {}, run.data.images.shape[0]
   for name, mesh in meshes.items():
     step = step_lib.make_step(settings, run.options, student_tx, decoder_tx, mesh)
-    state = step_lib.create_state(*jax.tree.map(jnp.copy, (run.teacher, decoder)), student_tx, decoder_tx)
+    state = step_lib.create_state(*jax.tree.map(jnp.copy, (run.start, decoder)), student_tx, decoder_tx)
     state, placed = parallel.replicate(state, mesh), parallel.replicate(run.data, mesh)
     state, _ = step(state, placed, 0, 1, 0, distortion)
     runs[name] = [step, state, placed, []]
@@ -79,18 +79,18 @@ def part_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
         terms = objective.view_terms(g, d, d, v, s, run.options, read_pair=read)
         return terms.student + terms.plus + terms.minus
 
-      times[f"{name}_view_terms_fwd_bwd{suffix}"] = median_ms(jax.jit(jax.grad(loss, argnums=(0, 1))), run.teacher,
+      times[f"{name}_view_terms_fwd_bwd{suffix}"] = median_ms(jax.jit(jax.grad(loss, argnums=(0, 1))), run.start,
                                                               decoder, repeats=repeats)
   image = run.data.teacher_small[0]
   apply = lambda d, x: reveal.decode(d, s.decoder_width, x)
   times["decoder_fwd"] = median_ms(jax.jit(apply), decoder, image, repeats=repeats)
   times["decoder_fwd_bwd"] = median_ms(jax.jit(jax.grad(lambda d, x: jnp.sum(apply(d, x)))), decoder, image,
                                        repeats=repeats)
-  grads, _ = jax.jit(lambda g, d: step_lib.gradients(g, d, views, s, run.options))(run.teacher, decoder)
+  grads, _ = jax.jit(lambda g, d: step_lib.gradients(g, d, views, s, run.options))(run.start, decoder)
   guided = jax.jit(lambda p, m: guidance.guided_decoder_gradient(p, m, 1.0, 1.0, s.granularity))
   times["guidance"] = median_ms(guided, grads["plus"], grads["minus"], repeats=repeats)
-  times["student_adam"] = median_ms(jax.jit(student_tx.update), grads["student"], student_tx.init(run.teacher),
-                                    run.teacher, repeats=repeats)
+  times["student_adam"] = median_ms(jax.jit(student_tx.update), grads["student"], student_tx.init(run.start),
+                                    run.start, repeats=repeats)
   times["decoder_adam"] = median_ms(jax.jit(decoder_tx.update), grads["plus"], decoder_tx.init(decoder), decoder,
                                     repeats=repeats)
   return times
@@ -102,7 +102,7 @@ def profile(scene: str, row: str, width: int, teacher: pathlib.Path, repeats: in
   plan = settings_lib.plan(config)
   s = plan.settings
   run = conceal_train.prepare(config, plan)
-  needed = max(int(render_lib.render(run.teacher, camera, run.options).num_pairs)
+  needed = max(int(render_lib.render(run.start, camera, run.options).num_pairs)
                for camera in (run.keys[0][0], run.scene.train_cameras[0]))
   run.options = render_lib.grow_capacity(run.options, needed)
   decoder = conceal_train.initial_decoder(config, s)
@@ -113,7 +113,8 @@ def profile(scene: str, row: str, width: int, teacher: pathlib.Path, repeats: in
   times = part_ms(run, s, student_tx, decoder_tx, decoder, distortion, repeats)
   times.update(step_ms(run, s, student_tx, decoder_tx, decoder, distortion, repeats))
   camera = run.scene.train_cameras[0]
-  return dict(scene=scene, row=row, decoder_width=width, num_gaussians=int(run.teacher.num),
+  return dict(scene=scene, row=row, decoder_width=width, num_gaussians=int(run.start.num),
+              num_carrier=int(run.start.num - run.teacher.num),
               pair_capacity=run.options.pair_capacity, tile_size=run.options.tile_size,
               image_size=[camera.width, camera.height], hidden_size=s.hidden_size,
               settings=dataclasses.asdict(s), repeats=repeats, median_ms=times)
