@@ -109,6 +109,21 @@ def test_an_unseen_film_changes_no_normal_view():
     carrier.unseen_film(teacher, cameras[0], cameras, OPTIONS, 2.0, 2.0, 0.5)
 
 
+def test_a_film_before_a_black_background_is_seen_from_the_key_and_learns_its_colours():
+  """On a black background (real captures) the film starts just above black, where 3D-GS's colour clamp passes a
+  gradient: made exactly the background's colour it would start at the clamp, where its colours get none."""
+  cameras = hemisphere_cameras()
+  black = dataclasses.replace(OPTIONS, background=(0.0, 0.0, 0.0))
+  points, colors = init.random_box_points(np.random.default_rng(1), 400, 1.0)
+  teacher = jax.tree.map(jnp.asarray, init.gaussians_from_points(points, colors, sh_degree=1, opacity=0.5))
+  key = key_lib.unseen_camera(cameras, seed=1)
+  layer = carrier.unseen_film(teacher, key, cameras, black, 0.1 * key_lib.camera_distance(cameras), 2.0, 0.5)
+  assert layer.num == 16 * 16 and carrier.contributing(teacher, layer, [key], black).all()
+  assert 0 < float(render(layer, key, black).rgb.max()) <= carrier.MIN_START_RGB * (1 + 1e-5)  # about black
+  dc = lambda x: jnp.sum(render(concatenate([teacher, layer.replace(sh=layer.sh.at[:, 0].set(x))]), key, black).rgb)
+  assert np.all(np.asarray(jax.grad(dc)(layer.sh[:, 0])) > 0)
+
+
 @pytest.mark.slow  # a whole film run: the film's pieces have their fast tests above
 def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_path):
   """Concealing into the film (through 8-bit colours, opacity resets and decimation, as the film recipe does)

@@ -30,6 +30,9 @@ SPREAD = 0.6
 # The film's grid spacing where conceal.carrier.spacing is 0, in pixels of the decoder's input (the key's render is
 # resized to mark.hidden_size square): a grid position every other decoder pixel, whatever the key's resolution.
 DECODER_SPACING = 2.0
+# The film's least start colour per channel: a film made the colour of a black background would start where 3D-GS
+# clamps colours (at 0, sh.view_dependent_colour), which passes no gradient, so it could never learn its image.
+MIN_START_RGB = 1.0 / 255
 # Each splat a little deeper than the one before (this fraction of the distance across the film), so that no two
 # are at the same depth: the renderer would blend a tie in storage order, which a reordering of the file changes.
 STAGGER = 0.01
@@ -48,7 +51,7 @@ def film(camera: Camera, distance: float, spacing: float, opacity: float, color:
   """[F] flat Gaussians `distance` in front of `camera` (each STAGGER-deeper than the last), `layers` grids of one
   position every `spacing` pixels of its image, each grid shifted within a cell (`layer_offsets`), `stack`
   consecutive splats at each position (F ~ stack * layers * W * H / spacing^2), facing it, each of `opacity` and
-  `color` (RGB in [0, 1]) seen from any direction (SH of `sh_degree`, bands above DC zero), of in-plane sigma
+  `color` (RGB in [0, 1], raised to MIN_START_RGB) seen from any direction (SH of `sh_degree`, bands above DC zero), of in-plane sigma
   `spread` grid spacings. Many layers of faint splats make a film as opaque as one layer of dense ones, out of
   splats each below an opacity ceiling (3D-GS's opacity reset). A stack of splats small against their neighbours'
   distance (`spread`) is the cheapest merge a decimating converter finds (the same place, and with tied colours,
@@ -65,7 +68,7 @@ def film(camera: Camera, distance: float, spacing: float, opacity: float, color:
   sigma = spread * spacing * distance / min(fx, fy)  # the stagger's 1% aside, `spacing` pixels apart
   count = len(u)
   sh = np.zeros((count, (sh_degree + 1) ** 2, 3))
-  sh[:, 0] = sh_lib.rgb_to_sh_dc(np.asarray(color, np.float64))
+  sh[:, 0] = sh_lib.rgb_to_sh_dc(np.maximum(np.asarray(color, np.float64), MIN_START_RGB))
   logit = opacity_logit(opacity)
   as_f32 = lambda x: jnp.asarray(x, jnp.float32)
   log_scales = np.tile(np.log([sigma, sigma, sigma * THICKNESS]), (count, 1))
@@ -77,10 +80,12 @@ def film(camera: Camera, distance: float, spacing: float, opacity: float, color:
 def contributing(scene: Gaussians, extra: Gaussians, cameras: Sequence[Camera], options: RenderOptions) -> np.ndarray:
   """[F] bool: whether any pixel of any of `cameras` depends on each Gaussian of `extra`, rendered together with
   `scene` (the renderer's own culling, 1/255 skip and early stop decide): the derivative of the image sum with
-  respect to its colour is non-zero exactly there (every pixel a splat reaches gains from a brighter splat)."""
-  seen = np.zeros(extra.num, bool)
+  respect to its colour is non-zero exactly there (every pixel a splat reaches gains from a brighter splat). The
+  derivative is taken at grey (SH DC 0), where no colour clamp stops it: what a splat reaches does not depend on
+  its colour."""
+  seen, grey = np.zeros(extra.num, bool), jnp.zeros_like(extra.sh[:, 0])
   for camera in cameras:
-    seen |= np.asarray(jnp.any(_colour_gradient(extra.sh[:, 0], scene, extra, camera, options) != 0, axis=-1))
+    seen |= np.asarray(jnp.any(_colour_gradient(grey, scene, extra, camera, options) != 0, axis=-1))
   return seen
 
 
