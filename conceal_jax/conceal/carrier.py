@@ -51,11 +51,11 @@ def film(camera: Camera, distance: float, spacing: float, opacity: float, color:
   """[F] flat Gaussians `distance` in front of `camera` (each STAGGER-deeper than the last), `layers` grids of one
   position every `spacing` pixels of its image, each grid shifted within a cell (`layer_offsets`), `stack`
   consecutive splats at each position (F ~ stack * layers * W * H / spacing^2), facing it, each of `opacity` and
-  `color` (RGB in [0, 1], raised to MIN_START_RGB) seen from any direction (SH of `sh_degree`, bands above DC zero), of in-plane sigma
-  `spread` grid spacings. Many layers of faint splats make a film as opaque as one layer of dense ones, out of
-  splats each below an opacity ceiling (3D-GS's opacity reset). A stack of splats small against their neighbours'
-  distance (`spread`) is the cheapest merge a decimating converter finds (the same place, and with tied colours,
-  `tied_rows`, the same colour), so decimation down to 1/stack of the film merges stacks."""
+  `color` (RGB in [0, 1], raised to MIN_START_RGB) seen from any direction (SH of `sh_degree`, bands above DC zero),
+  of in-plane sigma `spread` grid spacings. Many layers of faint splats make a film as opaque as one layer of dense
+  ones, out of splats each below an opacity ceiling (3D-GS's opacity reset). A stack of splats small against their
+  neighbours' distance (`spread`) is the cheapest merge a decimating converter finds (the same place, and with tied
+  colours, `tied_rows`, the same colour), so decimation down to 1/stack of the film merges stacks."""
   grids = [np.meshgrid(np.arange(du * spacing, camera.width, spacing), np.arange(dv * spacing, camera.height, spacing))
            for du, dv in layer_offsets(layers)]
   u, v = (np.repeat(np.concatenate([grid[axis].ravel() for grid in grids]), stack) for axis in (0, 1))

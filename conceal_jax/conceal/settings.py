@@ -154,7 +154,7 @@ def film_plan(config: ml_collections.ConfigDict) -> Film | None:
     return None
   if config.mark.key_kind != "unseen":
     raise ValueError(f"conceal.carrier.film needs mark.key_kind='unseen', got {config.mark.key_kind!r}")
-  if not (c.distance > 0 and c.spacing >= 0 and c.spread > 0 and 0 < c.opacity < 1 and c.layers >= 1 <= c.stack):
+  if not (c.distance > 0 and c.spacing >= 0 and c.spread > 0 and 0 < c.opacity < 1 and min(c.layers, c.stack) >= 1):
     raise ValueError("conceal.carrier.distance and spread must be positive, spacing not negative, opacity in (0, 1), "
                      f"layers and stack at least 1, got {c.distance}, {c.spacing}, {c.spread}, {c.opacity}, "
                      f"{c.layers}, {c.stack}")
