@@ -70,6 +70,7 @@ SCENES = {"demo": ("demo", "workdirs/demo/conceal", "in_scene"),
           "demo_film_far": ("demo", "workdirs/survive_runs/demo_film_far", "film_far"),
           "demo_drift": ("demo", "workdirs/survive_runs/demo_drift", "drift"),
           "demo_orbit": ("demo", "workdirs/survive_runs/demo_orbit", "orbit"),
+          "demo_recommended": ("demo", "workdirs/survive_runs/demo_recommended", "recommended_6k"),
           "lego": ("lego", "workdirs/bench/lego/conceal_in_scene_w16", "in_scene"),
           "lego_film": ("lego", "workdirs/survive_runs/lego_film", "film"),
           "lego_film_reset": ("lego", "workdirs/survive_runs/lego_film_reset", "film_reset")}
@@ -87,6 +88,9 @@ RECIPE_NOTES = {
                 "in_scene lego row)",
     "recommended": "recipes.recommended: the carrier film (configs/conceal.py's default; the label of a run given by "
                    "path)",
+    "recommended_6k": "recipes.recommended on the demo for 6000 steps (make survive-runs' demo_recommended: "
+                      "conceal.py with data.path=demo; its film grid every 4 pixels, where conceal.carrier.spacing 0 "
+                      "places it at 128 pixels), fine-tuned with its config's training recipe, 3D-GS's defaults",
     "film": "the faint carrier film (demo.py:film; the film recipe before it became film_watch's): the key looks "
             "where no camera looks, one camera distance out from their orbit target, and the film 0.1 camera distances "
             "before it, 22 grids of splats at opacity 0.01 (the opacity reset's ceiling); its base colours trained at "
