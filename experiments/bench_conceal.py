@@ -89,8 +89,8 @@ CONTINUATION_KEY = "conceal.decoder_opt.polish_steps"
 # The released decoder (width 64) starts from VGG16 with lr 1e-4; a narrow one starts from scratch at
 # recipes.NARROW_DECODER_LR.
 DECODER_LR = {64: 1e-4, recipes.NARROW_DECODER_WIDTH: recipes.NARROW_DECODER_LR}
-# A carrier film's grid spacing per scene, in pixels of its key image (as the scene's conceal config sets it).
-FILM_SPACING = dict(lego=lego_conceal.FILM_SPACING)
+# A scene's own carrier-film grid, as its conceal config sets it.
+FILM_GRIDS = dict(lego=lego_conceal.film_grid)
 WIDTH_FREE_ROWS = ("no_decoder",)  # without a decoder the width does not matter: run once
 # The concealment issue's targets (lego: widths 16 and 64; the time for width 16).
 TARGETS = dict(lego=dict(hidden_psnr=34.0, hidden_ssim=0.99, student_psnr_loss=0.3, leakage=0.2, minutes_width16=60.0),
@@ -133,8 +133,7 @@ def run_config(scene: str, teacher: pathlib.Path, row: str, width: int, iteratio
   config.eval.max_views = eval_views
   recipe, overrides = ROWS[row]
   config = recipes.apply(config, recipe) if isinstance(recipe, str) else recipe(config)
-  if config.conceal.carrier.film and scene in FILM_SPACING:
-    config.conceal.carrier.spacing = FILM_SPACING[scene]
+  config = FILM_GRIDS.get(scene, lambda c: c)(config)
   d = config.conceal.decoder
   d.width, d.vgg_init = width, width == 64
   config.conceal.decoder_opt.lr = DECODER_LR.get(width, config.conceal.decoder_opt.lr)

@@ -19,7 +19,11 @@ def get_config(recipe: str = "recommended"):
   config = lego.get_config()
   config.mode = "conceal"
   config.conceal.eval_every, config.conceal.eval_views = EVAL_EVERY, EVAL_VIEWS
-  config = recipes.apply(config, recipe or "recommended")
+  return film_grid(recipes.apply(config, recipe or "recommended"))
+
+
+def film_grid(config):
+  """`config` with lego's film grid (FILM_SPACING) where its recipe conceals in a carrier film."""
   if config.conceal.carrier.film:
     config.conceal.carrier.spacing = FILM_SPACING
   return config
