@@ -1,13 +1,21 @@
 """The tone half of re-alignment (conceal.align.fit_tone): the per-channel gain and offset that map a suspect's
 render onto the owner's, against an independent float64 least-squares fit, with clipped pixels, bounds and
-degenerate channels."""
+degenerate channels; fitted over views of the whole scene (scene_tone), a grade of the scene's colours undone."""
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from conceal_jax.conceal import align
+from conceal_jax.gs import similarity as sim
 from conceal_jax.robust import image_attacks
+from conceal_jax.splat import sh as sh_lib
+from conceal_jax.splat.camera import center_of
+from conceal_jax.splat.render import RenderOptions
+from tests.helpers import make_camera
+from tests.test_reveal_alignment import blobs
 
 
 def render_like(seed: int = 0, size: int = 48) -> np.ndarray:
@@ -72,3 +80,44 @@ def test_identical_renders_give_the_identity_and_shapes_are_checked():
   assert align.Tone.identity().report() == dict(gain=[1.0, 1.0, 1.0], offset=[0.0, 0.0, 0.0])
   with pytest.raises(ValueError, match="one shape"):
     align.fit_tone(check, check[:10])
+
+
+def graded_scene(gaussians, gain):
+  """`gaussians` with every colour, in every direction, multiplied by `gain` [3] (DC and higher SH bands alike)."""
+  gain = np.asarray(gain, np.float32)
+  sh = np.asarray(gaussians.sh).copy()
+  colour = sh[:, 0, :] * sh_lib.SH_C0 + 0.5
+  sh[:, 0, :] = (gain * colour - 0.5) / sh_lib.SH_C0
+  sh[:, 1:, :] *= gain
+  return gaussians.replace(sh=jnp.asarray(sh))
+
+
+def test_survey_cameras_look_at_the_scene_from_around_it():
+  scene = jax.tree.map(jnp.asarray, blobs(500))
+  key = make_camera(40, 30)
+  cameras = align.survey_cameras(scene, key, 6)
+  centre = np.median(np.asarray(scene.means, np.float64), axis=0)
+  eyes = np.stack([center_of(np.asarray(c.world_to_camera, np.float64)) for c in cameras])
+  for camera in cameras:
+    w2c = np.asarray(camera.world_to_camera, np.float64)
+    x, y, z = w2c[:3, :3] @ centre + w2c[:3, 3]
+    assert z > 0 and abs(x / z) < 1e-6 and abs(y / z) < 1e-6  # the centre on the optical axis
+    assert (camera.width, camera.height, float(camera.fx)) == (40, 30, float(key.fx))
+  directions = (eyes - centre) / np.linalg.norm(eyes - centre, axis=1, keepdims=True)
+  assert np.linalg.norm(directions.mean(0)) < 0.3  # spread around it, not from one side
+
+
+def test_a_graded_and_moved_scene_gives_back_its_grade_and_an_untouched_one_the_identity():
+  """On a black background a grade of the Gaussians' colours is exactly a gain of every render: scene_tone finds
+  its inverse through a similarity; the key's view alone (here the scene's edge) is not needed for it."""
+  scene = jax.tree.map(jnp.asarray, blobs(2000))
+  key, options = make_camera(32, 32, eye=(0.5, -5.0, 1.5)), RenderOptions()
+  similarity = sim.Similarity(sim.rotation_from_axis_angle([0.3, -0.5, 1.0], 0.7), np.array([0.4, -1.0, 2.0]), 1.7)
+  moved = sim.transform_gaussians(scene, similarity)
+  tone = align.scene_tone(scene, moved, key, options, similarity)
+  np.testing.assert_allclose(tone.gain, 1.0, atol=2e-3)
+  np.testing.assert_allclose(tone.offset, 0.0, atol=2e-3)
+  gain = np.array([0.8, 0.9, 0.7])
+  tone = align.scene_tone(scene, graded_scene(moved, gain), key, options, similarity)
+  np.testing.assert_allclose(tone.gain, 1.0 / gain, rtol=5e-3)
+  np.testing.assert_allclose(tone.offset, 0.0, atol=3e-3)

@@ -4,9 +4,11 @@ A shared scene may have been turned, moved, resized or reordered on import, and 
 darker, more or less contrast), by an editor or a converter. Its frame: the suspect is registered onto the owner's
 copy (gs.register: the similarity owner -> suspect from the Gaussians alone) and the key camera is moved with that
 similarity (aligned_key), so that it sees the suspect as the key saw the marked scene. Its tone: the suspect's
-render at the moved key is mapped channel by channel onto the owner's render at the key by the gain and offset that
-fit them best (fit_tone), within what a colour grade does (MAX_TONE_GAIN, MAX_TONE_OFFSET); every render the
-decoder then reads of that suspect, the key's and the null views', passes through the same map (Tone.apply).
+renders are mapped channel by channel onto the owner's by the gain and offset that fit them best (fit_tone),
+within what a colour grade does (MAX_TONE_GAIN, MAX_TONE_OFFSET), over the key's view and views of the whole scene
+(scene_tone): a grade of the scene maps every view alike, and the key's view alone (the carrier film, nearly one
+colour) has too little spread to tell a grade from what thinning or requantizing the scene changes there; every
+render the decoder then reads of that suspect, the key's and the null views', passes through the same map (Tone.apply).
 """
 from __future__ import annotations
 
@@ -16,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from conceal_jax.gs import register as register_lib, similarity as similarity_lib
-from conceal_jax.splat.camera import Camera
+from conceal_jax.splat.camera import Camera, look_at
 from conceal_jax.splat.gaussians import Gaussians
 from conceal_jax.splat.render import RenderOptions, render
 
@@ -26,6 +28,10 @@ MAX_TONE_GAIN, MAX_TONE_OFFSET = 2.0, 0.5
 # Pixels within this of 0 or 1 in either render are left out of the fit (a clipped value says nothing of the map),
 # and a channel with fewer than MIN_TONE_PIXELS others, or of no spread, keeps gain 1 and offset 0.
 TONE_CLIP_MARGIN, MIN_TONE_PIXELS = 1e-3, 16
+# The views of the whole scene the tone is fitted over besides the key's: TONE_VIEWS cameras with the key's
+# intrinsics spread over a sphere around the Gaussians' median centre, at TONE_VIEW_DISTANCE times the distance
+# within which 80% of the centres lie, looking at it.
+TONE_VIEWS, TONE_VIEW_DISTANCE = 6, 2.5
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,11 +73,25 @@ def fit_tone(image: np.ndarray, reference: np.ndarray) -> Tone:
   return Tone(gain, offset)
 
 
-def tone_at_key(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
-                suspect_camera: Camera, suspect_options: RenderOptions) -> Tone:
-  """fit_tone of the suspect's render at its (moved) key onto the owner's copy's render at the key."""
-  return fit_tone(np.asarray(render(suspect, suspect_camera, suspect_options).rgb),
-                  np.asarray(render(owner, camera, options).rgb))
+def survey_cameras(gaussians: Gaussians, camera: Camera, count: int = TONE_VIEWS) -> list[Camera]:
+  """`count` cameras with `camera`'s intrinsics looking at the median centre of `gaussians` from directions
+  spread over the sphere (similarity.fibonacci_sphere), at TONE_VIEW_DISTANCE times the 80th percentile of the
+  centres' distances from it: views of the whole scene."""
+  means = np.asarray(gaussians.means, np.float64)
+  centre = np.median(means, axis=0)
+  distance = TONE_VIEW_DISTANCE * max(float(np.quantile(np.linalg.norm(means - centre, axis=1), 0.8)), 1e-6)
+  return [Camera(jnp.asarray(look_at(centre + distance * d, centre), jnp.float32), camera.fx, camera.fy, camera.cx,
+                 camera.cy, camera.width, camera.height) for d in similarity_lib.fibonacci_sphere(count)]
+
+
+def scene_tone(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
+               similarity: similarity_lib.Similarity) -> Tone:
+  """fit_tone of the suspect's renders onto the owner's copy's over the key `camera` and survey_cameras of the
+  owner, each moved into the suspect's frame by `similarity` (owner -> suspect, moved_key)."""
+  cameras = [camera] + survey_cameras(owner, camera)
+  moved = [moved_key(c, options, similarity) for c in cameras]
+  stacked = lambda scene, views: np.concatenate([np.asarray(render(scene, c, o).rgb) for c, o in views], axis=0)
+  return fit_tone(stacked(suspect, moved), stacked(owner, [(c, options) for c in cameras]))
 
 
 def moved_key(camera: Camera, options: RenderOptions,

@@ -183,7 +183,7 @@ class KeyedScene:
 def load_keyed_scene(r: ml_collections.ConfigDict) -> KeyedScene:
   """The scene r.ply, key number r.key_number of the key file r.key (0: its check view, k: its k-th extra key)
   and the decoder r.decoder (a `reveal` config section). With r.owner set, the suspect is re-aligned onto the
-  owner's copy r.owner (align.aligned_key, then align.tone_at_key) and the alignment report is
+  owner's copy r.owner (align.aligned_key, then align.scene_tone) and the alignment report is
   align.registration_report's with the tone map."""
   camera, info = key_lib.load_key(r.key, r.key_number)
   if info.get("uses_decoder", True) and not r.decoder:
@@ -196,7 +196,7 @@ def load_keyed_scene(r: ml_collections.ConfigDict) -> KeyedScene:
   if r.get("owner", ""):
     owner = ply.load_ply(r.owner)
     moved, moved_options, registration = align.aligned_key(owner, suspect, camera, options)
-    tone = align.tone_at_key(owner, suspect, camera, options, moved, moved_options)
+    tone = align.scene_tone(owner, suspect, camera, options, registration.similarity)
     camera, options = moved, moved_options
     alignment = dict(owner=r.owner, **align.registration_report(registration), tone=tone.report())
     if registration.matched_fraction < MIN_MATCHED_FRACTION:

@@ -66,14 +66,14 @@ class Owner:
 
   def aligned_scores(self, marked: Gaussians, suspect: Gaussians, alpha: float, null_views: int) -> dict:
     """What `suspect` reveals at the key after re-alignment against the owner's copy `marked` (the scene the
-    key was made for; align.aligned_key, then align.tone_at_key): revealed_scores of the toned reading,
+    key was made for; align.aligned_key, then align.scene_tone): revealed_scores of the toned reading,
     `registration`, the transform found and its fit (align.registration_report), `tone`, the colour map found,
     and `test`, verify's decision at `alpha` given the owner's copy (ownership.decide_readings: read toned and as
     rendered, the null outputs from the suspect at the moved key, at least `null_views` turned views): z,
     log10_p, owned, and each reading's."""
     camera, options, registration = align.aligned_key(marked, suspect, self.check_camera, self.options)
     suspect = jax.tree.map(jnp.asarray, suspect)
-    tone = align.tone_at_key(marked, suspect, self.check_camera, self.options, camera, options)
+    tone = align.scene_tone(marked, suspect, self.check_camera, self.options, registration.similarity)
     readings = reveal.readings(self.reveal_renders, tone)
     views = ownership.turned_views_needed(alpha, self.hidden_size, len(ownership.unrelated_images(self.hidden)),
                                           null_views, len(readings))
