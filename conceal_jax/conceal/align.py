@@ -3,8 +3,10 @@
 A shared scene may have been turned, moved, resized or reordered on import, and its colours graded (brighter,
 darker, more or less contrast), by an editor or a converter. Its frame: the suspect is registered onto the owner's
 copy (gs.register: the similarity owner -> suspect from the Gaussians alone) and the key camera is moved with that
-similarity (aligned_key), so that it sees the suspect as the key saw the marked scene. Its tone: the suspect's
-renders are mapped channel by channel onto the owner's by the gain and offset that fit them best (fit_tone),
+similarity (aligned_key), so that it sees the suspect as the key saw the marked scene, reading only the SH
+bands the owner's copy shows there (key_options: a converter that quantizes zero higher bands, as .compressed.ply's
+8 bits do, returns them as a small tint that depends on the view's direction in the scene's frame). Its tone: the
+suspect's renders are mapped channel by channel onto the owner's by the gain and offset that fit them best (fit_tone),
 within what a colour grade does (MAX_TONE_GAIN, MAX_TONE_OFFSET), over the key's view and views of the whole scene
 (scene_tone): a grade of the scene maps every view alike, and the key's view alone (the carrier film, nearly one
 colour) has too little spread to tell a grade from what thinning or requantizing the scene changes there; every
@@ -14,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 
@@ -28,6 +31,8 @@ MAX_TONE_GAIN, MAX_TONE_OFFSET = 2.0, 0.5
 # Pixels within this of 0 or 1 in either render are left out of the fit (a clipped value says nothing of the map),
 # and a channel with fewer than MIN_TONE_PIXELS others, or of no spread, keeps gain 1 and offset 0.
 TONE_CLIP_MARGIN, MIN_TONE_PIXELS = 1e-3, 16
+# The owner's render at the key at a lower SH degree counts as the same within this (far below an 8-bit level).
+KEY_SH_TOLERANCE = 1e-4
 # The views of the whole scene the tone is fitted over besides the key's: TONE_VIEWS cameras with the key's
 # intrinsics spread over a sphere around the Gaussians' median centre, at TONE_VIEW_DISTANCE times the distance
 # within which 80% of the centres lie, looking at it.
@@ -109,10 +114,26 @@ def aligned_key(owner: Gaussians, suspect: Gaussians, camera: Camera, options: R
                 seed: int = 0) -> tuple[Camera, RenderOptions, register_lib.Registration]:
   """The key moved into the suspect scene's frame: registers `suspect` onto the owner's copy `owner` (the
   scene the key was made for; any order, size or count of Gaussians in either) and moves `camera` and
-  `options` with the similarity found (moved_key). Returns them and the registration (similarity owner ->
-  suspect, residual, matched fraction). ValueError from register for scenes too small or not finite."""
+  `options` with the similarity found (moved_key), reading the SH degree key_options finds. Returns them and
+  the registration (similarity owner -> suspect, residual, matched fraction). ValueError from register for
+  scenes too small or not finite."""
   registration = register_lib.register(owner, suspect, seed=seed)
+  options = key_options(jax.tree.map(jnp.asarray, owner), camera, options)
   return (*moved_key(camera, options, registration.similarity), registration)
+
+
+def key_options(owner: Gaussians, camera: Camera, options: RenderOptions) -> RenderOptions:
+  """`options` reading the lowest SH degree at which the owner's copy renders at the key `camera` as with
+  `options` (within KEY_SH_TOLERANCE; `options` itself where none lower does): where the marked scene shows no
+  view-dependent colour at the key (the carrier film's), higher bands in a suspect can only be what a converter
+  or an editor added."""
+  top = owner.sh_degree if options.sh_degree is None else min(options.sh_degree, owner.sh_degree)
+  full = np.asarray(render(owner, camera, options).rgb)
+  for degree in range(top):
+    lower = dataclasses.replace(options, sh_degree=degree)
+    if np.max(np.abs(np.asarray(render(owner, camera, lower).rgb) - full)) <= KEY_SH_TOLERANCE:
+      return lower
+  return options
 
 
 def similarity_report(similarity: similarity_lib.Similarity) -> dict:
