@@ -22,7 +22,7 @@ def with_rest(gaussians, rest):
 def test_bands_the_owner_does_not_show_at_the_key_are_left_out_of_the_reading():
   owner = jax.tree.map(jnp.asarray, blobs(1500))  # higher bands all zero
   camera, options = make_camera(32, 32, eye=(0.5, -5.0, 1.5)), RenderOptions()
-  assert align.key_options(owner, camera, options).sh_degree == 0
+  assert align.key_options(owner, [camera], options).sh_degree == 0
   similarity = sim.Similarity(sim.rotation_from_axis_angle([0.2, 1.0, -0.4], 2.5), np.array([1.0, 0.5, -2.0]), 0.6)
   suspect = with_rest(sim.transform_gaussians(owner, similarity), 4.0 / 255)  # a quantizer's tint
   moved, moved_options, _ = align.aligned_key(owner, suspect, camera, options)
@@ -37,4 +37,4 @@ def test_a_view_dependent_owner_keeps_every_band():
   rest = np.random.default_rng(0).normal(0.0, 0.2, np.asarray(owner.sh)[:, 1:, :].shape)
   owner = jax.tree.map(jnp.asarray, with_rest(owner, rest))
   options = RenderOptions()
-  assert align.key_options(owner, make_camera(32, 32, eye=(0.5, -5.0, 1.5)), options) is options
+  assert align.key_options(owner, [make_camera(32, 32, eye=(0.5, -5.0, 1.5))], options) is options

@@ -3,6 +3,7 @@ it leaves the teacher's Gaussians exactly as they were, and fine-tuning on the t
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import jax
 import jax.numpy as jnp
@@ -150,6 +151,8 @@ def test_a_film_run_keeps_the_teacher_and_fine_tuning_keeps_the_film(tiny, tmp_p
   assert not np.allclose(student.sh[n:, 0], film_start.sh[:, 0])
   assert np.abs(student.sh[n:, 0]).max() <= 1.0 + 1e-6
   np.testing.assert_array_equal(student.sh[n:, 1:], 0.0)  # the bands above DC stay empty
+  # so the key, which sees the film alone, is read at degree 0 (align.key_options)
+  assert json.loads((tmp_path / "key.json").read_text())["render_options"]["sh_degree"] == 0
   stacks = np.asarray(student.sh[n:, 0]).reshape(-1, stack, 3)
   np.testing.assert_array_equal(stacks, np.broadcast_to(stacks[:, :1], stacks.shape))
 

@@ -15,6 +15,7 @@ render the decoder then reads of that suspect, the key's and the null views', pa
 from __future__ import annotations
 
 import dataclasses
+from typing import Sequence
 
 import jax
 import jax.numpy as jnp
@@ -118,20 +119,21 @@ def aligned_key(owner: Gaussians, suspect: Gaussians, camera: Camera, options: R
   the registration (similarity owner -> suspect, residual, matched fraction). ValueError from register for
   scenes too small or not finite."""
   registration = register_lib.register(owner, suspect, seed=seed)
-  options = key_options(jax.tree.map(jnp.asarray, owner), camera, options)
+  options = key_options(jax.tree.map(jnp.asarray, owner), [camera], options)
   return (*moved_key(camera, options, registration.similarity), registration)
 
 
-def key_options(owner: Gaussians, camera: Camera, options: RenderOptions) -> RenderOptions:
-  """`options` reading the lowest SH degree at which the owner's copy renders at the key `camera` as with
+def key_options(owner: Gaussians, cameras: Sequence[Camera], options: RenderOptions) -> RenderOptions:
+  """`options` reading the lowest SH degree at which the owner's copy renders at every key of `cameras` as with
   `options` (within KEY_SH_TOLERANCE; `options` itself where none lower does): where the marked scene shows no
-  view-dependent colour at the key (the carrier film's), higher bands in a suspect can only be what a converter
+  view-dependent colour at its keys (the carrier film's), higher bands in a suspect can only be what a converter
   or an editor added."""
   top = owner.sh_degree if options.sh_degree is None else min(options.sh_degree, owner.sh_degree)
-  full = np.asarray(render(owner, camera, options).rgb)
+  full = [np.asarray(render(owner, camera, options).rgb) for camera in cameras]
   for degree in range(top):
     lower = dataclasses.replace(options, sh_degree=degree)
-    if np.max(np.abs(np.asarray(render(owner, camera, lower).rgb) - full)) <= KEY_SH_TOLERANCE:
+    if all(np.max(np.abs(np.asarray(render(owner, camera, lower).rgb) - f)) <= KEY_SH_TOLERANCE
+           for camera, f in zip(cameras, full)):
       return lower
   return options
 

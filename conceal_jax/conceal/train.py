@@ -20,7 +20,7 @@ import ml_collections
 import numpy as np
 
 from conceal_jax.conceal import augment, hidden as hidden_lib, key as key_lib, reveal, scoring, settings as settings_lib
-from conceal_jax.conceal import carrier, decimate, message as message_lib, near, unet, views as views_lib
+from conceal_jax.conceal import align, carrier, decimate, message as message_lib, near, unet, views as views_lib
 from conceal_jax.conceal.step import create_state, make_step
 from conceal_jax.core import fileio, loop, parallel
 from conceal_jax.data import ply
@@ -137,15 +137,16 @@ def curve_record(run: Run, state, eval_views) -> dict:
 
 
 def save_outputs(run: Run, workdir: str, state) -> None:
-  """student.ply, decoder.msgpack, key.json (each extra key numbered, with its image's source) and the
-  hidden images."""
+  """student.ply, decoder.msgpack, key.json (each extra key numbered, with its image's source; its render options
+  the run's, reading the SH bands the student shows at the keys: align.key_options) and the hidden images."""
   s = run.plan.settings
   ply.save_ply(os.path.join(workdir, STUDENT_FILE), jax.device_get(state.student))
   if s.use_decoder:
     reveal.save_decoder(os.path.join(workdir, DECODER_FILE), state.decoder)
   (check_camera, info), extra = run.keys[0], run.keys[1:]
+  options = align.key_options(state.student, [camera for camera, _ in run.keys], run.options)
   info = dict(info, hidden_size=s.hidden_size, uses_decoder=s.use_decoder, decoder_width=s.decoder_width,
-              **s.reading.key_fields(), render_options=dataclasses.asdict(run.options),
+              **s.reading.key_fields(), render_options=dataclasses.asdict(options),
               **(message_lib.key_fields(run.message) if run.message is not None else {}))
   key_lib.save_key(os.path.join(workdir, KEY_FILE), check_camera, info,
                    [(camera, dict(more, number=k, hidden=source))
