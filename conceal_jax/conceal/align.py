@@ -93,7 +93,10 @@ def survey_cameras(gaussians: Gaussians, camera: Camera, count: int = TONE_VIEWS
 def scene_tone(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
                similarity: similarity_lib.Similarity) -> Tone:
   """fit_tone of the suspect's renders onto the owner's copy's over the key `camera` and survey_cameras of the
-  owner, each moved into the suspect's frame by `similarity` (owner -> suspect, moved_key)."""
+  owner, each moved into the suspect's frame by `similarity` (owner -> suspect, moved_key), all at SH degree 0: a
+  grade maps the base colours, and the higher bands are what converters quantize coarsest (.compressed.ply's 8
+  bits return a scene's every band tinted), which would enter the fit as a grade."""
+  options = dataclasses.replace(options, sh_degree=0)
   cameras = [camera] + survey_cameras(owner, camera)
   moved = [moved_key(c, options, similarity) for c in cameras]
   stacked = lambda scene, views: np.concatenate([np.asarray(render(scene, c, o).rgb) for c, o in views], axis=0)
