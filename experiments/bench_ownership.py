@@ -134,8 +134,9 @@ def pair_trials(owner, hidden: np.ndarray, scene: dict, alpha: float, null_views
   else:
     references = [np.asarray(evaluate.render_images(marked, cameras, owner.options)) for cameras in groups]
     pairs = [(image, reference) for group, refs in zip(renders, references) for image, reference in zip(group, refs)]
-    results = [ownership.decide_readings(reveal.readings(owner.reveal_renders, align.fit_tone(image, reference)),
-                                         image[None], hidden, nulls, alpha, RESOLVE)[1] for image, reference in pairs]
+    readings = lambda image, ref: reveal.readings(owner.reveal_renders, dict(toned=align.fit_tone(image, ref)))
+    results = [ownership.decide_readings(readings(image, reference), image[None], hidden, nulls, alpha, RESOLVE)[1]
+               for image, reference in pairs]
   return {name: np.concatenate([result[name] for result in results]) for name in fields}
 
 
@@ -227,7 +228,7 @@ def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict
     if kind != "image" or nulls is None:  # image attacks leave the scene, and so its null, as it is
       nulls = ownership.null_renders(scene, owner.check_camera, owner.options, null_views, hidden)
     tone = align.fit_tone(check, reference)
-    by_name, both = ownership.decide_readings(reveal.readings(owner.reveal_renders, tone), check[None],
+    by_name, both = ownership.decide_readings(reveal.readings(owner.reveal_renders, dict(toned=tone)), check[None],
                                               hidden[None], nulls, alpha)
     best = ownership.strongest(by_name)
     rows.append(dict(kind=kind, attack=name, level=level, severity=severity,

@@ -24,7 +24,8 @@ is skipped with a note. Attacks (`level` in brackets):
   cameras and random poses on their orbit, a fresh 3D-GS trained on them from random points.
 
 `owned` and `log10_p` are verify's decision given the owner's copy (robust.ownership: the suspect re-aligned in
-frame and tone, read toned and as rendered, at --alpha), `verify` each reading's figures; `decided` the
+frame and tone, read after each tone map and as rendered, at --alpha; hidden_* of the reading of smallest
+p-value, as verify reports it), `verify` each reading's figures; `decided` the
 calibrated threshold's (hidden SSIM at or above the threshold chosen from --calibration, which `make bench-robust`
 writes). Rows are merged into <out>/survive_bench.json ({"rows": [...]}, one per scene,
 recipe, attack, level and steps) with survive_bench.md and survive_bench.png; finished rows are kept and not
@@ -218,15 +219,16 @@ def registration_errors(found: dict, applied: sim.Similarity, radius: float) -> 
 
 
 def aligned(scene: Scene, suspect, applied: sim.Similarity | None = None) -> dict:
-  """hidden_psnr, hidden_ssim, decided, registration (with its errors against the applied similarity, identity
-  if None) and `test` (verify's decision given the owner's copy) of `suspect` revealed after re-alignment."""
+  """hidden_psnr, hidden_ssim (of the reading of smallest p-value, named `reading`), decided, registration (with
+  its errors against the applied similarity, identity if None) and `test` (verify's decision given the owner's
+  copy) of `suspect` revealed after re-alignment."""
   scores = scene.owner.aligned_scores(scene.student, suspect, scene.alpha, scene.null_views)
   registration = scores["registration"]
   registration.update(registration_errors(registration, applied or sim.Similarity.identity(),
                                           registration["owner_radius"]))
   return dict(hidden_psnr=scores["hidden_psnr"], hidden_ssim=scores["hidden_ssim"], hidden_z=scores["hidden_z"],
-              decided=ownership.decide(scores["hidden_ssim"], scene.calibration), registration=registration,
-              test=scores["test"])
+              reading=scores["reading"], decided=ownership.decide(scores["hidden_ssim"], scene.calibration),
+              registration=registration, test=scores["test"])
 
 
 CACHE_SOURCE = "source.json"
@@ -444,8 +446,10 @@ def table(rows: list[dict]) -> str:
            "densify.start, so its shorter rows equal finetune's. z: the ownership test's statistic of the revealed "
            "image against I (robust/phase_statistic.py; N(0, 1) where the scene does not carry I, 4.75 is the "
            "one-sided 1e-6 level; rows measured before it have none). owned: verify's decision given the owner's "
-           "copy (robust/ownership.py: re-aligned in frame and tone, read toned and as rendered, at alpha "
-           "--alpha), with its log10 p-value; rows measured before it have none.", "", "Recipes:", "",
+           "copy (robust/ownership.py: re-aligned in frame and tone, read after each tone map and as rendered, at "
+           "alpha --alpha), with its log10 p-value; rows measured before it have none. Re-aligned hidden figures are "
+           "the reading of smallest p-value's (as verify reports them; from 2026-11-27 evening: the tone at the key, "
+           "over the scene's views, or none; before: the tone at the key).", "", "Recipes:", "",
            *[f"- {name}: {note}" for name, note in RECIPE_NOTES.items()
              if any(r["recipe"] == name for r in rows)], "",
            *true_positive_lines(rows),

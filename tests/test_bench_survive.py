@@ -75,7 +75,7 @@ def test_transforms_and_round_trips_are_revealed_after_re_alignment(run, monkeyp
     assert not row["unaligned"]["decided"]
     # verify's test given the owner's copy: the moved scene re-aligned is tested as the untouched one is
     assert row["owned"] == none["owned"] and row["log10_p"] == pytest.approx(none["log10_p"], abs=0.05)
-    assert set(row["verify"]["readings"]) == {"toned", "as_rendered"}
+    assert set(row["verify"]["readings"]) == {"toned", "scene_toned", "as_rendered"}
   if converter.available():
     row = by["decimate", 0.5]
     # the converter merges Gaussians as it decimates: 400 left of 800 register to within a degree

@@ -6,11 +6,14 @@ copy (gs.register: the similarity owner -> suspect from the Gaussians alone) and
 similarity (aligned_key), so that it sees the suspect as the key saw the marked scene, reading only the SH
 bands the owner's copy shows there (key_options: a converter that quantizes zero higher bands, as .compressed.ply's
 8 bits do, returns them as a small tint that depends on the view's direction in the scene's frame). Its tone: the
-suspect's renders are mapped channel by channel onto the owner's by the gain and offset that fit them best (fit_tone),
-within what a colour grade does (MAX_TONE_GAIN, MAX_TONE_OFFSET), over the key's view and views of the whole scene
-(scene_tone): a grade of the scene maps every view alike, and the key's view alone (the carrier film, nearly one
-colour) has too little spread to tell a grade from what thinning or requantizing the scene changes there; every
-render the decoder then reads of that suspect, the key's and the null views', passes through the same map (Tone.apply).
+suspect's renders are mapped channel by channel onto the owner's by the gain and offset that fit them best
+(fit_tone), within what a colour grade does (MAX_TONE_GAIN, MAX_TONE_OFFSET), in two ways (tones): at the key alone
+(tone_at_key), which restores the film's own statistics where thinning it faded it, and over the key's view and
+views of the whole scene at SH degree 0 (scene_tone), which a grade of the scene fits and thinning does not pull;
+where the key sees a film of nearly one colour, either can be the one that reads it (the other mistakes a change of
+the film for a grade), so verify reads both and the render as it is, and decides on the best (robust.ownership).
+Every render the decoder then reads of that suspect, the key's and the null views', passes through the same map
+(Tone.apply).
 """
 from __future__ import annotations
 
@@ -79,6 +82,13 @@ def fit_tone(image: np.ndarray, reference: np.ndarray) -> Tone:
   return Tone(gain, offset)
 
 
+def tone_at_key(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
+                suspect_camera: Camera, suspect_options: RenderOptions) -> Tone:
+  """fit_tone of the suspect's render at its (moved) key onto the owner's copy's render at the key."""
+  return fit_tone(np.asarray(render(suspect, suspect_camera, suspect_options).rgb),
+                  np.asarray(render(owner, camera, options).rgb))
+
+
 def survey_cameras(gaussians: Gaussians, camera: Camera, count: int = TONE_VIEWS) -> list[Camera]:
   """`count` cameras with `camera`'s intrinsics looking at the median centre of `gaussians` from directions
   spread over the sphere (similarity.fibonacci_sphere), at TONE_VIEW_DISTANCE times the 80th percentile of the
@@ -101,6 +111,15 @@ def scene_tone(owner: Gaussians, suspect: Gaussians, camera: Camera, options: Re
   moved = [moved_key(c, options, similarity) for c in cameras]
   stacked = lambda scene, views: np.concatenate([np.asarray(render(scene, c, o).rgb) for c, o in views], axis=0)
   return fit_tone(stacked(suspect, moved), stacked(owner, [(c, options) for c in cameras]))
+
+
+def tones(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
+          similarity: similarity_lib.Similarity) -> dict[str, Tone]:
+  """The suspect's tone maps onto the owner's copy by name: "toned", tone_at_key at the key's reading degree
+  (key_options) with the key moved by `similarity` (owner -> suspect), and "scene_toned", scene_tone."""
+  options = key_options(owner, [camera], options)
+  return dict(toned=tone_at_key(owner, suspect, camera, options, *moved_key(camera, options, similarity)),
+              scene_toned=scene_tone(owner, suspect, camera, options, similarity))
 
 
 def moved_key(camera: Camera, options: RenderOptions,

@@ -8,7 +8,7 @@ A shared scene may have been turned, moved, resized or reordered on import (or r
 does so), and its colours graded. Given the owner's own copy of the marked scene (reveal.owner), the reveal first
 re-aligns the suspect onto it (conceal.align: the key moved into the suspect's frame, its renders mapped onto the
 owner's tone) and renders there: the check view the key names, seen in the suspect's frame and tone.
-reveal.json then reports the transform, the tone map and how well they fit.
+reveal.json then reports the transform, the tone maps and how well they fit.
 """
 from __future__ import annotations
 
@@ -144,34 +144,33 @@ def toned(reveal_fn, tone: align.Tone):
   return lambda renders: reveal_fn(tone.apply(renders))
 
 
-def readings(reveal_fn, tone: align.Tone | None = None) -> dict[str, Any]:
-  """The ways a suspect's renders are read, by name: with a tone map (re-alignment in tone), "toned" (reveal_fn
-  after the map) and "as_rendered", since a tone fitted to a blurred render also sharpens what the decoder reads;
-  without one, "as_rendered" alone."""
-  if tone is None:
-    return dict(as_rendered=reveal_fn)
-  return dict(toned=toned(reveal_fn, tone), as_rendered=reveal_fn)
+def readings(reveal_fn, tones: dict[str, align.Tone] | None = None) -> dict[str, Any]:
+  """The ways a suspect's renders are read, by name: after each tone map of `tones` (re-alignment in tone, by its
+  name: align.tones) reveal_fn after the map, then "as_rendered", since a tone fitted to a blurred render also
+  sharpens what the decoder reads; without tone maps, "as_rendered" alone."""
+  return {**{name: toned(reveal_fn, tone) for name, tone in (tones or {}).items()}, "as_rendered": reveal_fn}
 
 
 @dataclasses.dataclass(frozen=True)
 class KeyedScene:
   """A suspect scene with what reveals it (load_keyed_scene): the Gaussians, the key camera and render options
   (moved into the scene's frame when re-aligned), `decoder_fn` (decoder_reveal: renders [V, H, W, 3] -> revealed
-  [V, S, S, 3]), the alignment report or None, and the tone map onto the owner's copy or None."""
+  [V, S, S, 3]), the alignment report or None, and the tone maps onto the owner's copy by name (align.tones) or
+  None."""
   gaussians: Gaussians
   camera: Camera
   options: RenderOptions
   decoder_fn: Any
   alignment: dict | None
-  tone: align.Tone | None = None
+  tones: dict[str, align.Tone] | None = None
 
   @property
   def readings(self) -> dict[str, Any]:
-    return readings(self.decoder_fn, self.tone)
+    return readings(self.decoder_fn, self.tones)
 
   @property
   def reveal_fn(self):
-    """The first of the readings: after the tone map where there is one."""
+    """The first of the readings: after the key's tone map where there is one."""
     return next(iter(self.readings.values()))
 
   def reveal_at(self, cameras: list[Camera]) -> np.ndarray:
@@ -183,8 +182,8 @@ class KeyedScene:
 def load_keyed_scene(r: ml_collections.ConfigDict) -> KeyedScene:
   """The scene r.ply, key number r.key_number of the key file r.key (0: its check view, k: its k-th extra key)
   and the decoder r.decoder (a `reveal` config section). With r.owner set, the suspect is re-aligned onto the
-  owner's copy r.owner (align.aligned_key, then align.scene_tone) and the alignment report is
-  align.registration_report's with the tone map."""
+  owner's copy r.owner (align.aligned_key, then align.tones) and the alignment report is
+  align.registration_report's with the tone maps."""
   camera, info = key_lib.load_key(r.key, r.key_number)
   if info.get("uses_decoder", True) and not r.decoder:
     raise ValueError("reveal.decoder is required: this key was made with a decoder")
@@ -192,18 +191,19 @@ def load_keyed_scene(r: ml_collections.ConfigDict) -> KeyedScene:
   suspect, options = ply.load_ply(r.ply), options_from_key(info)
   reveal_fn = decoder_reveal(decoder, int(info.get("decoder_width", 0)), int(info["hidden_size"]),
                              Reading.from_key(info))
-  alignment = tone = None
+  alignment = tones = None
   if r.get("owner", ""):
     owner = ply.load_ply(r.owner)
     moved, moved_options, registration = align.aligned_key(owner, suspect, camera, options)
-    tone = align.scene_tone(owner, suspect, camera, options, registration.similarity)
+    tones = align.tones(jax.tree.map(jnp.asarray, owner), suspect, camera, options, registration.similarity)
     camera, options = moved, moved_options
-    alignment = dict(owner=r.owner, **align.registration_report(registration), tone=tone.report())
+    alignment = dict(owner=r.owner, **align.registration_report(registration),
+                     tones={name: tone.report() for name, tone in tones.items()})
     if registration.matched_fraction < MIN_MATCHED_FRACTION:
       logging.warning("re-alignment of %s onto %s matched only %.0f%% of its Gaussians (residual %.2g radii): the "
                       "transform found is doubtful", r.ply, r.owner, 100 * registration.matched_fraction,
                       registration.residual)
-  return KeyedScene(jax.tree.map(jnp.asarray, suspect), camera, options, reveal_fn, alignment, tone)
+  return KeyedScene(jax.tree.map(jnp.asarray, suspect), camera, options, reveal_fn, alignment, tones)
 
 
 def reveal_with_alignment(r: ml_collections.ConfigDict) -> tuple[np.ndarray, dict | None]:

@@ -11,8 +11,8 @@ decision, what the null rests on, and the SSIM; a calibration file of measured S
 null_revealed.npz are kept.
 With reveal.owner set (the owner's copy of the marked scene), the suspect is first re-aligned onto it (conceal.align:
 the key moved into its frame, its renders, the key's and the null views', mapped onto the owner's tone), tested
-both toned and as rendered and decided on twice the smaller p-value (combined_log10_p); verify.json reports the
-transform, the tone map and each reading's figures.
+after each tone map and as rendered and decided on k times the smallest p-value of its k readings
+(combined_log10_p); verify.json reports the transform, the tone maps and each reading's figures.
 """
 from __future__ import annotations
 
@@ -124,8 +124,8 @@ def read_nulls(reveal_fn, renders: dict[str, np.ndarray]) -> dict[str, np.ndarra
 
 def combined_log10_p(log10_ps) -> np.ndarray:
   """log10 of the p-value of a decision on the best of k readings of one scene [k, ...], each with its own valid
-  p-value: k times the smallest (Bonferroni), at most 1. A scene re-aligned in tone is read both toned and as
-  rendered, since a tone fitted to a blurred render also sharpens what the decoder reads."""
+  p-value: k times the smallest (Bonferroni), at most 1. A scene re-aligned in tone is read after each tone map
+  and as rendered, since a tone fitted to a blurred render also sharpens what the decoder reads."""
   log10_ps = np.asarray(log10_ps, np.float64)
   return np.minimum(log10_ps.min(0) + np.log10(len(log10_ps)), 0.0)
 
@@ -259,7 +259,7 @@ def verify(config: ml_collections.ConfigDict, workdir: str) -> dict:
   """The verify job: reveal at the key, test against the hidden image at verify.alpha (ownership_test), and
   the SSIM, with the calibrated threshold's decision when verify.calibration names a file; with a key of
   message mode, the message read back (bit accuracy, binomial p-value, the corrected message). A scene re-aligned
-  in tone is tested in both readings (reveal.KeyedScene.readings), decided on combined_log10_p, and reported with
+  in tone is tested in every reading (reveal.KeyedScene.readings), decided on combined_log10_p, and reported with
   the images and figures of the reading of smaller p-value."""
   validate(config)
   r = config.reveal
