@@ -167,8 +167,9 @@ def decide_readings(readings: dict, checks, hidden: np.ndarray, renders: dict, a
 
 
 def strongest(by_name: dict) -> Reading:
-  """The reading of smallest p-value among decide_readings' readings of one image against one hidden image."""
-  return min(by_name.values(), key=lambda reading: reading.result["log10_p"][0, 0])
+  """The reading of smallest p-value among decide_readings' readings of one image against one hidden image, and of
+  largest z among those of equal p-value (a marked scene's readings all reach the Monte-Carlo p-value's floor)."""
+  return min(by_name.values(), key=lambda reading: (reading.result["log10_p"][0, 0], -reading.result["z"][0, 0]))
 
 
 def summary(result: dict) -> dict:
