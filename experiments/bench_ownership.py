@@ -230,7 +230,7 @@ def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict
     tone = align.fit_tone(check, reference)
     by_name, both = ownership.decide_readings(reveal.readings(owner.reveal_renders, dict(toned=tone)), check[None],
                                               hidden[None], nulls, alpha)
-    best = ownership.strongest(by_name)
+    best = by_name[ownership.strongest(by_name)]
     rows.append(dict(kind=kind, attack=name, level=level, severity=severity,
                      **dict(decision_row(best, hidden), log10_p=float(both["log10_p"][0, 0]),
                             owned=bool(both["owned"][0, 0])),

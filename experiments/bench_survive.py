@@ -11,7 +11,7 @@ is skipped with a note. Attacks (`level` in brackets):
 - none: the student as shared;
 - rotate (degrees about the up axis through the centroid), translate (fraction of the RMS radius), scale
   (factor), each with the Gaussians shuffled (robust.scene_attacks): hidden_* are revealed after re-alignment
-  against the owner's copy (align.aligned_key: registration, key moved with the similarity found),
+  against the owner's copy (align.realign: registration, key moved with the similarity found),
   `unaligned` without it; `registration` reports the transform found and its error against the applied one;
 - sog, spz, compressed_ply (the format), decimate (fraction kept), sh_bands (bands kept): round trips through
   @playcanvas/splat-transform (robust.converter; skipped without `make node_modules`), revealed as they come back

@@ -25,7 +25,8 @@ def test_bands_the_owner_does_not_show_at_the_key_are_left_out_of_the_reading():
   assert align.key_options(owner, [camera], options).sh_degree == 0
   similarity = sim.Similarity(sim.rotation_from_axis_angle([0.2, 1.0, -0.4], 2.5), np.array([1.0, 0.5, -2.0]), 0.6)
   suspect = with_rest(sim.transform_gaussians(owner, similarity), 4.0 / 255)  # a quantizer's tint
-  moved, moved_options, _ = align.aligned_key(owner, suspect, camera, options)
+  realigned = align.realign(owner, suspect, camera, options)
+  moved, moved_options = realigned.camera, realigned.options
   expected = np.asarray(render(owner, camera, options).rgb)
   tinted = align.moved_key(camera, options, similarity)
   assert np.abs(np.asarray(render(suspect, *tinted).rgb) - expected).max() > 5e-3

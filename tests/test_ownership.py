@@ -241,7 +241,7 @@ def test_decide_readings_combines_each_reading_and_refuses_too_few_draws_for_the
     np.testing.assert_array_equal(by_name[name].result["log10_p"], alone.result["log10_p"])
   np.testing.assert_allclose(both["log10_p"], ownership.combined_log10_p([r.result["log10_p"]
                                                                           for r in by_name.values()]))
-  assert both["owned"][0, 0] and ownership.strongest(by_name) is by_name["plain"]
+  assert both["owned"][0, 0] and ownership.strongest(by_name) == "plain"
   ownership.read_and_decide(readings["plain"], hidden, hidden, nulls, 6e-4)  # one reading: 1/2049 <= 6e-4
   with pytest.raises(ValueError, match="best of 2 readings"):
     ownership.decide_readings(readings, hidden, hidden, nulls, 6e-4)
@@ -258,4 +258,4 @@ def test_among_readings_at_the_p_value_floor_the_strongest_is_the_one_of_largest
   floor = [r.result["log10_p"][0, 0] for r in by_name.values()]
   assert floor[0] == floor[1]
   assert by_name["plain"].result["z"][0, 0] > by_name["noisy"].result["z"][0, 0]
-  assert ownership.strongest(by_name) is by_name["plain"]
+  assert ownership.strongest(by_name) == "plain"

@@ -3,11 +3,11 @@
 A shared scene may have been turned, moved, resized or reordered on import, and its colours graded (brighter,
 darker, more or less contrast), by an editor or a converter. Its frame: the suspect is registered onto the owner's
 copy (gs.register: the similarity owner -> suspect from the Gaussians alone) and the key camera is moved with that
-similarity (aligned_key), so that it sees the suspect as the key saw the marked scene, reading only the SH
+similarity (realign), so that it sees the suspect as the key saw the marked scene, reading only the SH
 bands the owner's copy shows there (key_options: a converter that quantizes zero higher bands, as .compressed.ply's
 8 bits do, returns them as a small tint that depends on the view's direction in the scene's frame). Its tone: the
 suspect's renders are mapped channel by channel onto the owner's by the gain and offset that fit them best
-(fit_tone), within what a colour grade does (MAX_TONE_GAIN, MAX_TONE_OFFSET), in two ways (tones): at the key alone
+(fit_tone), within what a colour grade does (MAX_TONE_GAIN, MAX_TONE_OFFSET), in two ways: at the key alone
 (tone_at_key), which restores the film's own statistics where thinning it faded it, and over the key's view and
 views of the whole scene at SH degree 0 (scene_tone), which a grade of the scene fits and thinning does not pull;
 where the key sees a film of nearly one colour, either can be the one that reads it (the other mistakes a change of
@@ -96,8 +96,8 @@ def survey_cameras(gaussians: Gaussians, camera: Camera, count: int = TONE_VIEWS
   means = np.asarray(gaussians.means, np.float64)
   centre = np.median(means, axis=0)
   distance = TONE_VIEW_DISTANCE * max(float(np.quantile(np.linalg.norm(means - centre, axis=1), 0.8)), 1e-6)
-  return [Camera(jnp.asarray(look_at(centre + distance * d, centre), jnp.float32), camera.fx, camera.fy, camera.cx,
-                 camera.cy, camera.width, camera.height) for d in similarity_lib.fibonacci_sphere(count)]
+  return [camera.replace(world_to_camera=jnp.asarray(look_at(centre + distance * d, centre), jnp.float32))
+          for d in similarity_lib.fibonacci_sphere(count)]
 
 
 def scene_tone(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
@@ -113,15 +113,6 @@ def scene_tone(owner: Gaussians, suspect: Gaussians, camera: Camera, options: Re
   return fit_tone(stacked(suspect, moved), stacked(owner, [(c, options) for c in cameras]))
 
 
-def tones(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
-          similarity: similarity_lib.Similarity) -> dict[str, Tone]:
-  """The suspect's tone maps onto the owner's copy by name: "toned", tone_at_key at the key's reading degree
-  (key_options) with the key moved by `similarity` (owner -> suspect), and "scene_toned", scene_tone."""
-  options = key_options(owner, [camera], options)
-  return dict(toned=tone_at_key(owner, suspect, camera, options, *moved_key(camera, options, similarity)),
-              scene_toned=scene_tone(owner, suspect, camera, options, similarity))
-
-
 def moved_key(camera: Camera, options: RenderOptions,
               similarity: similarity_lib.Similarity) -> tuple[Camera, RenderOptions]:
   """The key camera and render options that see the scene moved by `similarity` as `camera` saw the
@@ -133,16 +124,30 @@ def moved_key(camera: Camera, options: RenderOptions,
           dataclasses.replace(options, near=float(f"{float(options.near) * similarity.scale:.6g}")))
 
 
-def aligned_key(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
-                seed: int = 0) -> tuple[Camera, RenderOptions, register_lib.Registration]:
-  """The key moved into the suspect scene's frame: registers `suspect` onto the owner's copy `owner` (the
-  scene the key was made for; any order, size or count of Gaussians in either) and moves `camera` and
-  `options` with the similarity found (moved_key), reading the SH degree key_options finds. Returns them and
-  the registration (similarity owner -> suspect, residual, matched fraction). ValueError from register for
-  scenes too small or not finite."""
+@dataclasses.dataclass(frozen=True)
+class Realignment:
+  """A suspect scene re-aligned onto the owner's copy (realign): the key `camera` and render `options` moved into
+  its frame (reading the key's SH degree), the `registration` (similarity owner -> suspect, residual, matched
+  fraction) and the tone maps by name, `tones` ("toned": tone_at_key; "scene_toned": scene_tone)."""
+  camera: Camera
+  options: RenderOptions
+  registration: register_lib.Registration
+  tones: dict[str, Tone]
+
+
+def realign(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
+            seed: int = 0) -> Realignment:
+  """The key moved into the suspect scene's frame: registers `suspect` onto the owner's copy `owner` (the scene
+  the key was made for; any order, size or count of Gaussians in either), moves `camera` and `options` at the SH
+  degree key_options finds with the similarity found (moved_key), and fits the suspect's tone maps onto the owner's
+  (tone_at_key at the moved key, scene_tone). ValueError from register for scenes too small or not finite."""
+  owner, suspect = jax.tree.map(jnp.asarray, owner), jax.tree.map(jnp.asarray, suspect)
   registration = register_lib.register(owner, suspect, seed=seed)
-  options = key_options(jax.tree.map(jnp.asarray, owner), [camera], options)
-  return (*moved_key(camera, options, registration.similarity), registration)
+  options = key_options(owner, [camera], options)
+  moved, moved_options = moved_key(camera, options, registration.similarity)
+  tones = dict(toned=tone_at_key(owner, suspect, camera, options, moved, moved_options),
+               scene_toned=scene_tone(owner, suspect, camera, options, registration.similarity))
+  return Realignment(moved, moved_options, registration, tones)
 
 
 def key_options(owner: Gaussians, cameras: Sequence[Camera], options: RenderOptions) -> RenderOptions:

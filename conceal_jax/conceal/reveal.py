@@ -146,8 +146,8 @@ def toned(reveal_fn, tone: align.Tone):
 
 def readings(reveal_fn, tones: dict[str, align.Tone] | None = None) -> dict[str, Any]:
   """The ways a suspect's renders are read, by name: after each tone map of `tones` (re-alignment in tone, by its
-  name: align.tones) reveal_fn after the map, then "as_rendered", since a tone fitted to a blurred render also
-  sharpens what the decoder reads; without tone maps, "as_rendered" alone."""
+  name: align.Realignment.tones) reveal_fn after the map, then "as_rendered", since a tone fitted to a blurred
+  render also sharpens what the decoder reads; without tone maps, "as_rendered" alone."""
   return {**{name: toned(reveal_fn, tone) for name, tone in (tones or {}).items()}, "as_rendered": reveal_fn}
 
 
@@ -155,8 +155,8 @@ def readings(reveal_fn, tones: dict[str, align.Tone] | None = None) -> dict[str,
 class KeyedScene:
   """A suspect scene with what reveals it (load_keyed_scene): the Gaussians, the key camera and render options
   (moved into the scene's frame when re-aligned), `decoder_fn` (decoder_reveal: renders [V, H, W, 3] -> revealed
-  [V, S, S, 3]), the alignment report or None, and the tone maps onto the owner's copy by name (align.tones) or
-  None."""
+  [V, S, S, 3]), the alignment report or None, and the tone maps onto the owner's copy by name
+  (align.Realignment.tones) or None."""
   gaussians: Gaussians
   camera: Camera
   options: RenderOptions
@@ -182,7 +182,7 @@ class KeyedScene:
 def load_keyed_scene(r: ml_collections.ConfigDict) -> KeyedScene:
   """The scene r.ply, key number r.key_number of the key file r.key (0: its check view, k: its k-th extra key)
   and the decoder r.decoder (a `reveal` config section). With r.owner set, the suspect is re-aligned onto the
-  owner's copy r.owner (align.aligned_key, then align.tones) and the alignment report is
+  owner's copy r.owner (align.realign) and the alignment report is
   align.registration_report's with the tone maps."""
   camera, info = key_lib.load_key(r.key, r.key_number)
   if info.get("uses_decoder", True) and not r.decoder:
@@ -194,9 +194,8 @@ def load_keyed_scene(r: ml_collections.ConfigDict) -> KeyedScene:
   alignment = tones = None
   if r.get("owner", ""):
     owner = ply.load_ply(r.owner)
-    moved, moved_options, registration = align.aligned_key(owner, suspect, camera, options)
-    tones = align.tones(jax.tree.map(jnp.asarray, owner), suspect, camera, options, registration.similarity)
-    camera, options = moved, moved_options
+    realigned = align.realign(owner, suspect, camera, options)
+    camera, options, registration, tones = realigned.camera, realigned.options, realigned.registration, realigned.tones
     alignment = dict(owner=r.owner, **align.registration_report(registration),
                      tones={name: tone.report() for name, tone in tones.items()})
     if registration.matched_fraction < MIN_MATCHED_FRACTION:

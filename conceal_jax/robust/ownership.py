@@ -166,10 +166,11 @@ def decide_readings(readings: dict, checks, hidden: np.ndarray, renders: dict, a
                        log10_p_model=combined_log10_p([r["log10_p_model"] for r in results]))
 
 
-def strongest(by_name: dict) -> Reading:
-  """The reading of smallest p-value among decide_readings' readings of one image against one hidden image, and of
-  largest z among those of equal p-value (a marked scene's readings all reach the Monte-Carlo p-value's floor)."""
-  return min(by_name.values(), key=lambda reading: (reading.result["log10_p"][0, 0], -reading.result["z"][0, 0]))
+def strongest(by_name: dict) -> str:
+  """The name of the reading of smallest p-value among decide_readings' readings of one image against one hidden
+  image, and of largest z among those of equal p-value (a marked scene's readings all reach the Monte-Carlo
+  p-value's floor)."""
+  return min(by_name, key=lambda name: (by_name[name].result["log10_p"][0, 0], -by_name[name].result["z"][0, 0]))
 
 
 def summary(result: dict) -> dict:
@@ -272,7 +273,7 @@ def verify(config: ml_collections.ConfigDict, workdir: str) -> dict:
                               len(scene.readings))
   renders = null_renders(scene.gaussians, scene.camera, scene.options, views, hidden)
   by_name, both = decide_readings(scene.readings, check, hidden[None], renders, config.verify.alpha)
-  best = strongest(by_name)
+  best = by_name[strongest(by_name)]
   revealed, nulls, test = best.revealed[0], best.nulls, ownership_test(best, hidden, config.verify.alpha)
   log10_p = float(both["log10_p"][0, 0])
   test.update(log10_p=log10_p, p_value=10.0 ** log10_p, owned=bool(both["owned"][0, 0]),

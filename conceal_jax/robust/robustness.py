@@ -66,27 +66,26 @@ class Owner:
 
   def aligned_scores(self, marked: Gaussians, suspect: Gaussians, alpha: float, null_views: int) -> dict:
     """What `suspect` reveals at the key after re-alignment against the owner's copy `marked` (the scene the
-    key was made for; align.aligned_key, then align.tones), as verify reports it: revealed_scores of the reading
+    key was made for; align.realign), as verify reports it: revealed_scores of the reading
     of smallest p-value (ownership.strongest; its name `reading`), `registration`, the transform found and its
     fit (align.registration_report), `tones`, the colour maps found, and `test`, verify's decision at `alpha`
     given the owner's copy (ownership.decide_readings: read after each tone map and as rendered, the null outputs
     from the suspect at the moved key, at least `null_views` turned views): z, log10_p, owned, and each
     reading's."""
-    camera, options, registration = align.aligned_key(marked, suspect, self.check_camera, self.options)
+    realigned = align.realign(marked, suspect, self.check_camera, self.options)
+    camera, options = realigned.camera, realigned.options
     suspect = jax.tree.map(jnp.asarray, suspect)
-    tones = align.tones(jax.tree.map(jnp.asarray, marked), suspect, self.check_camera, self.options,
-                        registration.similarity)
-    readings = reveal.readings(self.reveal_renders, tones)
+    readings = reveal.readings(self.reveal_renders, realigned.tones)
     views = ownership.turned_views_needed(alpha, self.hidden_size, len(ownership.unrelated_images(self.hidden)),
                                           null_views, len(readings))
     renders = ownership.null_renders(suspect, camera, options, views, self.hidden)
     by_name, both = ownership.decide_readings(readings, render(suspect, camera, options).rgb[None],
                                               self.hidden[None], renders, alpha)
     test = dict(ownership.summary(both), readings={name: ownership.summary(r.result) for name, r in by_name.items()})
-    best = ownership.strongest(by_name)
-    name = next(n for n, r in by_name.items() if r is best)
-    return dict(self.revealed_scores(best.revealed), reading=name, registration=align.registration_report(registration),
-                tones={n: tone.report() for n, tone in tones.items()}, test=test)
+    name = ownership.strongest(by_name)
+    return dict(self.revealed_scores(by_name[name].revealed), reading=name,
+                registration=align.registration_report(realigned.registration),
+                tones={n: tone.report() for n, tone in realigned.tones.items()}, test=test)
 
 
 def scene_scores(gaussians: Gaussians, owner: Owner, test_cameras: Sequence[Camera], test_images) -> dict:
