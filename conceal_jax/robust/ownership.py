@@ -166,11 +166,13 @@ def decide_readings(readings: dict, checks, hidden: np.ndarray, renders: dict, a
                        log10_p_model=combined_log10_p([r["log10_p_model"] for r in results]))
 
 
-def strongest(by_name: dict) -> str:
+def strongest(by_name: dict, hidden: np.ndarray) -> str:
   """The name of the reading of smallest p-value among decide_readings' readings of one image against one hidden
-  image, and of largest z among those of equal p-value (a marked scene's readings all reach the Monte-Carlo
-  p-value's floor)."""
-  return min(by_name, key=lambda name: (by_name[name].result["log10_p"][0, 0], -by_name[name].result["z"][0, 0]))
+  image `hidden` [S, S, 3], and among those of equal p-value (a marked scene's readings all reach the Monte-Carlo
+  p-value's floor) the one whose revealed image is closest to it (SSIM): the phase correlation z is blind to the
+  contrast a tone map restores, which is what tells the readings of a faded film apart."""
+  p_value = lambda name: by_name[name].result["log10_p"][0, 0]
+  return min(by_name, key=lambda name: (p_value(name), -metrics.ssim(by_name[name].revealed[0], hidden)))
 
 
 def summary(result: dict) -> dict:
@@ -273,7 +275,7 @@ def verify(config: ml_collections.ConfigDict, workdir: str) -> dict:
                               len(scene.readings))
   renders = null_renders(scene.gaussians, scene.camera, scene.options, views, hidden)
   by_name, both = decide_readings(scene.readings, check, hidden[None], renders, config.verify.alpha)
-  best = by_name[strongest(by_name)]
+  best = by_name[strongest(by_name, hidden)]
   revealed, nulls, test = best.revealed[0], best.nulls, ownership_test(best, hidden, config.verify.alpha)
   log10_p = float(both["log10_p"][0, 0])
   test.update(log10_p=log10_p, p_value=10.0 ** log10_p, owned=bool(both["owned"][0, 0]),
