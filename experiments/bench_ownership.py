@@ -9,8 +9,8 @@ with a note). Clean scenes: the teachers of --clean (train workdirs never marked
 clean trial pairs what a decoder reveals from a clean scene (at the decoder's key, at --poses orbit poses and at
 the scene's test views) with a hidden image the scene was not marked with: the decoder's own I, circular shifts
 of I, and crops of the scikit-image pictures, turned and flipped. Each trial is decided as verify decides given
-the owner's copy of the marked scene (reveal.owner: the clean render mapped onto the colour statistics of the marked
-student's render at the same camera, conceal.align.match_tone; robust.ownership.decisions at --alpha, with the decoder's
+the owner's copy of the marked scene (reveal.owner: the clean render mapped onto the tone of the marked student's
+render at the same camera, conceal.align.fit_tone; robust.ownership.decisions at --alpha, with the decoder's
 outputs on the unrelated pictures and on the clean scene turned away from the decoder's key, through the same map,
 as its null), the empirical p-value computed where the model's is at most
 RESOLVE (below it, the decision's p-value is exact; above, the model's stands in, a lower bound). Trials of one
@@ -121,9 +121,8 @@ def pair_trials(owner, hidden: np.ndarray, scene: dict, alpha: float, null_views
   """The clean trials of one decoder (owner) on one clean scene: revealed at the decoder's key and at the scene's
   cameras [V], against the hidden images [J] (ownership.decisions, resolved at RESOLVE): z, log10_p_model,
   log10_p (the decision's), owned, each [V, J]. With `marked` (the owner's copy of the marked scene), each view is
-  read as verify with reveal.owner reads a suspect at its key: mapped onto the colour statistics of the marked
-  scene's render at its camera (align.match_tone, its null outputs through the same map) and as rendered, decided on
-  both (combined)."""
+  read as verify with reveal.owner reads a suspect at its key: mapped onto the tone of the marked scene's render at
+  its camera (align.fit_tone, its null outputs through the same map) and as rendered, decided on both (combined)."""
   fields = ("z", "log10_p_model", "log10_p", "owned")
   # the key may be another scene's (another image size): rendered apart from the scene's own cameras
   groups = ([owner.check_camera], scene["cameras"])
@@ -135,8 +134,7 @@ def pair_trials(owner, hidden: np.ndarray, scene: dict, alpha: float, null_views
   else:
     references = [np.asarray(evaluate.render_images(marked, cameras, owner.options)) for cameras in groups]
     pairs = [(image, reference) for group, refs in zip(renders, references) for image, reference in zip(group, refs)]
-    readings = lambda image, ref: reveal.readings(
-        owner.reveal_renders, dict(matched=align.match_tone(image, align.render_statistics(ref))))
+    readings = lambda image, ref: reveal.readings(owner.reveal_renders, dict(toned=align.fit_tone(image, ref)))
     results = [ownership.decide_readings(readings(image, reference), image[None], hidden, nulls, alpha, RESOLVE)[1]
                for image, reference in pairs]
   return {name: np.concatenate([result[name] for result in results]) for name in fields}
@@ -217,11 +215,10 @@ def decision_row(reading: ownership.Reading, hidden: np.ndarray) -> dict:
 
 def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict]:
   """The student of `run` under each mild and medium attack (attacked_checks), decided as verify decides given the
-  owner's copy (the untouched student) at the key: read matched (each check render mapped onto the untouched
-  check's colour statistics, align.match_tone, the null outputs through the same map) and as rendered, on the
-  combined p-value, with the figures of the reading of smaller p; with the null verify would draw from the
-  (attacked) scene. `matched` and `unaligned` (as rendered: what verify decides without the owner's copy from a key
-  without statistics) are each reading alone. One row per attack level."""
+  owner's copy (the untouched student): read toned (each check render mapped onto its tone, align.fit_tone, the
+  null outputs through the same map) and as rendered, on the combined p-value, with the figures of the reading of
+  smaller p; with the null verify would draw from the (attacked) scene. `toned` and `unaligned` (as rendered: what
+  verify decides without the owner's copy) are each reading alone. One row per attack level."""
   _, student, owner = bench_robust.load_run(run)
   student = jax.tree.map(jnp.asarray, student)
   hidden = owner.hidden
@@ -230,14 +227,14 @@ def marked_trials(run: pathlib.Path, alpha: float, null_views: int) -> list[dict
     reference = check if reference is None else reference
     if kind != "image" or nulls is None:  # image attacks leave the scene, and so its null, as it is
       nulls = ownership.null_renders(scene, owner.check_camera, owner.options, null_views, hidden)
-    tone = align.match_tone(check, align.render_statistics(reference))
-    by_name, both = ownership.decide_readings(reveal.readings(owner.reveal_renders, dict(matched=tone)), check[None],
+    tone = align.fit_tone(check, reference)
+    by_name, both = ownership.decide_readings(reveal.readings(owner.reveal_renders, dict(toned=tone)), check[None],
                                               hidden[None], nulls, alpha)
     best = by_name[ownership.strongest(by_name, hidden)]
     rows.append(dict(kind=kind, attack=name, level=level, severity=severity,
                      **dict(decision_row(best, hidden), log10_p=float(both["log10_p"][0, 0]),
                             owned=bool(both["owned"][0, 0])),
-                     tone=tone.report(), matched=decision_row(by_name["matched"], hidden),
+                     tone=tone.report(), toned=decision_row(by_name["toned"], hidden),
                      unaligned=decision_row(by_name["as_rendered"], hidden)))
   print(f"{run}: {sum(r['owned'] for r in rows[1:])} of {len(rows) - 1} attacked trials decided owned, lowest z "
         f"{min(r['z'] for r in rows[1:]):.2f} (without the owner's copy: "
@@ -431,7 +428,7 @@ def main():
   if not runs or not scenes:
     raise SystemExit("bench-ownership needs at least one conceal run and one clean teacher")
   settings = (f"poses={args.poses} test_views={args.test_views} alpha={args.alpha} null_views={args.null_views} "
-              f"resolve={RESOLVE} shifts={SHIFTS} crops={CROPS} owner_copy=matched+as_rendered")
+              f"resolve={RESOLVE} shifts={SHIFTS} crops={CROPS} owner_copy=toned+as_rendered")
   per_run = {str(run): clean_trials(run, scenes, args.alpha, args.null_views, pathlib.Path(args.cache), settings)
              for run in runs}
   z = np.concatenate([t["z"] for t in per_run.values()])

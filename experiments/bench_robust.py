@@ -28,16 +28,14 @@ import json
 import pathlib
 
 import jax
-import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from conceal_jax.conceal import align, hidden as hidden_lib, key as key_lib, near, reveal
+from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, near, reveal
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, train
 from conceal_jax.robust import image_attacks, ownership, robustness
-from conceal_jax.splat.render import render
 
 # The demo trained through attacks (configs/demo_robust.py; the Makefile trains it when missing) and bench-conceal's
 # lego run of the best student, which reads clipped renders too
@@ -50,19 +48,15 @@ MARKED_SEVERITIES = (image_attacks.MILD, image_attacks.MEDIUM)
 
 
 def load_run(run: pathlib.Path):
-  """(config, student, owner) of a finished conceal workdir; the owner's key statistics are the key's, or for a key
-  written before they were recorded, the student's at the key as the conceal job now records them."""
+  """(config, student, owner) of a finished conceal workdir."""
   config = ml_collections.ConfigDict(json.loads((run / "config.json").read_text()))
   camera, info = key_lib.load_key(str(run / "key.json"))
   decoder = reveal.load_decoder(str(run / "decoder.msgpack")) if info.get("uses_decoder", True) else None
   hidden = hidden_lib.load_hidden_image(config.mark.hidden, int(info["hidden_size"]))
-  student, options = ply.load_ply(str(run / "student.ply")), reveal.options_from_key(info)
-  statistics = info.get(reveal.KEY_STATISTICS) or align.render_statistics(
-      render(jax.tree.map(jnp.asarray, student), camera, options).rgb)
   owner = robustness.Owner(decoder=decoder, decoder_width=int(info.get("decoder_width", 0)), hidden=hidden,
-                           check_camera=camera, options=options, reading=reveal.Reading.from_key(info),
-                           statistics=statistics)
-  return config, student, owner
+                           check_camera=camera, options=reveal.options_from_key(info),
+                           reading=reveal.Reading.from_key(info))
+  return config, ply.load_ply(str(run / "student.ply")), owner
 
 
 def near_length(config, scene, owner: robustness.Owner) -> float:

@@ -15,11 +15,9 @@ is skipped with a note. Attacks (`level` in brackets):
   `unaligned` without it; `registration` reports the transform found and its error against the applied one;
 - sog, spz, compressed_ply (the format), decimate (fraction kept), sh_bands (bands kept): round trips through
   @playcanvas/splat-transform (robust.converter; skipped without `make node_modules`), revealed as they come back
-  (hidden_*), as verify reads them without the owner's copy (`returned`: after the tone onto the key's colour
-  statistics and as rendered) and after re-alignment (`aligned`); `moved`: the same round trip of the student
-  moved by a random similarity first (any rotation, translation up to 10 radii, scale in [1/10, 10]), revealed
-  after re-alignment (floater filtering, `-F`, is not among them: splat-transform 3.7.0 runs its voxelisation
-  only on a GPU device);
+  (hidden_*) and after re-alignment (`aligned`); `moved`: the same round trip of the student moved by a random
+  similarity first (any rotation, translation up to 10 radii, scale in [1/10, 10]), revealed after re-alignment
+  (floater filtering, `-F`, is not among them: splat-transform 3.7.0 runs its voxelisation only on a GPU device);
 - finetune, finetune_densify (steps): 3D-GS training continued from the student on the training views with the
   run's own training recipe, without and with densification (snapshots of one run per schedule);
 - extraction (views; `steps` in the row), with --extraction only: renders of the student at its training
@@ -233,17 +231,6 @@ def aligned(scene: Scene, suspect, applied: sim.Similarity | None = None) -> dic
               registration=registration, test=scores["test"])
 
 
-def returned(scene: Scene, suspect) -> dict:
-  """hidden_psnr, hidden_ssim and hidden_z of the strongest reading (ownership.strongest, named `reading`) of
-  `suspect` as it comes back, read at the key as saved as verify reads it without the owner's copy
-  (robustness.Owner.returned_scores: after the tone onto the key's statistics and as rendered), decided (the
-  calibrated threshold's), `owned`, its `log10_p` and the tone map."""
-  scores = scene.owner.returned_scores(suspect, scene.alpha, scene.null_views)
-  test = scores.pop("test")
-  return dict(scores, decided=ownership.decide(scores["hidden_ssim"], scene.calibration), owned=test["owned"],
-              log10_p=test["log10_p"], readings=test["readings"])
-
-
 CACHE_SOURCE = "source.json"
 
 
@@ -316,7 +303,6 @@ def converter_rows(scene: Scene, todo) -> list[dict]:
     scores["num_gaussians"] = int(published.num)
     realigned = aligned(scene, published)
     rows.append(scene.row(attack, level, scores, realigned.pop("test"), aligned=realigned,
-                          returned=returned(scene, padded),
                           moved=dict(aligned(scene, moved, applied), similarity=align.similarity_report(applied))))
     print(json.dumps({k: v for k, v in rows[-1].items() if not isinstance(v, dict)}), flush=True)
   return rows
@@ -451,9 +437,7 @@ def table(rows: list[dict]) -> str:
   lines = ["# Survival of the mark (make bench-survive)", "",
            "Hidden PSNR / SSIM at the key: after re-alignment against the owner's copy for the similarity "
            "transforms (rotate, translate, scale), as the scene comes back for the others. Unaligned: the "
-           "transforms revealed at the key as saved; returned: the round trips as verify reads them without the "
-           "owner's copy (after the tone onto the key's colour statistics, align.match_tone, and as rendered; the "
-           "reading of smaller p-value); aligned: the round trips re-aligned first; moved: the round "
+           "transforms revealed at the key as saved; aligned: the round trips re-aligned first; moved: the round "
            "trip of the student moved by a random similarity (scale 1/10-10) first, re-aligned. Registration: its "
            "rotation error against the applied rotation (degrees) and residual (owner radii), for the round trips "
            "that of the moved variant. decided: SSIM at or above the threshold chosen from the calibration file "
@@ -464,16 +448,15 @@ def table(rows: list[dict]) -> str:
            "one-sided 1e-6 level; rows measured before it have none). owned: verify's decision given the owner's "
            "copy (robust/ownership.py: re-aligned in frame and tone, read after each tone map and as rendered, at "
            "alpha --alpha), with its log10 p-value; rows measured before it have none. Re-aligned hidden figures are "
-           "the strongest reading's (as verify reports them: smallest p-value, then largest SSIM; from 2026-11-27 "
-           "night: the tone onto the key's statistics (match_tone), the tone over the scene's views, or none; "
-           "2026-11-27 evening: the tone fitted at the key, over the scene's views, or none, ties by z; before: the "
-           "tone fitted at the key).", "", "Recipes:", "",
+           "the strongest reading's (as verify reports them: smallest p-value, then from 2026-11-27 night largest "
+           "SSIM, before largest z; from 2026-11-27 evening: the tone at the key, over the scene's views, or none; "
+           "before: the tone at the key).", "", "Recipes:", "",
            *[f"- {name}: {note}" for name, note in RECIPE_NOTES.items()
              if any(r["recipe"] == name for r in rows)], "",
            *true_positive_lines(rows),
            "| scene | recipe | attack | level | render PSNR | hidden PSNR | hidden SSIM | z | owned (log10 p) "
-           "| decided | unaligned SSIM | returned SSIM | aligned SSIM | moved SSIM | registration |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           "| decided | unaligned SSIM | aligned SSIM | moved SSIM | registration |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
   cell = lambda x, digits=3: "" if x is None else f"{x:.{digits}f}"
   for r in rows:
     registration = r.get("registration") or (r.get("moved") or {}).get("registration")
@@ -483,7 +466,6 @@ def table(rows: list[dict]) -> str:
                  f"| {r['hidden_psnr']:.2f} | {r['hidden_ssim']:.3f} "
                  f"| {cell(r.get('hidden_z'), 1)} | {owned_cell(r)} | {'yes' if r['decided'] else 'no'} "
                  f"| {cell((r.get('unaligned') or {}).get('hidden_ssim'))} "
-                 f"| {cell((r.get('returned') or {}).get('hidden_ssim'))} "
                  f"| {cell((r.get('aligned') or {}).get('hidden_ssim'))} "
                  f"| {cell((r.get('moved') or {}).get('hidden_ssim'))} | {reg} |")
   return "\n".join(lines) + "\n"

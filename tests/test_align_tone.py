@@ -1,7 +1,6 @@
 """The tone half of re-alignment (conceal.align.fit_tone): the per-channel gain and offset that map a suspect's
 render onto the owner's, against an independent float64 least-squares fit, with clipped pixels, bounds and
-degenerate channels; fitted over views of the whole scene (scene_tone), a grade of the scene's colours undone; and
-matched at the key onto the statistics a key records (match_tone), with and without the owner's copy."""
+degenerate channels; fitted over views of the whole scene (scene_tone), a grade of the scene's colours undone."""
 from __future__ import annotations
 
 import jax
@@ -9,15 +8,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conceal_jax import main as main_lib
-from conceal_jax.conceal import align, key as key_lib, reveal, unet
-from conceal_jax.configs import default
-from conceal_jax.data import ply
+from conceal_jax.conceal import align
 from conceal_jax.gs import similarity as sim
 from conceal_jax.robust import image_attacks
 from conceal_jax.splat import sh as sh_lib
 from conceal_jax.splat.camera import center_of
-from conceal_jax.splat.render import RenderOptions, render
+from conceal_jax.splat.render import RenderOptions
 from tests.helpers import make_camera
 from tests.test_reveal_alignment import blobs
 
@@ -125,68 +121,3 @@ def test_a_graded_and_moved_scene_gives_back_its_grade_and_an_untouched_one_the_
   tone = align.scene_tone(scene, graded_scene(moved, gain), key, options, similarity)
   np.testing.assert_allclose(tone.gain, 1.0 / gain, rtol=5e-3)
   np.testing.assert_allclose(tone.offset, 0.0, atol=3e-3)
-
-
-def test_match_tone_gives_the_recorded_statistics_against_a_float64_reference():
-  """A render graded per channel (gain and offset, nothing clipped) is mapped back onto the statistics the key
-  recorded of the untouched render: the map is the grade's inverse, and the mapped render has those statistics."""
-  check = 0.1 + 0.8 * render_like()  # the border at 0.9: nothing clips under the grade
-  statistics = align.render_statistics(check)
-  pixels = check.reshape(-1, 3)
-  np.testing.assert_allclose(statistics["mean"], [np.mean(pixels[:, c]) for c in range(3)], rtol=1e-12)
-  np.testing.assert_allclose(statistics["std"], [np.sqrt(np.mean((pixels[:, c] - pixels[:, c].mean()) ** 2))
-                                                 for c in range(3)], rtol=1e-12)
-  gain, offset = np.array([0.6, 1.3, 0.85]), np.array([0.2, -0.1, 0.05])
-  tone = align.match_tone(check * gain + offset, statistics)
-  np.testing.assert_allclose(tone.gain, 1.0 / gain, rtol=1e-9)
-  np.testing.assert_allclose(tone.offset, -offset / gain, rtol=1e-9)
-  restored = np.asarray(tone.apply((check * gain + offset).astype(np.float32)), np.float64)
-  np.testing.assert_allclose(restored, check, atol=1e-5)
-  identity = align.match_tone(check, statistics)
-  np.testing.assert_allclose(identity.gain, 1.0, atol=1e-12)
-  np.testing.assert_allclose(identity.offset, 0.0, atol=1e-12)
-
-
-def test_match_tone_is_bounded_and_flat_channels_keep_the_identity():
-  check = render_like()
-  statistics = align.render_statistics(check)
-  suspect = check.copy()
-  suspect[..., 0] = 0.5  # no spread: nothing to match
-  suspect[..., 1] = 0.5 + 0.01 * (check[..., 1] - 0.5)  # a 100x gain would be needed
-  tone = align.match_tone(suspect, statistics)
-  assert tone.gain[0] == 1.0 and tone.offset[0] == 0.0
-  assert tone.gain[1] == align.MAX_TONE_GAIN and abs(tone.offset[1]) <= align.MAX_TONE_OFFSET
-  assert np.all(np.isfinite(np.asarray(tone.apply(jnp.asarray(suspect, jnp.float32)))))
-  with pytest.raises(ValueError, match="per colour channel"):
-    align.match_tone(check, dict(mean=[0.5], std=[0.1]))
-
-
-def test_a_key_with_statistics_reads_a_graded_scene_as_the_untouched_one_without_the_owner_copy(tmp_path):
-  """On a black background a grade of the colours is a gain of the check render: reveal with a key that records
-  the marked scene's statistics there (conceal's key.json) reads it after match_tone ("matched") and reveals what
-  the untouched scene does; the same key without them reads it as rendered, and reveals something else."""
-  scene = jax.tree.map(jnp.asarray, blobs(2000))
-  camera, options = make_camera(32, 32, eye=(0.5, -5.0, 1.5)), RenderOptions()
-  reveal.save_decoder(str(tmp_path / "decoder.msgpack"), unet.init_decoder(jax.random.key(0), 4, 16))
-  info = dict(hidden_size=16, uses_decoder=True, decoder_width=4, render_options=dict(background=[0.0, 0.0, 0.0]))
-  key_lib.save_key(str(tmp_path / "plain.json"), camera, info)
-  statistics = align.render_statistics(render(scene, camera, options).rgb)
-  key_lib.save_key(str(tmp_path / "stats.json"), camera, dict(info, **{reveal.KEY_STATISTICS: statistics}))
-  ply.save_ply(tmp_path / "marked.ply", jax.tree.map(np.asarray, scene))
-  ply.save_ply(tmp_path / "graded.ply", jax.tree.map(np.asarray, graded_scene(scene, [0.8, 0.9, 0.7])))
-
-  def run(scene_file, key_file, hidden=""):
-    config = default.get_config()
-    config.mode = "reveal"
-    config.reveal.ply, config.reveal.key = str(tmp_path / scene_file), str(tmp_path / key_file)
-    config.reveal.decoder, config.reveal.hidden = str(tmp_path / "decoder.msgpack"), hidden
-    return main_lib.run(config, str(tmp_path / f"{scene_file}_{key_file}"))
-
-  untouched = run("marked.ply", "stats.json")
-  assert untouched["reading"] == "matched"
-  np.testing.assert_allclose(untouched["tones"]["matched"]["gain"], 1.0, atol=1e-6)
-  expected = str(tmp_path / "marked.ply_stats.json" / "revealed.png")
-  matched, plain = run("graded.ply", "stats.json", expected), run("graded.ply", "plain.json", expected)
-  assert matched["reading"] == "matched" and plain["reading"] == "as_rendered" and "tones" not in plain
-  np.testing.assert_allclose(matched["tones"]["matched"]["gain"], 1.0 / np.array([0.8, 0.9, 0.7]), rtol=2e-3)
-  assert matched["psnr"] > 40.0 and plain["psnr"] < matched["psnr"] - 10.0

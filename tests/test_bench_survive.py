@@ -75,14 +75,11 @@ def test_transforms_and_round_trips_are_revealed_after_re_alignment(run, monkeyp
     assert not row["unaligned"]["decided"]
     # verify's test given the owner's copy: the moved scene re-aligned is tested as the untouched one is
     assert row["owned"] == none["owned"] and row["log10_p"] == pytest.approx(none["log10_p"], abs=0.05)
-    assert set(row["verify"]["readings"]) == {"matched", "scene_toned", "as_rendered"}
+    assert set(row["verify"]["readings"]) == {"toned", "scene_toned", "as_rendered"}
   if converter.available():
     row = by["decimate", 0.5]
     # the converter merges Gaussians as it decimates: 400 left of 800 register to within a degree
     assert row["num_gaussians"] == 400 and row["aligned"]["registration"]["rotation_error_deg"] < 2.0
-    # as it comes back, read as verify reads it without the owner's copy: onto the key's statistics and as rendered
-    assert set(row["returned"]["readings"]) == {"matched", "as_rendered"}
-    assert row["returned"]["reading"] in row["returned"]["readings"]
     # moved by a random similarity, then published: the re-aligned key reveals about as the published scene does
     assert row["moved"]["registration"]["rotation_error_deg"] < 2.0
     assert row["moved"]["hidden_ssim"] == pytest.approx(row["hidden_ssim"], abs=0.05)

@@ -6,13 +6,12 @@ copy (gs.register: the similarity owner -> suspect from the Gaussians alone) and
 similarity (realign), so that it sees the suspect as the key saw the marked scene, reading only the SH
 bands the owner's copy shows there (key_options: a converter that quantizes zero higher bands, as .compressed.ply's
 8 bits do, returns them as a small tint that depends on the view's direction in the scene's frame). Its tone: the
-suspect's renders are mapped channel by channel by a gain and an offset within what a colour grade does
-(MAX_TONE_GAIN, MAX_TONE_OFFSET), in two ways: at the key alone, onto the mean and spread the marked scene shows
-there (match_tone; six numbers a key records, render_statistics, so this map needs no owner's copy), which restores
-the film's own statistics where thinning it faded it; and fitted over the key's view and views of the whole scene
-at SH degree 0 (scene_tone, fit_tone), which a grade of the scene fits and thinning does not pull. Where the key
-sees a film of nearly one colour, either can be the one that reads it (the other mistakes a change of the film for
-a grade), so verify reads both and the render as it is, and decides on the best (robust.ownership).
+suspect's renders are mapped channel by channel onto the owner's by the gain and offset that fit them best
+(fit_tone), within what a colour grade does (MAX_TONE_GAIN, MAX_TONE_OFFSET), in two ways: at the key alone
+(tone_at_key), which restores the film's own statistics where thinning it faded it, and over the key's view and
+views of the whole scene at SH degree 0 (scene_tone), which a grade of the scene fits and thinning does not pull;
+where the key sees a film of nearly one colour, either can be the one that reads it (the other mistakes a change of
+the film for a grade), so verify reads both and the render as it is, and decides on the best (robust.ownership).
 Every render the decoder then reads of that suspect, the key's and the null views', passes through the same map
 (Tone.apply).
 """
@@ -83,28 +82,11 @@ def fit_tone(image: np.ndarray, reference: np.ndarray) -> Tone:
   return Tone(gain, offset)
 
 
-def render_statistics(image) -> dict[str, list[float]]:
-  """The per-channel mean and standard deviation [3] of a render [H, W, 3] of the marked scene at its key, as a key
-  records them (key.json's key_statistics) for match_tone."""
-  pixels = np.asarray(image, np.float64).reshape(-1, 3)
-  return dict(mean=pixels.mean(axis=0).tolist(), std=pixels.std(axis=0).tolist())
-
-
-def match_tone(image, statistics: dict) -> Tone:
-  """The Tone that gives `image` [H, W, 3] (a suspect's render at the key) the per-channel mean and standard
-  deviation of `statistics` (render_statistics of the marked scene's render there): what thinning a near-uniform
-  film or grading the scene did to its spread and level, undone from six recorded numbers, so that a reveal needs no
-  copy of the marked scene for it. The gain bounded by MAX_TONE_GAIN, the offset by MAX_TONE_OFFSET; a channel of
-  no spread keeps the identity."""
-  pixels = np.asarray(image, np.float64).reshape(-1, 3)
-  mean, std = pixels.mean(axis=0), pixels.std(axis=0)
-  target_mean, target_std = np.asarray(statistics["mean"], np.float64), np.asarray(statistics["std"], np.float64)
-  if target_mean.shape != (3,) or target_std.shape != (3,):
-    raise ValueError(f"key statistics hold a mean and a std per colour channel, got {statistics!r}")
-  spread = std > 1e-6
-  gain = np.where(spread, np.clip(target_std / np.where(spread, std, 1.0), 1.0 / MAX_TONE_GAIN, MAX_TONE_GAIN), 1.0)
-  offset = np.where(spread, np.clip(target_mean - gain * mean, -MAX_TONE_OFFSET, MAX_TONE_OFFSET), 0.0)
-  return Tone(gain, offset)
+def tone_at_key(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
+                suspect_camera: Camera, suspect_options: RenderOptions) -> Tone:
+  """fit_tone of the suspect's render at its (moved) key onto the owner's copy's render at the key."""
+  return fit_tone(np.asarray(render(suspect, suspect_camera, suspect_options).rgb),
+                  np.asarray(render(owner, camera, options).rgb))
 
 
 def survey_cameras(gaussians: Gaussians, camera: Camera, count: int = TONE_VIEWS) -> list[Camera]:
@@ -146,8 +128,7 @@ def moved_key(camera: Camera, options: RenderOptions,
 class Realignment:
   """A suspect scene re-aligned onto the owner's copy (realign): the key `camera` and render `options` moved into
   its frame (reading the key's SH degree), the `registration` (similarity owner -> suspect, residual, matched
-  fraction) and the tone maps by name, `tones` ("matched": match_tone at the moved key onto the owner's render
-  at the key; "scene_toned": scene_tone)."""
+  fraction) and the tone maps by name, `tones` ("toned": tone_at_key; "scene_toned": scene_tone)."""
   camera: Camera
   options: RenderOptions
   registration: register_lib.Registration
@@ -159,13 +140,12 @@ def realign(owner: Gaussians, suspect: Gaussians, camera: Camera, options: Rende
   """The key moved into the suspect scene's frame: registers `suspect` onto the owner's copy `owner` (the scene
   the key was made for; any order, size or count of Gaussians in either), moves `camera` and `options` at the SH
   degree key_options finds with the similarity found (moved_key), and fits the suspect's tone maps onto the owner's
-  (match_tone at the moved key, scene_tone). ValueError from register for scenes too small or not finite."""
+  (tone_at_key at the moved key, scene_tone). ValueError from register for scenes too small or not finite."""
   owner, suspect = jax.tree.map(jnp.asarray, owner), jax.tree.map(jnp.asarray, suspect)
   registration = register_lib.register(owner, suspect, seed=seed)
   options = key_options(owner, [camera], options)
   moved, moved_options = moved_key(camera, options, registration.similarity)
-  statistics = render_statistics(render(owner, camera, options).rgb)
-  tones = dict(matched=match_tone(render(suspect, moved, moved_options).rgb, statistics),
+  tones = dict(toned=tone_at_key(owner, suspect, camera, options, moved, moved_options),
                scene_toned=scene_tone(owner, suspect, camera, options, registration.similarity))
   return Realignment(moved, moved_options, registration, tones)
 

@@ -163,8 +163,7 @@ def save_key(path: str, camera: Camera, info: dict, extra_keys: Sequence[tuple[C
 
 
 def load_key(path: str, number: int = 0) -> tuple[Camera, dict]:
-  """(camera of key `number`, the rest of key.json): 0 the check view, k >= 1 the k-th of its `extra_keys` (its own
-  fields, as its key_statistics, over the file's).
+  """(camera of key `number`, the rest of key.json): 0 the check view, k >= 1 the k-th of its `extra_keys`.
   ValueError naming the file if it is missing or malformed, or has no key `number`."""
   try:
     with open(path) as f:
@@ -174,9 +173,7 @@ def load_key(path: str, number: int = 0) -> tuple[Camera, dict]:
       extra = info.get("extra_keys", [])
       if not 0 < number <= len(extra):
         raise ValueError(f"no key number {number}: it holds keys 0 to {len(extra)}")
-      own = dict(extra[number - 1])
-      c = own.pop("camera")
-      info = dict(info, **own)
+      c = extra[number - 1]["camera"]
     camera = camera_from_dict(c)
   except (OSError, ValueError, KeyError, TypeError) as error:
     raise ValueError(f"cannot read key {path}: {error}") from error

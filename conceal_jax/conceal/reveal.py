@@ -8,9 +8,7 @@ A shared scene may have been turned, moved, resized or reordered on import (or r
 does so), and its colours graded. Given the owner's own copy of the marked scene (reveal.owner), the reveal first
 re-aligns the suspect onto it (conceal.align: the key moved into the suspect's frame, its renders mapped onto the
 owner's tone) and renders there: the check view the key names, seen in the suspect's frame and tone.
-reveal.json then reports the transform, the tone maps and how well they fit. Without it, a key that records the
-marked scene's colour statistics at the key (key_statistics) still maps the suspect's render onto them
-(align.match_tone): a scene thinned or graded reads as the marked one did.
+reveal.json then reports the transform, the tone maps and how well they fit.
 """
 from __future__ import annotations
 
@@ -38,8 +36,6 @@ REVEAL_FILE = "reveal.json"
 # Below this fraction of the suspect's Gaussians matched to the owner's copy after registration, the reveal logs
 # that the transform found is doubtful (another scene, or one changed beyond re-alignment).
 MIN_MATCHED_FRACTION = 0.5
-# The key.json field of the marked scene's per-channel mean and std at the key (align.render_statistics).
-KEY_STATISTICS = "key_statistics"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -159,8 +155,8 @@ def readings(reveal_fn, tones: dict[str, align.Tone] | None = None) -> dict[str,
 class KeyedScene:
   """A suspect scene with what reveals it (load_keyed_scene): the Gaussians, the key camera and render options
   (moved into the scene's frame when re-aligned), `decoder_fn` (decoder_reveal: renders [V, H, W, 3] -> revealed
-  [V, S, S, 3]), the alignment report or None, and the tone maps by name (onto the owner's copy:
-  align.Realignment.tones; onto the key's statistics without it: "matched") or None."""
+  [V, S, S, 3]), the alignment report or None, and the tone maps onto the owner's copy by name
+  (align.Realignment.tones) or None."""
   gaussians: Gaussians
   camera: Camera
   options: RenderOptions
@@ -174,7 +170,7 @@ class KeyedScene:
 
   @property
   def reveal_fn(self):
-    """The first of the readings: after the key's tone map ("matched") where there is one."""
+    """The first of the readings: after the key's tone map where there is one."""
     return next(iter(self.readings.values()))
 
   def reveal_at(self, cameras: list[Camera]) -> np.ndarray:
@@ -186,14 +182,13 @@ class KeyedScene:
 def load_keyed_scene(r: ml_collections.ConfigDict) -> KeyedScene:
   """The scene r.ply, key number r.key_number of the key file r.key (0: its check view, k: its k-th extra key)
   and the decoder r.decoder (a `reveal` config section). With r.owner set, the suspect is re-aligned onto the
-  owner's copy r.owner (align.realign) and the alignment report is align.registration_report's;
-  without it, a key that records the marked scene's statistics there (key_statistics) reads the suspect after
-  align.match_tone onto them too."""
+  owner's copy r.owner (align.realign) and the alignment report is
+  align.registration_report's with the tone maps."""
   camera, info = key_lib.load_key(r.key, r.key_number)
   if info.get("uses_decoder", True) and not r.decoder:
     raise ValueError("reveal.decoder is required: this key was made with a decoder")
   decoder = load_decoder(r.decoder) if info.get("uses_decoder", True) else None
-  suspect, options = jax.tree.map(jnp.asarray, ply.load_ply(r.ply)), options_from_key(info)
+  suspect, options = ply.load_ply(r.ply), options_from_key(info)
   reveal_fn = decoder_reveal(decoder, int(info.get("decoder_width", 0)), int(info["hidden_size"]),
                              Reading.from_key(info))
   alignment = tones = None
@@ -201,31 +196,37 @@ def load_keyed_scene(r: ml_collections.ConfigDict) -> KeyedScene:
     owner = ply.load_ply(r.owner)
     realigned = align.realign(owner, suspect, camera, options)
     camera, options, registration, tones = realigned.camera, realigned.options, realigned.registration, realigned.tones
-    alignment = dict(owner=r.owner, **align.registration_report(registration))
+    alignment = dict(owner=r.owner, **align.registration_report(registration),
+                     tones={name: tone.report() for name, tone in tones.items()})
     if registration.matched_fraction < MIN_MATCHED_FRACTION:
       logging.warning("re-alignment of %s onto %s matched only %.0f%% of its Gaussians (residual %.2g radii): the "
                       "transform found is doubtful", r.ply, r.owner, 100 * registration.matched_fraction,
                       registration.residual)
-  elif info.get(KEY_STATISTICS):
-    tones = dict(matched=align.match_tone(render(suspect, camera, options).rgb, info[KEY_STATISTICS]))
-  return KeyedScene(suspect, camera, options, reveal_fn, alignment, tones)
+  return KeyedScene(jax.tree.map(jnp.asarray, suspect), camera, options, reveal_fn, alignment, tones)
+
+
+def reveal_with_alignment(r: ml_collections.ConfigDict) -> tuple[np.ndarray, dict | None]:
+  """([S, S, 3] image revealed at the key of load_keyed_scene(r), S the key's hidden size; the alignment report
+  or None)."""
+  scene = load_keyed_scene(r)
+  return scene.reveal_at([scene.camera])[0], scene.alignment
+
+
+def reveal_from_files(r: ml_collections.ConfigDict) -> np.ndarray:
+  """The [S, S, 3] image of reveal_with_alignment (re-aligned when r.owner is set)."""
+  return reveal_with_alignment(r)[0]
 
 
 def reveal(config: ml_collections.ConfigDict, workdir: str) -> dict:
-  """The reveal job: writes revealed.png, the first of the suspect's readings at the key (after its tone map where
-  there is one: KeyedScene.readings), and reveal.json (the reading's name and the tone maps; similarity to
-  config.reveal.hidden if set; the alignment found when config.reveal.owner is set; with a key of message mode, the
-  message read back)."""
+  """The reveal job: writes revealed.png and reveal.json (similarity to config.reveal.hidden if set; the
+  alignment found when config.reveal.owner is set; with a key of message mode, the message read back)."""
   validate(config)
   r = config.reveal
-  scene = load_keyed_scene(r)
-  revealed = scene.reveal_at([scene.camera])[0]
+  revealed, alignment = reveal_with_alignment(r)
   fileio.write_image(os.path.join(workdir, "revealed.png"), revealed)
-  result = dict(ply=r.ply, key=r.key, decoder=r.decoder, reading=next(iter(scene.readings)))
-  if scene.tones:
-    result["tones"] = {name: tone.report() for name, tone in scene.tones.items()}
-  if scene.alignment is not None:
-    result["alignment"] = scene.alignment
+  result = dict(ply=r.ply, key=r.key, decoder=r.decoder)
+  if alignment is not None:
+    result["alignment"] = alignment
   if r.hidden:
     reference = hidden_lib.load_hidden_image(r.hidden, revealed.shape[0])
     result.update(psnr=float(metrics.psnr(revealed, reference)), ssim=float(metrics.ssim(revealed, reference)))

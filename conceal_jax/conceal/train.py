@@ -138,21 +138,18 @@ def curve_record(run: Run, state, eval_views) -> dict:
 
 def save_outputs(run: Run, workdir: str, state) -> None:
   """student.ply, decoder.msgpack, key.json (each extra key numbered, with its image's source; its render options
-  the run's, reading the SH bands the student shows at the keys: align.key_options; the student's colour
-  statistics at each key, align.render_statistics) and the hidden images."""
+  the run's, reading the SH bands the student shows at the keys: align.key_options) and the hidden images."""
   s = run.plan.settings
   ply.save_ply(os.path.join(workdir, STUDENT_FILE), jax.device_get(state.student))
   if s.use_decoder:
     reveal.save_decoder(os.path.join(workdir, DECODER_FILE), state.decoder)
-  options = align.key_options(state.student, [camera for camera, _ in run.keys], run.options)
-  statistics = [{reveal.KEY_STATISTICS: align.render_statistics(render_lib.render(state.student, camera, options).rgb)}
-                for camera, _ in run.keys]
   (check_camera, info), extra = run.keys[0], run.keys[1:]
+  options = align.key_options(state.student, [camera for camera, _ in run.keys], run.options)
   info = dict(info, hidden_size=s.hidden_size, uses_decoder=s.use_decoder, decoder_width=s.decoder_width,
-              **s.reading.key_fields(), render_options=dataclasses.asdict(options), **statistics[0],
+              **s.reading.key_fields(), render_options=dataclasses.asdict(options),
               **(message_lib.key_fields(run.message) if run.message is not None else {}))
   key_lib.save_key(os.path.join(workdir, KEY_FILE), check_camera, info,
-                   [(camera, dict(more, number=k, hidden=source, **statistics[k]))
+                   [(camera, dict(more, number=k, hidden=source))
                     for k, ((camera, more), source) in enumerate(zip(extra, run.plan.sources[1:]), 1)])
   for k, image in enumerate(run.hiddens):
     fileio.write_image(os.path.join(workdir, f"hidden_key{k}.png" if k else "hidden.png"), image)

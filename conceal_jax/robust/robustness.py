@@ -26,15 +26,13 @@ from conceal_jax.splat.render import RenderOptions, render
 class Owner:
   """What the owner keeps: decoder params (None: the no-decoder ablation) of `decoder_width`, the hidden
   image I [S, S, 3], the check camera and the render options of the key; how the decoder reads a render as
-  the key says (reveal.Reading.from_key); the marked scene's colour statistics at the key
-  (align.render_statistics, key.json's key_statistics) or None."""
+  the key says (reveal.Reading.from_key)."""
   decoder: Any
   decoder_width: int
   hidden: np.ndarray
   check_camera: Camera
   options: RenderOptions
   reading: reveal.Reading = reveal.PAPER_READING
-  statistics: dict | None = None
 
   @property
   def hidden_size(self) -> int:
@@ -66,14 +64,18 @@ class Owner:
     options = self.options if options is None else options
     return self.revealed_scores(self.reveal_renders(render(gaussians, camera, options).rgb[None]))
 
-  def tested_scores(self, suspect: Gaussians, camera: Camera, options: RenderOptions, tones: dict | None,
-                    alpha: float, null_views: int) -> dict:
-    """What `suspect` reveals at `camera` with `options`, as verify reports it: revealed_scores of the strongest
-    reading among reveal.readings with `tones` (ownership.strongest; its name `reading`), and `test`,
-    verify's decision at `alpha` (ownership.decide_readings, the null outputs from the suspect at the camera, at
-    least `null_views` turned views): z, log10_p, owned, and each reading's."""
+  def aligned_scores(self, marked: Gaussians, suspect: Gaussians, alpha: float, null_views: int) -> dict:
+    """What `suspect` reveals at the key after re-alignment against the owner's copy `marked` (the scene the
+    key was made for; align.realign), as verify reports it: revealed_scores of the strongest reading
+    (ownership.strongest: smallest p-value, then largest SSIM; its name `reading`), `registration`, the
+    transform found and its fit (align.registration_report), `tones`, the colour maps found, and `test`, verify's
+    decision at `alpha` given the owner's copy (ownership.decide_readings: read after each tone map and as rendered,
+    the null outputs from the suspect at the moved key, at least `null_views` turned views): z, log10_p, owned, and
+    each reading's."""
+    realigned = align.realign(marked, suspect, self.check_camera, self.options)
+    camera, options = realigned.camera, realigned.options
     suspect = jax.tree.map(jnp.asarray, suspect)
-    readings = reveal.readings(self.reveal_renders, tones)
+    readings = reveal.readings(self.reveal_renders, realigned.tones)
     views = ownership.turned_views_needed(alpha, self.hidden_size, len(ownership.unrelated_images(self.hidden)),
                                           null_views, len(readings))
     renders = ownership.null_renders(suspect, camera, options, views, self.hidden)
@@ -81,27 +83,9 @@ class Owner:
                                               self.hidden[None], renders, alpha)
     test = dict(ownership.summary(both), readings={name: ownership.summary(r.result) for name, r in by_name.items()})
     name = ownership.strongest(by_name, self.hidden)
-    return dict(self.revealed_scores(by_name[name].revealed), reading=name, test=test)
-
-  def returned_scores(self, suspect: Gaussians, alpha: float, null_views: int) -> dict:
-    """tested_scores of `suspect` as it comes back, at the key as saved, as verify reads it without the owner's
-    copy: as rendered, and after align.match_tone onto the key's statistics where the owner records them."""
-    tones = None
-    if self.statistics is not None:
-      check = render(jax.tree.map(jnp.asarray, suspect), self.check_camera, self.options).rgb
-      tones = dict(matched=align.match_tone(check, self.statistics))
-    return dict(self.tested_scores(suspect, self.check_camera, self.options, tones, alpha, null_views),
-                tones={n: tone.report() for n, tone in (tones or {}).items()})
-
-  def aligned_scores(self, marked: Gaussians, suspect: Gaussians, alpha: float, null_views: int) -> dict:
-    """tested_scores of `suspect` after re-alignment against the owner's copy `marked` (the scene the key was made
-    for; align.realign: read after each tone map and as rendered at the moved key), as verify given the owner's
-    copy reports it, with `registration`, the transform found and its fit (align.registration_report), and
-    `tones`, the colour maps found."""
-    realigned = align.realign(marked, suspect, self.check_camera, self.options)
-    scores = self.tested_scores(suspect, realigned.camera, realigned.options, realigned.tones, alpha, null_views)
-    return dict(scores, registration=align.registration_report(realigned.registration),
-                tones={n: tone.report() for n, tone in realigned.tones.items()})
+    return dict(self.revealed_scores(by_name[name].revealed), reading=name,
+                registration=align.registration_report(realigned.registration),
+                tones={n: tone.report() for n, tone in realigned.tones.items()}, test=test)
 
 
 def scene_scores(gaussians: Gaussians, owner: Owner, test_cameras: Sequence[Camera], test_images) -> dict:
