@@ -7,7 +7,8 @@ WORKDIR ?= workdirs/demo
 JOBS ?= 2
 
 .PHONY: venv demo own-scene chromium test test-slow bench-render bench-train bench-start bench-full profile-train bench-conceal profile-conceal \
-        bench-baselines bench-robust bench-survive bench-falloff survive-runs bench-ownership reproduce clean
+        bench-baselines bench-robust bench-survive converter-decimation bench-falloff survive-runs bench-ownership \
+        reproduce clean
 
 venv: $(STAMP)
 
@@ -132,6 +133,11 @@ bench-robust: $(STAMP) | $(ROBUST_DEMO)/conceal/student.ply $(CLEAN_DEMO)
 # student (run `make demo` first), the survival designs' runs of `make survive-runs` and bench-conceal's lego run when present
 bench-survive: $(STAMP)
 	$(PY) -m experiments.bench_survive --out=experiments/results --workdir=workdirs/survive $(BENCH_ARGS)
+
+# which Gaussians the converter's decimation merges, reproduced from the scene and checked against its output, beside
+# conceal.decimate's simulated pairs (lego's recommended run of `make survive-runs`; needs `make node_modules`)
+converter-decimation: $(STAMP)
+	$(PY) -m experiments.converter_decimation --out=experiments/results $(BENCH_ARGS)
 
 # how far from the key each design's decoder still reveals its image (the curve behind the near-key leakage figure)
 bench-falloff: $(STAMP)
