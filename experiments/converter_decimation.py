@@ -53,9 +53,8 @@ def mulberry32_normal(seed: int = 0) -> np.ndarray:
 
 
 def masses(g: Gaussians) -> np.ndarray:
-  """[N] the converter's merge weight: opacity times the ellipsoid's surface area (decimate.ellipsoid_area)."""
-  alpha = 1.0 / (1.0 + np.exp(-np.asarray(g.opacity_logits, np.float64)))
-  return alpha * decimate.ellipsoid_area(np.exp(np.asarray(g.log_scales, np.float64))) + 1e-12
+  """[N] the converter's merge weight: decimate.masses (opacity times ellipsoid area) and its 1e-12 floor."""
+  return decimate.masses(g) + 1e-12
 
 
 def edge_costs(g: Gaussians, first: np.ndarray, second: np.ndarray) -> np.ndarray:
@@ -129,10 +128,10 @@ def converter_groups(g: Gaussians, keep: float) -> np.ndarray:
 def group_means(g: Gaussians, group: np.ndarray) -> np.ndarray:
   """[G, 3] each group's mass-weighted mean (where the converter puts the merged Gaussian)."""
   merged = group >= 0
-  weight = np.bincount(group[merged], weights=masses(g)[merged])
-  pos = np.asarray(g.means, np.float64)
-  return np.stack([np.bincount(group[merged], weights=(masses(g) * pos[:, c])[merged]) for c in range(3)],
-                  axis=1) / weight[:, None]
+  mass = masses(g)[merged]
+  pos = np.asarray(g.means, np.float64)[merged]
+  weight = np.bincount(group[merged], weights=mass)
+  return np.stack([np.bincount(group[merged], weights=mass * pos[:, c]) for c in range(3)], axis=1) / weight[:, None]
 
 
 def compare(g: Gaussians, keep: float, returned: Gaussians, rows: np.ndarray, tolerance: float = 1e-5) -> dict:

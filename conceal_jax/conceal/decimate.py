@@ -51,6 +51,12 @@ def ellipsoid_area(scales: np.ndarray) -> np.ndarray:
   return 4.0 * np.pi * (((a * b)**p + (a * c)**p + (b * c)**p) / 3.0)**(1.0 / p)
 
 
+def masses(gaussians: Gaussians) -> np.ndarray:
+  """[N] float64 each Gaussian's merge weight: its opacity times its ellipsoid's surface area (ellipsoid_area)."""
+  opacity = 1.0 / (1.0 + np.exp(-np.asarray(gaussians.opacity_logits, np.float64)))
+  return opacity * ellipsoid_area(np.exp(np.asarray(gaussians.log_scales, np.float64)))
+
+
 def nearest_pairs(means: np.ndarray, neighbours: int = NEIGHBOURS) -> np.ndarray:
   """[P, 2] disjoint pairs of rows of means [N, 3], closest first: among each point's `neighbours` nearest, the
   shortest edge whose two ends are both unpaired is taken next (greedy matching). Unpaired points are left out."""
@@ -73,9 +79,7 @@ def moment_matched(gaussians: Gaussians, pairs: np.ndarray) -> dict[str, np.ndar
   """What each pair [P, 2] of `gaussians` merges into (float64): the mass-weighted mean, the covariance that keeps
   the pair's second moment (law of total variance) as log_scales and a unit quaternion, the opacity that keeps the
   pair's mass (capped at 1), and `weight` [P], the first's share of the mass."""
-  scales = np.exp(np.asarray(gaussians.log_scales, np.float64))
-  opacity = 1.0 / (1.0 + np.exp(-np.asarray(gaussians.opacity_logits, np.float64)))
-  mass = opacity * ellipsoid_area(scales)
+  mass = masses(gaussians)
   with jax.enable_x64(True):
     covariances = np.asarray(covariance_3d(jax.tree.map(lambda x: np.asarray(x, np.float64), gaussians)))
   means = np.asarray(gaussians.means, np.float64)
