@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 
 from conceal_jax.robust import converter
-from experiments import converter_decimation as cd
+from conceal_jax.conceal import grouping
+from experiments import converter_decimation
 from tests.helpers import random_gaussians
 
 
@@ -19,19 +20,19 @@ def scene(n: int = 300):
 def test_the_grouping_removes_what_the_target_asks_in_groups_of_two_to_four():
   g = scene()
   for keep in (0.5, 0.8):
-    group = cd.converter_groups(g, keep)
+    group = grouping.converter_groups(g, keep)
     sizes = np.bincount(group[group >= 0])
     assert g.num - int(np.sum(sizes - 1)) == round(keep * g.num)
     assert sizes.min() >= 2 and sizes.max() <= 4
   with pytest.raises(ValueError, match="one generation"):
-    cd.converter_groups(g, 0.4)
+    grouping.converter_groups(g, 0.4)
 
 
 def test_the_sample_is_a_standard_normal_draw_and_costs_are_finite():
-  z = cd.mulberry32_normal(0)
-  assert z.shape == (3,) and np.all(np.abs(z) < 5) and not np.allclose(z, cd.mulberry32_normal(1))
+  z = grouping.mulberry32_normal(0)
+  assert z.shape == (3,) and np.all(np.abs(z) < 5) and not np.allclose(z, grouping.mulberry32_normal(1))
   g = scene(50)
-  cost = cd.edge_costs(g, np.arange(49), np.arange(1, 50))
+  cost = grouping.edge_costs(g, np.arange(49), np.arange(1, 50))
   assert cost.dtype == np.float32 and np.all(np.isfinite(cost))
 
 
@@ -39,5 +40,5 @@ def test_the_sample_is_a_standard_normal_draw_and_costs_are_finite():
 def test_the_reproduced_groups_are_the_converters(tmp_path):
   g = scene()
   returned = converter.round_trip(g, decimate=0.5, workdir=tmp_path)
-  result = cd.compare(g, 0.5, returned, np.arange(g.num))
+  result = converter_decimation.compare(g, 0.5, returned, np.arange(g.num))
   assert result["returned"] == 150 and result["groups_found"] == 1.0

@@ -11,10 +11,8 @@ never retraces) within the maxima of conceal.attacks, as watermarking methods tr
   colours and opacities on the 8-bit grids of .spz and the higher SH bands on .compressed.ply's (`quantize_8bit`,
   rounding at a point drawn anew, since the formats round to the nearest or down; the gradient passes straight
   through), every opacity at most densify.RESET_CEILING (3D-GS's opacity reset), or the carrier film's
-  neighbouring splats merged as a converter's decimation merges them (decimate.merge_rounds).
-A decoder taught to read distorted check renders also reads views near the key more readily. The in_scene
-recipe (configs/recipes.through_attacks) trains through blur and noise only, the recommended one through neither
-(recipes.owner_rendered): what each distortion gained and cost is in experiments/results/conceal_options.md.
+  neighbouring splats merged as a converter's decimation merges them (decimate.merge_film).
+What each distortion gained and cost is in experiments/results/conceal_options.md.
 """
 from __future__ import annotations
 
@@ -43,8 +41,6 @@ REST_CELL = 8.0 / 256.0
 # An Augmentation field f is config key conceal.attacks.<f>; a contrast factor and a dropout probability stay below 1.
 UPPER_BOUNDS = dict(contrast_max=1.0, dropout_max=1.0, quantize_fraction=1.0 + 1e-9, reset_fraction=1.0 + 1e-9,
                     merge_fraction=1.0 + 1e-9, prune_small_max=1.0)
-# A decimation to a quarter of the film is two rounds of merges; deeper than that a film keeps no image.
-MAX_MERGE_DEPTH = 2.0
 # Gaussians fields that parameter noise moves: all of them (robust.model_attacks.FIELDS).
 MODEL_FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 
@@ -94,14 +90,23 @@ class Augmentation:
   merge_fraction: float = 0.0  # the share of steps whose check render merges film pairs (decimate.merge_rounds)
   merge_depth: float = 1.0  # the rounds of merges such a render goes up to: its depth ~ U[0, merge_depth]
   prune_small_max: float = 0.0  # the share ~ U[0, max] of smallest Gaussians dropped (`kept_by_size`)
+  merge_groups: str = "nearest"  # 'nearest': merge_depth rounds of near pairs; 'converter': the converter's groups
+  merge_keep: tuple = (0.5, 0.8)  # with 'converter': the fractions kept, one drawn per merging step
+  regroup_every: int = 500  # with 'converter': the steps between groupings from the trained colours
 
   def __post_init__(self):
-    for f in dataclasses.fields(self):
+    for f in dataclasses.fields(self)[:-3]:
       value, below = getattr(self, f.name), UPPER_BOUNDS.get(f.name, math.inf)
       if not 0 <= value < below:  # NaN fails too
         raise ValueError(f"conceal.attacks.{f.name} must be in [0, {below:g}), got {value}")
-    if not 1 <= self.merge_depth <= MAX_MERGE_DEPTH:
-      raise ValueError(f"conceal.attacks.merge_depth must be in [1, {MAX_MERGE_DEPTH}], got {self.merge_depth}")
+    if not 1 <= self.merge_depth <= decimate.MAX_MERGE_DEPTH:
+      raise ValueError(f"conceal.attacks.merge_depth must be in [1, {decimate.MAX_MERGE_DEPTH}], "
+                       f"got {self.merge_depth}")
+    keeps = bool(self.merge_keep) and all(0.5 <= k < 1.0 for k in self.merge_keep)
+    if self.merge_groups not in decimate.MERGE_GROUPS or not keeps or self.regroup_every < 1:
+      raise ValueError(f"conceal.attacks.merge_groups must be one of {decimate.MERGE_GROUPS}, merge_keep fractions "
+                       "in [0.5, 1) (one generation of the converter's decimation) and regroup_every >= 1, got "
+                       f"{self.merge_groups!r}, {self.merge_keep}, {self.regroup_every}")
 
   @property
   def merge_rounds(self) -> int:
@@ -180,15 +185,16 @@ def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmenta
   First, where distortion["quantize"] is 1, the 8-bit colours and opacities (`quantize_8bit`, rounding at
   distortion["rounding"]), and where distortion["reset"] is 1, every opacity at most densify.RESET_CEILING; before
   all, the film decimated distortion["merge"] rounds deep by the rounds of `merges` (decimate.merge_rounds, from
-  the PRNG seed distortion["model_seed"]). A kind whose maximum in `augmentation` is 0 is left out at trace time
-  (without any, the Gaussians themselves, and `distortion` may be None); at level 0 each is the identity, values
-  and gradients."""
+  the PRNG seed distortion["model_seed"]; with merge_groups 'converter', decimate.merge_levels' level). A kind whose
+  maximum in `augmentation` is 0 is left out at trace time (without any, the Gaussians themselves, and
+  `distortion` may be None); at level 0 each is the identity, values and gradients."""
   a = augmentation
   if not a.perturbs_model:
     return gaussians
   model_key = jax.random.key(distortion["model_seed"])
   if a.merge_fraction > 0:
-    gaussians = decimate.merge_rounds(gaussians, merges, distortion["merge"], jax.random.fold_in(model_key, 2))
+    gaussians = decimate.merge_film(gaussians, merges, distortion["merge"], a.merge_groups == "converter",
+                                    jax.random.fold_in(model_key, 2))
   if a.quantize_fraction > 0:
     quantized = quantize_8bit(gaussians, distortion["rounding"])
     gaussians = jax.tree.map(lambda q, x: jnp.where(distortion["quantize"] > 0, q, x), quantized, gaussians)
@@ -223,8 +229,9 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   U[-contrast_max, contrast_max]; whether the step quantizes (1 with probability quantize_fraction) and resets the
   opacities (1 with probability reset_fraction); with quantize_fraction, the point its grids round at ~ U[0, 1)
   (`quantize_8bit`); the depth of the film's merges (~ U[0, merge_depth] with probability merge_fraction, else 0:
-  decimate.merge_rounds); the share of smallest Gaussians dropped ~ U[0, prune_small_max]. Later kinds are drawn
-  after earlier ones, so a run without them sees the distortions it always did."""
+  decimate.merge_rounds; with merge_groups 'converter' the number of one of merge_keep's levels); the share of
+  smallest Gaussians dropped ~ U[0, prune_small_max]. Later kinds are drawn after earlier ones, so a run without
+  them sees the distortions it always did."""
   a = augmentation
   image = dict(blur=np.float32(rng.uniform(0.0, a.blur_max)), noise=np.float32(rng.uniform(0.0, a.noise_max)),
                seed=np.uint32(rng.integers(2**32)))
@@ -235,7 +242,9 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   drawn["quantize"] = np.float32(a.quantize_fraction > 0 and rng.random() < a.quantize_fraction)
   drawn["reset"] = np.float32(a.reset_fraction > 0 and rng.random() < a.reset_fraction)
   drawn["rounding"] = np.float32(rng.random() if a.quantize_fraction > 0 else 0.5)
-  merges = a.merge_fraction > 0 and rng.random() < a.merge_fraction
-  drawn["merge"] = np.float32(rng.random() * a.merge_depth if merges else 0.0)
+  depth = rng.random() if a.merge_fraction > 0 and rng.random() < a.merge_fraction else None
+  converter = a.merge_groups == "converter"  # then the number of a level (1-based), each equally likely
+  drawn["merge"] = np.float32(0.0 if depth is None else 1 + math.floor(depth * len(a.merge_keep)) if converter
+                              else depth * a.merge_depth)
   drawn["prune_small"] = np.float32(rng.uniform(0.0, a.prune_small_max) if a.prune_small_max > 0 else 0.0)
   return drawn

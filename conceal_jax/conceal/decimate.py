@@ -5,11 +5,12 @@ merges the pairs whose merge changes the scene least into one Gaussian that keep
 surface area) and their first two moments, its colour their mass-weighted mean (a moment-matching merge). A film of
 many faint splats side by side merges first and loses the detail between the two splats of each pair.
 
-The film's geometry is fixed during concealment (carrier.trainable_fields), so its pairs and what each pair merges
-into are computed once (`film_merges`): each splat paired with a near neighbour, and the merged Gaussian's mean,
-scales, rotation and opacity. Only the colours train, and a merged colour is a fixed mix of two trained ones, so
-`merge_pairs` renders a share of the pairs merged at no more cost than the film itself, with the gradient reaching
-both colours (conceal.attacks.merge_fraction).
+The film's geometry is fixed during concealment (carrier.trainable_fields), so its groups and what each group merges
+into are computed on the host (`film_merges`: each splat paired with a near neighbour, round after round; or
+grouping.converter_merges: the converter's own groups of 2 to 4, recomputed as the colours train): the merged
+Gaussian's mean, scales, rotation and opacity (`moment_matched`). Only the colours train, and a merged colour is a
+fixed mix of its members' trained ones, so `merge_groups` renders a share of the groups merged at no more cost than
+the film itself, with the gradient reaching every member's colour (conceal.attacks.merge_fraction).
 """
 from __future__ import annotations
 
@@ -26,22 +27,28 @@ from conceal_jax.splat.gaussians import Gaussians, covariance_3d, opacity_logit
 ELLIPSOID_P = 1.6075
 # The neighbours each splat's pair is chosen among.
 NEIGHBOURS = 8
+# A decimation to a quarter of the film is two rounds of merges; deeper than that a film keeps no image.
+MAX_MERGE_DEPTH = 2.0
+# How a merging check render groups the film: near pairs merge_depth rounds deep, or the converter's groups
+# (grouping.py), one level of conceal.attacks.merge_keep.
+MERGE_GROUPS = ("nearest", "converter")
 # A merged-away splat's opacity logit: sigmoid(-30) ~ 1e-13, nothing the renderer composites.
 DROPPED_LOGIT = -30.0
 
 
 @struct.dataclass
 class Merges:
-  """P disjoint pairs of the student's Gaussians and what each merges into: first, second [P] int32 (indices into
-  the student); means [P, 3], log_scales [P, 3], quats [P, 4], opacity_logits [P] of the merged Gaussian; weight
-  [P]: the first's share of the pair's mass, which mixes the colours."""
-  first: jax.Array
-  second: jax.Array
+  """P disjoint groups of up to M of the student's Gaussians and what each merges into: members [P, M] int32
+  (indices into the student, its first member where the merged Gaussian goes; padding: an index past the student's
+  last, which no gather or scatter reaches); weights [P, M]: each member's share of its group's mass (0 for
+  padding), which mixes the colours; means [P, 3], log_scales [P, 3], quats [P, 4], opacity_logits [P] of the
+  merged Gaussian."""
+  members: jax.Array
+  weights: jax.Array
   means: jax.Array
   log_scales: jax.Array
   quats: jax.Array
   opacity_logits: jax.Array
-  weight: jax.Array
 
 
 def ellipsoid_area(scales: np.ndarray) -> np.ndarray:
@@ -75,28 +82,37 @@ def nearest_pairs(means: np.ndarray, neighbours: int = NEIGHBOURS) -> np.ndarray
   return np.asarray(pairs, np.int64).reshape(-1, 2)
 
 
-def moment_matched(gaussians: Gaussians, pairs: np.ndarray) -> dict[str, np.ndarray]:
-  """What each pair [P, 2] of `gaussians` merges into (float64): the mass-weighted mean, the covariance that keeps
-  the pair's second moment (law of total variance) as log_scales and a unit quaternion, the opacity that keeps the
-  pair's mass (capped at 1), and `weight` [P], the first's share of the mass."""
-  mass = masses(gaussians)
+def moment_matched(gaussians: Gaussians, groups: np.ndarray) -> dict[str, np.ndarray]:
+  """What each group [P, M] of `gaussians` (rows; -1 pads a group of fewer than M) merges into (float64): the
+  mass-weighted mean, the covariance that keeps the group's second moment (law of total variance) as log_scales and
+  a unit quaternion, the opacity that keeps the group's mass (capped at 1), and `weights` [P, M], each member's
+  share of the mass (0 for padding). splat-transform's n-ary merge (mergeGroup) computes the same."""
+  valid = groups >= 0
+  rows = np.where(valid, groups, 0)
+  mass = np.where(valid, masses(gaussians)[rows], 0.0)
   with jax.enable_x64(True):
-    covariances = np.asarray(covariance_3d(jax.tree.map(lambda x: np.asarray(x, np.float64), gaussians)))
-  means = np.asarray(gaussians.means, np.float64)
-  i, j = pairs[:, 0], pairs[:, 1]
-  weight = mass[i] / (mass[i] + mass[j])
-  w = weight[:, None]
-  mean = w * means[i] + (1.0 - w) * means[j]
-  di, dj = means[i] - mean, means[j] - mean
-  outer = lambda d: d[:, :, None] * d[:, None, :]
-  covariance = (w[:, :, None] * (covariances[i] + outer(di)) + (1.0 - w)[:, :, None] * (covariances[j] + outer(dj)))
+    covariances = np.asarray(covariance_3d(jax.tree.map(lambda x: np.asarray(x, np.float64), gaussians)))[rows]
+  means = np.asarray(gaussians.means, np.float64)[rows]
+  total = mass.sum(axis=1)
+  weights = mass / total[:, None]
+  mean = np.einsum("pm,pmi->pi", weights, means)
+  d = means - mean[:, None]
+  covariance = np.einsum("pm,pmij->pij", weights, covariances + d[..., :, None] * d[..., None, :])
   variances, axes = np.linalg.eigh(covariance)
   axes = axes * np.where(np.linalg.det(axes) < 0, -1.0, 1.0)[:, None, None]  # a rotation, not a reflection
   merged_scales = np.sqrt(np.maximum(variances, 1e-18))
-  merged_opacity = np.minimum(1.0, (mass[i] + mass[j]) / ellipsoid_area(merged_scales))
+  merged_opacity = np.minimum(1.0, total / ellipsoid_area(merged_scales))
   return dict(means=mean, log_scales=np.log(merged_scales),
-              quats=np.stack([similarity.matrix_to_quaternion(a) for a in axes]),
-              opacity_logits=np.asarray(opacity_logit(np.clip(merged_opacity, 1e-7, 1.0 - 1e-7))), weight=weight)
+              quats=np.array([similarity.matrix_to_quaternion(a) for a in axes]).reshape(-1, 4),
+              opacity_logits=np.asarray(opacity_logit(np.clip(merged_opacity, 1e-7, 1.0 - 1e-7))), weights=weights)
+
+
+def as_merges(merged: dict[str, np.ndarray], members: np.ndarray) -> Merges:
+  """Merges of groups `members` [P, M] (student rows, padding already past the last) and `moment_matched`'s
+  `merged` values, as float32 / int32 device arrays."""
+  f32 = lambda name: jnp.asarray(merged[name], jnp.float32)
+  return Merges(members=jnp.asarray(members, jnp.int32), weights=f32("weights"), means=f32("means"),
+                log_scales=f32("log_scales"), quats=f32("quats"), opacity_logits=f32("opacity_logits"))
 
 
 def film_merges(film: Gaussians, offset: int, levels: int = 1) -> tuple[Merges, ...]:
@@ -106,14 +122,10 @@ def film_merges(film: Gaussians, offset: int, levels: int = 1) -> tuple[Merges, 
   (a converter decimating deeper than half merges some groups of three or four), its pairs indexing the student's
   rows where the merged Gaussians live (each pair's first)."""
   rounds, rows = [], np.arange(film.num)
-  f32 = lambda x: jnp.asarray(x, jnp.float32)
   for _ in range(levels):
     pairs = nearest_pairs(np.asarray(film.means, np.float64))
     merged = moment_matched(film, pairs)
-    rounds.append(Merges(first=jnp.asarray(rows[pairs[:, 0]] + offset, jnp.int32),
-                         second=jnp.asarray(rows[pairs[:, 1]] + offset, jnp.int32), means=f32(merged["means"]),
-                         log_scales=f32(merged["log_scales"]), quats=f32(merged["quats"]),
-                         opacity_logits=f32(merged["opacity_logits"]), weight=f32(merged["weight"])))
+    rounds.append(as_merges(merged, rows[pairs] + offset))
     unpaired = np.setdiff1d(np.arange(film.num), pairs.ravel())
     fields = {name: np.concatenate([merged[name], np.asarray(getattr(film, name), np.float64)[unpaired]])
               for name in ("means", "log_scales", "quats", "opacity_logits")}
@@ -122,31 +134,51 @@ def film_merges(film: Gaussians, offset: int, levels: int = 1) -> tuple[Merges, 
   return tuple(rounds)
 
 
+def merge_film(gaussians: Gaussians, merges: tuple[Merges, ...], value: jax.Array, levels: bool,
+               key: jax.Array) -> Gaussians:
+  """gaussians [N] decimated by `merges` at `value` (traced): the level numbered `value` (`merge_levels`) where
+  `merges` are the converter's levels (`levels`), else `value` rounds deep (`merge_rounds`, drawn from `key`)."""
+  return merge_levels(gaussians, merges, value) if levels else merge_rounds(gaussians, merges, value, key)
+
+
 def merge_rounds(gaussians: Gaussians, merges: tuple[Merges, ...], depth: jax.Array, key: jax.Array) -> Gaussians:
   """gaussians [N] decimated `depth` (traced) rounds deep by the rounds of `film_merges`: round k merges a share
-  clip(depth - k, 0, 1) of its pairs (`merge_pairs`), so a round only starts once the one before has merged
+  clip(depth - k, 0, 1) of its pairs (`merge_groups`), so a round only starts once the one before has merged
   every pair. At depth 0 the Gaussians themselves, values and gradients."""
   for k, merges_k in enumerate(merges):
-    gaussians = merge_pairs(gaussians, merges_k, jnp.clip(depth - k, 0.0, 1.0),
-                            key if k == 0 else jax.random.fold_in(key, k))
+    gaussians = merge_groups(gaussians, merges_k, jnp.clip(depth - k, 0.0, 1.0),
+                             key if k == 0 else jax.random.fold_in(key, k))
   return gaussians
 
 
-def merge_pairs(gaussians: Gaussians, merges: Merges, share: jax.Array, key: jax.Array) -> Gaussians:
-  """gaussians [N] with each pair of `merges` merged with probability `share` (drawn per pair from the PRNG `key`;
-  both traced): the first becomes the merged Gaussian, of the pair's colours mixed by mass (all SH bands), the
-  second is dropped (DROPPED_LOGIT). At share 0 the Gaussians themselves, values and gradients."""
-  merged = jax.random.uniform(key, merges.first.shape) < share
-  w = merges.weight[:, None, None]
-  mixed = w * gaussians.sh[merges.first] + (1.0 - w) * gaussians.sh[merges.second]
+def merge_levels(gaussians: Gaussians, merges: tuple[Merges, ...], level: jax.Array) -> Gaussians:
+  """gaussians [N] decimated as the one of `merges` numbered `level` (traced; 1-based, 0: none) decimates them,
+  every one of its groups merged (the converter's decimation to one of a run's levels, grouping.converter_merges).
+  At level 0 the Gaussians themselves, values and gradients."""
+  key = jax.random.key(0)  # unused: a share of 0 or 1 draws nothing that matters
+  for k, merges_k in enumerate(merges):
+    gaussians = merge_groups(gaussians, merges_k, (level == k + 1).astype(jnp.float32), key)
+  return gaussians
+
+
+def merge_groups(gaussians: Gaussians, merges: Merges, share: jax.Array, key: jax.Array) -> Gaussians:
+  """gaussians [N] with each group of `merges` merged with probability `share` (drawn per group from the PRNG `key`;
+  both traced): its first member becomes the merged Gaussian, of the members' colours mixed by mass (all SH bands),
+  the others are dropped (DROPPED_LOGIT). At share 0 the Gaussians themselves, values and gradients."""
+  gaussians = jax.tree.map(jnp.asarray, gaussians)
+  members, first = merges.members, merges.members[:, 0]
+  merged = jax.random.uniform(key, first.shape) < share
+  mixed = jnp.einsum("pm,pm...->p...", merges.weights, gaussians.sh.at[members].get(mode="fill", fill_value=0.0))
 
   def at_first(field, value):
-    current = field[merges.first]
+    current = field.at[first].get(mode="fill", fill_value=0.0)
     mask = merged.reshape((-1,) + (1,) * (current.ndim - 1))
-    return field.at[merges.first].set(jnp.where(mask, value.astype(field.dtype), current))
+    return field.at[first].set(jnp.where(mask, value.astype(field.dtype), current), mode="drop")
 
   logits = at_first(gaussians.opacity_logits, merges.opacity_logits)
-  logits = logits.at[merges.second].set(jnp.where(merged, DROPPED_LOGIT, logits[merges.second]))
+  others = members[:, 1:]
+  current = logits.at[others].get(mode="fill", fill_value=0.0)
+  logits = logits.at[others].set(jnp.where(merged[:, None], DROPPED_LOGIT, current), mode="drop")
   return gaussians.replace(means=at_first(gaussians.means, merges.means),
                            log_scales=at_first(gaussians.log_scales, merges.log_scales),
                            quats=at_first(gaussians.quats, merges.quats), opacity_logits=logits,

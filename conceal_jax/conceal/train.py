@@ -20,7 +20,7 @@ import ml_collections
 import numpy as np
 
 from conceal_jax.conceal import augment, hidden as hidden_lib, key as key_lib, reveal, scoring, settings as settings_lib
-from conceal_jax.conceal import align, carrier, decimate, message as message_lib, near, unet, views as views_lib
+from conceal_jax.conceal import align, carrier, grouping, message as message_lib, near, unet, views as views_lib
 from conceal_jax.conceal.step import create_state, make_step
 from conceal_jax.core import fileio, loop, parallel
 from conceal_jax.data import ply
@@ -101,7 +101,7 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
     start, trainable = concatenate([teacher, film]), carrier.trainable_fields(teacher.num, film)
     ties = carrier.tied_rows(teacher.num, film.num, plan.film.stack) if plan.film.stack > 1 else None
     if s.augmentation.merge_fraction > 0:
-      merges = decimate.film_merges(film, teacher.num, s.augmentation.merge_rounds)
+      merges = grouping.training_merges(start, teacher.num, s.augmentation)
   data = views_lib.build_data(scene.train_images, teacher, options, list(scene.train_cameras) + decoys,
                               [camera for camera, _ in keys], hiddens, s.hidden_size, s.reading.clip, key_images,
                               trainable, merges, ties)
@@ -177,7 +177,12 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
     student = jax.tree.map(lambda x: jnp.array(x, copy=True), run.start)  # the step donates its buffers
     return create_state(student, initial_decoder(config, s), student_tx, decoder_tx)
 
+  regroup = grouping.regrouping(run.teacher.num, s.augmentation, c.checkpoint_every)
+
   def step(state, iteration):
+    nonlocal data
+    if regroup is not None and regroup.due(iteration):  # the converter's groups of the film as it is now
+      data = data.replace(merges=parallel.replicate(regroup(jax.device_get(state.student), iteration), mesh))
     rng = np.random.default_rng([config.seed, iteration])
     views = [views_lib.draw_normal_view(rng, num_views, len(run.decoys), s.decoy_fraction) for _ in range(2)]
     distortion = augment.draw(rng, s.augmentation) if s.augmentation.draws else None

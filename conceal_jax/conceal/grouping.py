@@ -1,0 +1,203 @@
+"""A converter's decimation grouping, reproduced from the scene alone (beyond the paper): which Gaussians
+@playcanvas/splat-transform's `--decimate` merges, so that training can merge exactly those (conceal.attacks.
+merge_groups 'converter').
+
+The converter (3.7.0, read in its dist/index.mjs: computeEdgeCostView, selectMerges) scores each Gaussian's
+NEIGHBOURS nearest neighbours by an edge cost: a KL-style term between the pair's mixture and its moment-matched
+merge (the mixture's log-density at one fixed standard-normal sample per splat, seed 0 of mulberry32) plus the
+squared difference of every colour coefficient; keeps each Gaussian's CANDIDATES cheapest; walks the candidate edges
+in COST_BUCKETS buckets over the scene's whole cost range, cheapest bucket first and by edge index within one,
+pairing free endpoints; then attaches Gaussians still free to a candidate's group (at most 3, then 4) until the
+target count. Each group merges as decimate.moment_matched says. The colour term depends on the trained colours, so
+a run regroups as they train (conceal.attacks.regroup_every).
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy.spatial import cKDTree
+
+from conceal_jax.conceal import decimate
+from conceal_jax.splat.gaussians import Gaussians, quaternion_to_rotation
+
+NEIGHBOURS, CANDIDATES, COST_BUCKETS, GROUP_CAPS = 16, 4, 1024, (3, 4)
+MAX_GROUP = GROUP_CAPS[-1]
+EPS_COV = 1e-8  # the converter's covariance regulariser
+LOG_2PI = np.log(2.0 * np.pi)
+
+
+def mulberry32_normal(seed: int = 0) -> np.ndarray:
+  """[3] the converter's one standard-normal sample (Box-Muller on mulberry32(seed), its first four draws)."""
+  state = seed & 0xFFFFFFFF
+
+  def draw() -> float:
+    nonlocal state
+    state = (state + 0x6D2B79F5) & 0xFFFFFFFF
+    t = ((state ^ (state >> 15)) * (state | 1)) & 0xFFFFFFFF
+    t ^= (t + (((t ^ (t >> 7)) * (t | 61)) & 0xFFFFFFFF)) & 0xFFFFFFFF
+    return ((t ^ (t >> 14)) & 0xFFFFFFFF) / 4294967296
+
+  u1, u2, u3, u4 = max(draw(), 1e-12), draw(), max(draw(), 1e-12), draw()
+  r1, r2 = np.sqrt(-2.0 * np.log(u1)), np.sqrt(-2.0 * np.log(u3))
+  return np.array([r1 * np.cos(2 * np.pi * u2), r1 * np.sin(2 * np.pi * u2), r2 * np.cos(2 * np.pi * u4)])
+
+
+def masses(g: Gaussians) -> np.ndarray:
+  """[N] the converter's merge weight: decimate.masses (opacity times ellipsoid area) and its 1e-12 floor."""
+  return decimate.masses(g) + 1e-12
+
+
+def edge_costs(g: Gaussians, first: np.ndarray, second: np.ndarray) -> np.ndarray:
+  """[E] float32 the converter's cost of merging each pair (first[e], second[e]) of `g`."""
+  pos = np.asarray(g.means, np.float64)
+  var = np.maximum(np.exp(np.asarray(g.log_scales, np.float64)), 1e-12) ** 2 + EPS_COV
+  rot = np.asarray(quaternion_to_rotation(jnp.asarray(g.quats)), np.float64)  # float32, as the converter's
+  sigma = (rot * var[:, None, :]) @ rot.transpose(0, 2, 1)
+  logdet = np.log(var).sum(axis=1)
+  colours = np.asarray(g.sh, np.float64).reshape(g.num, -1)
+  mass = masses(g)
+  p = np.clip(mass[first] / (mass[first] + mass[second]), 1e-12, 1 - 1e-12)[:, None]
+  mean = p * pos[first] + (1 - p) * pos[second]
+  d1, d2 = pos[first] - mean, pos[second] - mean
+  outer = lambda d: d[:, :, None] * d[:, None, :]
+  merged = (p[:, :, None] * (sigma[first] + outer(d1)) + (1 - p[:, :, None]) * (sigma[second] + outer(d2))
+            + EPS_COV * np.eye(3))
+  neg_log_q = 0.5 * (3 * LOG_2PI + np.log(np.maximum(np.linalg.det(merged), 1e-30)) + 3)
+  z = mulberry32_normal(0)
+
+  def log_density(x, rows):
+    local = np.sum(rot[rows] * (x - pos[rows])[:, :, None], axis=1)  # R^T (x - mean)
+    return -0.5 * (3 * LOG_2PI + logdet[rows] + np.sum(local**2 / var[rows], axis=1))
+
+  log_p = 0.0
+  for rows, weight in ((first, p[:, 0]), (second, 1 - p[:, 0])):
+    sample = pos[rows] + np.sum(rot[rows] * (z * np.sqrt(var[rows]))[:, None, :], axis=2)
+    log_p = log_p + weight * np.logaddexp(np.log(p[:, 0]) + log_density(sample, first),
+                                          np.log(1 - p[:, 0]) + log_density(sample, second))
+  return (log_p + neg_log_q + np.sum((colours[first] - colours[second]) ** 2, axis=1)).astype(np.float32)
+
+
+def candidate_edges(g: Gaussians) -> tuple[np.ndarray, np.ndarray]:
+  """The converter's walk over candidate merges of `g`: ([E] source, [E] target) rows, in the order it takes them
+  (each Gaussian's CANDIDATES cheapest of its NEIGHBOURS nearest, by cost bucket, then by edge index)."""
+  n = g.num
+  _, near = cKDTree(np.asarray(g.means, np.float64)).query(np.asarray(g.means, np.float64), k=NEIGHBOURS + 1)
+  near = near[:, 1:]
+  cost = edge_costs(g, np.repeat(np.arange(n), NEIGHBOURS), near.ravel()).reshape(n, NEIGHBOURS)
+  best = np.argsort(cost, axis=1, kind="stable")[:, :CANDIDATES]
+  target = np.take_along_axis(near, best, 1).ravel()
+  cost = np.take_along_axis(cost, best, 1).ravel()
+  finite = np.isfinite(cost)
+  lo, hi = cost[finite].min(), cost[finite].max()
+  bucket = np.minimum(COST_BUCKETS - 1, np.floor((cost - lo) / (hi - lo if hi > lo else 1) * COST_BUCKETS))
+  order = np.lexsort((np.arange(cost.size), bucket))
+  order = order[finite[order]]
+  return order // CANDIDATES, target[order]
+
+
+def converter_groups(g: Gaussians, keep: float, edges: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+  """[N] int: the group each Gaussian of `g` joins in the converter's decimation to round(keep * N) Gaussians
+  (-1: left as it is): free pairs along the walk `edges` (candidate_edges of `g` unless given) until enough are
+  removed, then free Gaussians attached to a group of at most 3, then 4. One generation only: keep in [0.5, 1)."""
+  if not 0.5 <= keep < 1.0:
+    raise ValueError(f"one generation of the converter's decimation keeps between half and all, got {keep}")
+  n = g.num
+  sources, targets = (x.tolist() for x in (edges if edges is not None else candidate_edges(g)))
+  needed = n - int(round(keep * n))
+  group, sizes = [-1] * n, []
+  for i, j in zip(sources, targets):
+    if len(sizes) >= needed:
+      break
+    if group[i] == -1 and group[j] == -1:
+      group[i] = group[j] = len(sizes)
+      sizes.append(2)
+  removed = len(sizes)
+  for cap in GROUP_CAPS:
+    for i, j in zip(sources, targets):
+      if removed >= needed:
+        break
+      if group[i] == -1 and group[j] != -1 and sizes[group[j]] < cap:
+        group[i] = group[j]
+        sizes[group[j]] += 1
+        removed += 1
+  return np.asarray(group, np.int64)
+
+
+def group_members(group: np.ndarray, rows: np.ndarray) -> np.ndarray:
+  """[P, MAX_GROUP] the groups of `group` (converter_groups' labels) that hold any of `rows`, each as its members
+  in ascending order (-1 pads a group of fewer)."""
+  labels = np.unique(group[rows][group[rows] >= 0])
+  members = -np.ones((labels.size, MAX_GROUP), np.int64)
+  if labels.size == 0:
+    return members
+  index = np.full(group.max() + 1, -1, np.int64)
+  index[labels] = np.arange(labels.size)
+  where = np.flatnonzero((group >= 0) & (index[np.maximum(group, 0)] >= 0))  # ascending rows
+  slot = index[group[where]]
+  order = np.argsort(slot, kind="stable")
+  slot, where = slot[order], where[order]
+  position = np.arange(slot.size) - np.searchsorted(slot, slot)
+  members[slot, position] = where
+  return members
+
+
+def converter_merges(gaussians: Gaussians, rows: np.ndarray, keeps, capacity: int) -> tuple[decimate.Merges, ...]:
+  """One decimate.Merges per kept fraction of `keeps`: the converter's groups (converter_groups) of `gaussians`
+  that hold any of `rows` (the film), padded to `capacity` groups with members past the last Gaussian (fixed
+  shapes: a regrouped run never recompiles); ValueError when more groups than `capacity` hold the rows."""
+  levels, edges = [], candidate_edges(gaussians)
+  for keep in keeps:
+    members = group_members(converter_groups(gaussians, keep, edges), rows)
+    if len(members) > capacity:
+      raise ValueError(f"{len(members)} converter groups hold the film, more than the capacity {capacity}")
+    merged = decimate.moment_matched(gaussians, members)
+    pad = capacity - len(members)
+    merged = {name: np.concatenate([value, np.zeros((pad,) + value.shape[1:])]) for name, value in merged.items()}
+    members = np.concatenate([members, -np.ones((pad, MAX_GROUP), np.int64)])
+    levels.append(decimate.as_merges(merged, np.where(members >= 0, members, gaussians.num)))
+  return tuple(levels)
+
+
+def training_merges(student: Gaussians, offset: int, augmentation) -> tuple[decimate.Merges, ...]:
+  """What a run's merging check renders merge (conceal.attacks.merge_groups, augment.Augmentation
+  `augmentation`) of the film, the rows of `student` from `offset` on: the converter's groups at each of merge_keep
+  (`converter_merges`, padded to one group per film splat), or merge_rounds rounds of near pairs
+  (decimate.film_merges)."""
+  student = jax.tree.map(np.asarray, student)
+  if augmentation.merge_groups == "converter":
+    rows = np.arange(offset, student.num)
+    return converter_merges(student, rows, augmentation.merge_keep, capacity=rows.size)
+  return decimate.film_merges(jax.tree.map(lambda x: x[offset:], student), offset, augmentation.merge_rounds)
+
+
+class Regrouping:
+  """When a run merging the converter's groups computes them anew from the student (`due`): every
+  augmentation.regroup_every steps and at each checkpoint (so a resumed run regroups where the first did), and at a
+  process's first step unless its groups are the student's at `grouped_at` (a fresh run's, from the start)."""
+
+  def __init__(self, offset: int, augmentation, checkpoint_every: int, grouped_at: int = 0):
+    self.offset, self.augmentation = offset, augmentation
+    self.checkpoint_every, self.grouped_at, self.first = checkpoint_every, grouped_at, True
+
+  def due(self, iteration: int) -> bool:
+    """Whether step `iteration` (1-based) reads groups computed from the student it starts from."""
+    done = iteration - 1
+    at_boundary = done % self.augmentation.regroup_every == 0 or bool(self.checkpoint_every and
+                                                                      done % self.checkpoint_every == 0)
+    due = done != self.grouped_at and (self.first or at_boundary)
+    self.first = False
+    return due
+
+  def __call__(self, student: Gaussians, iteration: int) -> tuple[decimate.Merges, ...]:
+    """training_merges of `student`, the state before step `iteration`."""
+    self.grouped_at = iteration - 1
+    return training_merges(student, self.offset, self.augmentation)
+
+
+def regrouping(offset: int, augmentation, checkpoint_every: int) -> Regrouping | None:
+  """A run's Regrouping where its check renders merge the converter's groups of the film (rows from `offset` on),
+  else None (near pairs are computed once)."""
+  if augmentation.merge_fraction > 0 and augmentation.merge_groups == "converter":
+    return Regrouping(offset, augmentation, checkpoint_every)
+  return None
