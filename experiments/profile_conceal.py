@@ -8,13 +8,15 @@ With the settings of a bench-conceal row, for each decoder width, the median of 
 own): one view's terms (objective.view_terms) with their gradient, for the normal view and for the check view, its
 two decoder reads in turn and as the step runs them (batched: decoder_pair.py); the decoder alone (forward,
 forward+backward, one image); the guided combination of the two decoder gradients; the two optimiser updates; and
-the whole step with its two views on one device and split over two (core.parallel), taking turns. Writes
+the whole step with its two views on one device and split over two (core.parallel), taking turns, and where views
+render from the rows that reach them (conceal/subsets.py) the same from the whole student beside it. Writes
 conceal_step_profile.json to --out. Run it on a quiet machine.
 """
 from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import os
 import pathlib
 import time
@@ -45,23 +47,31 @@ def row_config(scene: str, row: str, width: int, teacher: pathlib.Path):
 
 def step_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats: int, rounds: int = 3) -> dict:
   """Median ms of the whole jitted step (state donated) with its views on one device and, where there are two,
-  split over two, after one warm-up each; the two take turns, `rounds` times `repeats` steps."""
+  split over two, after one warm-up each; normal views drawn as the run draws them (decoys at its decoy share).
+  Where the run renders each view from the rows that reach it (subsets.py), the same with every view rendered
+  from the whole student beside it (`_whole_renders`). They take turns, `rounds` times `repeats` steps."""
   meshes = {"conceal_step_1_device": None}
   if jax.local_device_count() >= 2:
     meshes["conceal_step_2_devices"] = parallel.batch_mesh(2)
-  runs, num_views = {}, run.data.images.shape[0]
-  for name, mesh in meshes.items():
+  datas = {"": run.data}
+  if run.data.rows is not None:
+    datas["_whole_renders"] = run.data.replace(rows=None, fixed=None)
+  rng = np.random.default_rng(0)
+  num_views, num_decoys = run.data.images.shape[0], len(run.decoys)
+  normal = [views_lib.draw_normal_view(rng, num_views, num_decoys, settings.decoy_fraction) for _ in range(repeats)]
+  runs = {}
+  for (name, mesh), (suffix, data) in itertools.product(meshes.items(), datas.items()):
     step = step_lib.make_step(settings, run.options, student_tx, decoder_tx, mesh)
     state = step_lib.create_state(*jax.tree.map(jnp.copy, (run.start, decoder)), student_tx, decoder_tx)
-    state, placed = parallel.replicate(state, mesh), parallel.replicate(run.data, mesh)
-    state, _ = step(state, placed, 0, 1, 0, distortion)
-    runs[name] = [step, state, placed, []]
+    state, placed = parallel.replicate(state, mesh), parallel.replicate(data, mesh)
+    state, _ = step(state, placed, normal[0], normal[-1], 0, distortion)
+    runs[name + suffix] = [step, state, placed, []]
   for _ in range(rounds):
     for entry in runs.values():
       step, state, placed, times = entry
       for i in range(repeats):
         start = time.perf_counter()
-        state, stats = step(state, placed, i % num_views, (i + 1) % num_views, 0, distortion)
+        state, stats = step(state, placed, normal[i], normal[-1 - i], 0, distortion)
         jax.block_until_ready(stats)
         times.append(time.perf_counter() - start)
       entry[1] = state
@@ -71,7 +81,8 @@ def step_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
 def part_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats: int) -> dict:
   """The parts of a step, each jitted alone."""
   s, times = settings, {}
-  views = views_lib.step_views(run.data, 0, 1, 0, distortion, s)
+  normal = run.data.images.shape[0] if run.decoys else 0  # a decoy, where the run has them, as most steps draw
+  views = views_lib.step_views(run.data, normal, 1, 0, distortion, s)
   for index, name in enumerate(("normal", "check")):
     view = jax.tree.map(lambda x, i=index: x[i], views)
     for suffix, read in (("", objective.l1_of_decoded_pair), ("_batched", decoder_pair.batched_l1_of_decoded_pair)):
@@ -116,6 +127,7 @@ def profile(scene: str, row: str, width: int, teacher: pathlib.Path, repeats: in
   return dict(scene=scene, row=row, decoder_width=width, num_gaussians=int(run.start.num),
               num_carrier=int(run.start.num - run.teacher.num),
               pair_capacity=run.options.pair_capacity, tile_size=run.options.tile_size,
+              rows_per_view=None if run.data.rows is None else int(run.data.rows.shape[1]),
               image_size=[camera.width, camera.height], hidden_size=s.hidden_size,
               settings=dataclasses.asdict(s), repeats=repeats, median_ms=times)
 

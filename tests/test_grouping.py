@@ -24,10 +24,10 @@ def alive(g) -> np.ndarray:
   return np.asarray(g.opacity_logits) > decimate.DROPPED_LOGIT
 
 
-def test_group_members_lists_the_groups_holding_the_rows_in_ascending_order():
+def test_group_members_lists_the_groups_holding_the_rows_in_descending_order():
   group = np.array([0, 1, 0, -1, 1, 2, 2, 0, 3, 3])
   members = grouping.group_members(group, np.array([2, 5]))
-  np.testing.assert_array_equal(members, [[0, 2, 7, -1], [5, 6, -1, -1]])
+  np.testing.assert_array_equal(members, [[7, 2, 0, -1], [6, 5, -1, -1]])
   assert grouping.group_members(group, np.array([3])).shape == (0, grouping.MAX_GROUP)
 
 

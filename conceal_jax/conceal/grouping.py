@@ -126,14 +126,15 @@ def converter_groups(g: Gaussians, keep: float, edges: tuple[np.ndarray, np.ndar
 
 def group_members(group: np.ndarray, rows: np.ndarray) -> np.ndarray:
   """[P, MAX_GROUP] the groups of `group` (converter_groups' labels) that hold any of `rows`, each as its members
-  in ascending order (-1 pads a group of fewer)."""
+  in descending order (-1 pads a group of fewer): a group's merged Gaussian goes to its first member, a film row
+  where the group holds one (the film's rows come last in the student; subsets.py relies on it)."""
   labels = np.unique(group[rows][group[rows] >= 0])
   members = -np.ones((labels.size, MAX_GROUP), np.int64)
   if labels.size == 0:
     return members
   index = np.full(group.max() + 1, -1, np.int64)
   index[labels] = np.arange(labels.size)
-  where = np.flatnonzero((group >= 0) & (index[np.maximum(group, 0)] >= 0))  # ascending rows
+  where = np.flatnonzero((group >= 0) & (index[np.maximum(group, 0)] >= 0))[::-1]  # descending rows
   slot = index[group[where]]
   order = np.argsort(slot, kind="stable")
   slot, where = slot[order], where[order]

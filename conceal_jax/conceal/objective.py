@@ -18,11 +18,11 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from conceal_jax.conceal import augment, reveal
+from conceal_jax.conceal import augment, reveal, subsets
 from conceal_jax.conceal.settings import ConcealSettings
 from conceal_jax.gs import losses, metrics
 from conceal_jax.splat.camera import Camera
-from conceal_jax.splat.render import RenderOptions, render
+from conceal_jax.splat.render import RenderOptions, RenderOutput, render
 
 
 @struct.dataclass
@@ -35,7 +35,9 @@ class View:
   (augment.draw) the student is rendered through, image: the one its render is read through by F;
   hidden [S, S, 3] and plus_weight: L_d^+'s target and lambda+ (the check view's); own_minus_weight:
   L_d^-'s share on this render (the student's normal view with identity_on_student); teacher_small
-  [S, S, 3] and teacher_minus_weight: a teacher render at the decoder size and its L_d^- share.
+  [S, S, 3] and teacher_minus_weight: a teacher render at the decoder size and its L_d^- share; rows: None, or
+  int32 [M] the student rows its render reads (subsets.py: the same image), and fixed: whether its render is
+  fixed_rgb [H, W, 3] (the teacher's: no row that trains reaches it), not rendered.
   """
   camera: Camera
   target: jax.Array
@@ -48,6 +50,9 @@ class View:
   own_minus_weight: jax.Array
   teacher_small: jax.Array
   teacher_minus_weight: jax.Array
+  rows: jax.Array | None = None
+  fixed: jax.Array | None = None
+  fixed_rgb: jax.Array | None = None
 
 
 @struct.dataclass
@@ -99,7 +104,7 @@ def view_terms(student, decoder_plus, decoder_minus, view: View, settings: Conce
   holds F to the identity on its own render, never both (views.step_views). `read_pair` computes the two reads
   (l1_of_decoded_pair, or decoder_pair.py's batch of two)."""
   s = settings
-  out = render(augment.perturb_gaussians(student, view.model, s.augmentation, merges), view.camera, options)
+  out = rendered(augment.perturb_gaussians(student, view.model, s.augmentation, merges), view, options)
   seen = decoder_view(augment.distort(out.rgb, view.image, s.augmentation), s)
   reads_hidden = view.plus_weight > 0
   own_decoder = jax.tree.map(lambda p, m: jnp.where(reads_hidden, p, m), decoder_plus, decoder_minus)
@@ -111,6 +116,20 @@ def view_terms(student, decoder_plus, decoder_minus, view: View, settings: Conce
                minus=view.own_minus_weight * own + view.teacher_minus_weight * teacher,
                psnr=metrics.psnr(jnp.clip(out.rgb, 0.0, 1.0), view.target), num_pairs=out.num_pairs,
                overflowed=out.overflowed)
+
+
+def rendered(gaussians, view: View, options: RenderOptions) -> RenderOutput:
+  """The view's render of `gaussians` (its rgb and pair counts): of its rows alone where it has them (the same
+  image: subsets.py), and where it is fixed its fixed image, not rendered (no pairs)."""
+  if view.rows is None:
+    return render(gaussians, view.camera, options)
+
+  def draw():
+    out = render(subsets.gather(gaussians, view.rows), view.camera, options)
+    return out.replace(radii=jnp.zeros((), jnp.int32))  # the subset's, not the student's
+
+  held = lambda: jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(draw)).replace(rgb=view.fixed_rgb)
+  return jax.lax.cond(view.fixed, held, draw)
 
 
 def l1_of_decoded(decoder, image: jax.Array, target: jax.Array, settings: ConcealSettings) -> jax.Array:

@@ -13,7 +13,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from conceal_jax.conceal import key as key_lib, reveal
+from conceal_jax.conceal import key as key_lib, reveal, subsets
 from conceal_jax.conceal.key import Key
 from conceal_jax.conceal.objective import View
 from conceal_jax.conceal.settings import ConcealSettings
@@ -37,7 +37,10 @@ class ConcealData:
   and the decoder's size; cameras: Camera [V + D]; keys: Key [K]; trainable: None (the whole student trains)
   or a 0/1 Gaussians [N] mask of what does (carrier.trainable_fields); merges: None or the rounds of the carrier
   film's pairs a decimation merges (decimate.film_merges, for conceal.attacks.merge_fraction); ties: None or the
-  int32 [S, stack] student rows of each of the film's stacks, each training as one (carrier.tied_rows)."""
+  int32 [S, stack] student rows of each of the film's stacks, each training as one (carrier.tied_rows); rows:
+  None (every render reads the whole student) or int32 [V + D + K, M] the student rows the normal views' then the
+  keys' renders read (subsets.view_rows), with fixed [V + D] bool: the normal views rendered by no row that trains,
+  whose render is the teacher's."""
   images: jax.Array
   teacher: jax.Array
   teacher_small: jax.Array
@@ -46,11 +49,13 @@ class ConcealData:
   trainable: Any = None
   merges: Any = None
   ties: Any = None
+  rows: Any = None
+  fixed: Any = None
 
 
 def build_data(train_images, teacher, options: RenderOptions, normal_cameras: list[Camera], key_cameras, hiddens,
                size: int, clip: bool = False, key_images=None, trainable=None, merges=None,
-               ties=None) -> ConcealData:
+               ties=None, student=None, film_rows=None) -> ConcealData:
   """The device-resident inputs of the concealment step. `normal_cameras`: the training cameras then the
   decoys; `key_cameras` and `hiddens` [S, S, 3]: one of each per key; `key_images` [H, W, 3] per key: the
   released variant's check-view targets (None: the teacher's renders there); `trainable`, `merges`, `ties`:
@@ -60,10 +65,15 @@ def build_data(train_images, teacher, options: RenderOptions, normal_cameras: li
   teacher_keys = render_batch(teacher, key_stack, options).rgb
   keys = key_lib.stack_keys(key_cameras, hiddens, teacher_keys if key_images is None else key_images,
                             reveal.resize_for_decoder(teacher_keys, size, clip))
+  rows = fixed = None
+  if student is not None:
+    fixed = np.arange(len(normal_cameras)) < len(train_images)
+    rows = jnp.asarray(subsets.view_rows(student, list(normal_cameras) + list(key_cameras), options, film_rows,
+                                         np.concatenate([fixed, np.zeros(len(key_cameras), bool)])))
   return ConcealData(images=jnp.asarray(np.stack(train_images)), teacher=teacher_renders,
                      teacher_small=reveal.resize_for_decoder(teacher_renders, size, clip),
                      cameras=camera_lib.stack(list(normal_cameras)), keys=keys, trainable=trainable, merges=merges,
-                     ties=ties)
+                     ties=ties, rows=rows, fixed=None if fixed is None else jnp.asarray(fixed))
 
 
 def identity_weights(settings: ConcealSettings) -> dict:
@@ -85,16 +95,20 @@ def step_views(data: ConcealData, view, normal_view, key_number, distortion, set
   distortion = dict(NO_DISTORTION, **(distortion or {}))  # the kinds a draw left out at their identity
   f32 = jnp.float32
   released = s.variant == "released"
+  num_normal = data.teacher.shape[0]
+  rows = lambda index: None if data.rows is None else data.rows[index]
   normal = View(camera=jax.tree.map(lambda x: x[view], data.cameras),
                 target=data.teacher[view] if s.distill else data.images[view],
                 l1_weight=f32(s.weight_kd if s.distill else 0.0), photometric_weight=f32(0.0 if s.distill else 1.0),
                 model=NO_DISTORTION, image=distortion if s.identity_distorted else NO_DISTORTION, hidden=key.hidden,
                 plus_weight=f32(0.0), own_minus_weight=f32(w["student"]), teacher_small=data.teacher_small[normal_view],
-                teacher_minus_weight=f32(w["teacher_normal"]))
+                teacher_minus_weight=f32(w["teacher_normal"]), rows=rows(view),
+                fixed=None if data.fixed is None else data.fixed[view], fixed_rgb=data.teacher[view])
   check = View(camera=key.camera, target=key.check_image, l1_weight=f32(s.weight_check if released else 0.0),
                photometric_weight=f32(0.0), model=distortion, image=distortion, hidden=key.hidden,
                plus_weight=f32(s.weight_plus), own_minus_weight=f32(0.0), teacher_small=key.teacher_check,
-               teacher_minus_weight=f32(w["teacher_check"]))
+               teacher_minus_weight=f32(w["teacher_check"]), rows=rows(num_normal + key_number),
+               fixed=None if data.fixed is None else jnp.bool_(False), fixed_rgb=key.check_image)
   return jax.tree.map(lambda a, b: jnp.stack([a, b]), normal, check)
 
 

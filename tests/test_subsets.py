@@ -1,0 +1,88 @@
+"""conceal.subsets: a view rendered from the rows that reach it is the whole student's render, bit for bit, with
+the same gradient to the film's colours, through the check render's attacks too (8-bit colours, resets, the
+converter's merges); a fixed view is its held image, not rendered."""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from conceal_jax.conceal import augment, carrier, grouping, key as key_lib, near, objective, subsets
+from conceal_jax.conceal.views import NO_DISTORTION
+from conceal_jax.gs import init
+from conceal_jax.splat.camera import Camera, look_at
+from conceal_jax.splat.gaussians import concatenate
+from conceal_jax.splat.render import render
+from tests.test_carrier import OPTIONS, hemisphere_cameras
+
+OPTIONS = dataclasses.replace(OPTIONS, pair_capacity=1 << 14)
+ATTACKS = augment.Augmentation(quantize_fraction=0.5, reset_fraction=0.5, merge_fraction=0.5, prune_small_max=0.3,
+                               dropout_max=0.3, merge_groups="converter")
+
+
+@pytest.fixture(scope="module")
+def scene():
+  """A random teacher, an unseen film with trained-looking colours, its training cameras, key and two decoys
+  (which see the film alone)."""
+  cameras = hemisphere_cameras()
+  points, colors = init.random_box_points(np.random.default_rng(1), 400, 1.0)
+  teacher = jax.tree.map(jnp.asarray, init.gaussians_from_points(points, colors, sh_degree=1, opacity=0.5))
+  key = key_lib.unseen_camera(cameras, seed=1)
+  film = carrier.unseen_film(teacher, key, cameras, OPTIONS, 0.1 * key_lib.camera_distance(cameras), 2.0, 0.5,
+                             layers=2)
+  film = film.replace(sh=film.sh.at[:, 0].set(jax.random.normal(jax.random.key(0), film.sh[:, 0].shape)))
+  student = concatenate([teacher, film])
+  decoys = near.decoy_cameras(key, 1.0, 2, (0.05, 0.3), (5.0, 30.0), seed=0)
+  return student, teacher.num, cameras, key, decoys
+
+
+def view(camera, rows, fixed=False, fixed_rgb=None, model=NO_DISTORTION):
+  zero = jnp.float32(0.0)
+  image = jnp.zeros((camera.height, camera.width, 3)) if fixed_rgb is None else fixed_rgb
+  return objective.View(camera=camera, target=image, l1_weight=zero, photometric_weight=zero, model=model,
+                        image=NO_DISTORTION, hidden=jnp.zeros((8, 8, 3)), plus_weight=zero, own_minus_weight=zero,
+                        teacher_small=jnp.zeros((8, 8, 3)), teacher_minus_weight=zero, rows=rows,
+                        fixed=None if rows is None else jnp.bool_(fixed), fixed_rgb=image)
+
+
+def test_the_rows_that_reach_a_view_render_it_and_its_gradient_bit_for_bit(scene):
+  student, offset, cameras, key, decoys = scene
+  film = np.arange(student.num) >= offset
+  narrow = Camera.from_fov(look_at([0.0, -4.0, 1.0], [0.6, 0.0, 0.3]), 0.25, 32, 32)  # sees part of the teacher
+  views = [key, decoys[1], narrow]
+  rows = subsets.view_rows(student, views, OPTIONS, film, np.zeros(len(views), bool))
+  assert np.all(np.diff(rows, axis=1) >= 0) and 0 < np.sum(rows[2] < offset) < offset
+  merges = grouping.training_merges(jax.tree.map(np.asarray, student), offset, ATTACKS)
+  draws = [dict(augment.draw(np.random.default_rng(seed), ATTACKS), merge=np.float32(level))
+           for seed, level in ((0, 0.0), (2, 2.0))]
+  for camera, reading in zip(views, rows):
+    for distortion in draws:
+      def image(dc, rows):
+        moved = student.replace(sh=student.sh.at[offset:, 0].set(dc))
+        perturbed = augment.perturb_gaussians(moved, distortion, ATTACKS, merges)
+        return objective.rendered(perturbed, view(camera, rows), OPTIONS).rgb
+
+      dc = student.sh[offset:, 0]
+      whole, part = image(dc, None), image(dc, jnp.asarray(reading))
+      np.testing.assert_array_equal(np.asarray(part), np.asarray(whole))
+      weights = jax.random.uniform(jax.random.key(1), whole.shape)
+      grad = lambda rows: np.asarray(jax.grad(lambda x: jnp.sum(weights * image(x, rows)))(dc))
+      whole_grad = grad(None)
+      np.testing.assert_array_equal(grad(jnp.asarray(reading)), whole_grad)
+      assert np.all(np.isfinite(whole_grad)) and np.any(whole_grad != 0) == (camera is not narrow)
+
+
+def test_a_fixed_view_is_its_held_image_and_reads_no_row(scene):
+  student, offset, cameras, _, _ = scene
+  film = np.arange(student.num) >= offset
+  rows = subsets.view_rows(student, cameras[:2], OPTIONS, film, np.array([True, False]))
+  assert np.all(rows[0] == student.num) and np.any(rows[1] < student.num)
+  held = render(student, cameras[0], OPTIONS).rgb
+  out = objective.rendered(student, view(cameras[0], jnp.asarray(rows[0]), True, held), OPTIONS)
+  np.testing.assert_array_equal(np.asarray(out.rgb), np.asarray(held))
+  assert int(out.num_pairs) == 0
+  gathered = subsets.gather(student, jnp.asarray(rows[0]))
+  assert gathered.num == rows.shape[1] and np.all(np.isnan(np.asarray(gathered.means)))
