@@ -58,20 +58,22 @@ def test_the_rows_that_reach_a_view_render_it_and_its_gradient_bit_for_bit(scene
   merges = grouping.training_merges(jax.tree.map(np.asarray, student), offset, ATTACKS)
   draws = [dict(augment.draw(np.random.default_rng(seed), ATTACKS), merge=np.float32(level))
            for seed, level in ((0, 0.0), (2, 2.0))]
-  for camera, reading in zip(views, rows):
-    for distortion in draws:
-      def image(dc, rows):
-        moved = student.replace(sh=student.sh.at[offset:, 0].set(dc))
-        perturbed = augment.perturb_gaussians(moved, distortion, ATTACKS, merges)
-        return objective.rendered(perturbed, view(camera, rows), OPTIONS).rgb
+  dc = student.sh[offset:, 0]
 
-      dc = student.sh[offset:, 0]
-      whole, part = image(dc, None), image(dc, jnp.asarray(reading))
+  @jax.jit
+  def image(dc, distortion, camera, reading):
+    moved = student.replace(sh=student.sh.at[offset:, 0].set(dc))
+    perturbed = augment.perturb_gaussians(moved, distortion, ATTACKS, merges)
+    return objective.rendered(perturbed, view(camera, reading), OPTIONS).rgb
+
+  weights = jax.random.uniform(jax.random.key(1), (32, 32, 3))
+  grad = jax.jit(jax.grad(lambda *args: jnp.sum(weights * image(*args))))
+  for camera, reading in zip(views, jnp.asarray(rows)):
+    for distortion in draws:
+      whole, part = image(dc, distortion, camera, None), image(dc, distortion, camera, reading)
       np.testing.assert_array_equal(np.asarray(part), np.asarray(whole))
-      weights = jax.random.uniform(jax.random.key(1), whole.shape)
-      grad = lambda rows: np.asarray(jax.grad(lambda x: jnp.sum(weights * image(x, rows)))(dc))
-      whole_grad = grad(None)
-      np.testing.assert_array_equal(grad(jnp.asarray(reading)), whole_grad)
+      whole_grad = np.asarray(grad(dc, distortion, camera, None))
+      np.testing.assert_array_equal(np.asarray(grad(dc, distortion, camera, reading)), whole_grad)
       assert np.all(np.isfinite(whole_grad)) and np.any(whole_grad != 0) == (camera is not narrow)
 
 
