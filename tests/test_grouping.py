@@ -1,6 +1,7 @@
 """conceal.grouping: the converter's groups as training merges them. Merging every group of a level reproduces the
 converter's own decimation of a random scene (positions, colours and opacities of its output; skips without node);
-groups are padded to a fixed capacity; the film's groups only; the regrouping schedule resumes where it left off."""
+groups are padded to a capacity that only grows; the film's groups only; the regrouping schedule resumes where it
+left off."""
 from __future__ import annotations
 
 import jax
@@ -34,8 +35,10 @@ def test_group_members_lists_the_groups_holding_the_rows_in_descending_order():
 def test_merging_a_level_keeps_its_count_mass_and_colour_and_pads_to_capacity():
   g = scene()
   g = g.replace(opacity_logits=g.opacity_logits - 3.0)  # faint splats: no merged opacity reaches the cap
-  merges = grouping.converter_merges(g, np.arange(g.num), (0.5, 0.8), capacity=g.num)
-  assert all(m.members.shape == (g.num, grouping.MAX_GROUP) for m in merges)
+  merges = grouping.converter_merges(g, np.arange(g.num), (0.5, 0.8))
+  assert all(m.members.shape == (grouping.CAPACITY_STEP, grouping.MAX_GROUP) for m in merges)  # 150 groups at most
+  wider = grouping.converter_merges(g, np.arange(g.num), (0.5,), capacity=3 * grouping.CAPACITY_STEP)
+  assert wider[0].members.shape[0] == 3 * grouping.CAPACITY_STEP
   none = decimate.merge_levels(g, merges, jnp.float32(0.0))
   for a, b in zip(jax.tree.leaves(none), jax.tree.leaves(g)):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -47,14 +50,12 @@ def test_merging_a_level_keeps_its_count_mass_and_colour_and_pads_to_capacity():
     np.testing.assert_allclose(mass(out)[kept].sum(), mass(g).sum(), rtol=1e-4)
     colour = lambda x, rows: np.sum((mass(x)[:, None] * np.asarray(x.sh[:, 0], np.float64))[rows], axis=0)
     np.testing.assert_allclose(colour(out, kept), colour(g, np.arange(g.num)), rtol=1e-4)
-  with pytest.raises(ValueError, match="capacity"):
-    grouping.converter_merges(g, np.arange(g.num), (0.5,), capacity=10)
 
 
 def test_only_the_films_groups_merge_and_the_gradient_reaches_every_member():
   g = scene()
   rows = np.arange(200, 300)
-  (merges,) = grouping.converter_merges(g, rows, (0.5,), capacity=rows.size)
+  (merges,) = grouping.converter_merges(g, rows, (0.5,))
   members = np.asarray(merges.members)
   real = members[members < g.num]
   assert np.isin(rows, real).sum() > 0.8 * rows.size
@@ -89,7 +90,7 @@ def test_merging_a_level_is_the_converters_decimation(tmp_path, keep):
   """Every Gaussian the converter writes is one the merged scene keeps: same position, base colour and opacity."""
   g = scene()
   returned = converter.round_trip(g, decimate=keep, workdir=tmp_path)
-  merges = grouping.converter_merges(g, np.arange(g.num), (keep,), capacity=g.num)
+  merges = grouping.converter_merges(g, np.arange(g.num), (keep,))
   out = jax.tree.map(np.asarray, decimate.merge_levels(g, merges, jnp.float32(1.0)))
   kept = alive(out)
   assert kept.sum() == returned.num

@@ -137,8 +137,10 @@ def film_merges(film: Gaussians, offset: int, levels: int = 1) -> tuple[Merges, 
 def merge_film(gaussians: Gaussians, merges: tuple[Merges, ...], value: jax.Array, levels: bool,
                key: jax.Array) -> Gaussians:
   """gaussians [N] decimated by `merges` at `value` (traced): the level numbered `value` (`merge_levels`) where
-  `merges` are the converter's levels (`levels`), else `value` rounds deep (`merge_rounds`, drawn from `key`)."""
-  return merge_levels(gaussians, merges, value) if levels else merge_rounds(gaussians, merges, value, key)
+  `merges` are the converter's levels (`levels`), else `value` rounds deep (`merge_rounds`, drawn from `key`). At
+  value 0, most steps, nothing is computed."""
+  merge = (lambda g: merge_levels(g, merges, value)) if levels else (lambda g: merge_rounds(g, merges, value, key))
+  return jax.lax.cond(value > 0, merge, lambda g: g, gaussians)
 
 
 def merge_rounds(gaussians: Gaussians, merges: tuple[Merges, ...], depth: jax.Array, key: jax.Array) -> Gaussians:
@@ -152,13 +154,12 @@ def merge_rounds(gaussians: Gaussians, merges: tuple[Merges, ...], depth: jax.Ar
 
 
 def merge_levels(gaussians: Gaussians, merges: tuple[Merges, ...], level: jax.Array) -> Gaussians:
-  """gaussians [N] decimated as the one of `merges` numbered `level` (traced; 1-based, 0: none) decimates them,
-  every one of its groups merged (the converter's decimation to one of a run's levels, grouping.converter_merges).
+  """gaussians [N] decimated as the one of `merges` (Merges of one shape, grouping.converter_merges) numbered
+  `level` (traced; 1-based, 0: none) decimates them, every one of its groups merged; only that level is gathered.
   At level 0 the Gaussians themselves, values and gradients."""
-  key = jax.random.key(0)  # unused: a share of 0 or 1 draws nothing that matters
-  for k, merges_k in enumerate(merges):
-    gaussians = merge_groups(gaussians, merges_k, (level == k + 1).astype(jnp.float32), key)
-  return gaussians
+  chosen = jax.tree.map(lambda *levels: jnp.stack(levels)[jnp.clip(level.astype(jnp.int32) - 1, 0, len(merges) - 1)],
+                        *merges)
+  return merge_groups(gaussians, chosen, (level > 0).astype(jnp.float32), jax.random.key(0))  # a share of 0 or 1
 
 
 def merge_groups(gaussians: Gaussians, merges: Merges, share: jax.Array, key: jax.Array) -> Gaussians:

@@ -23,6 +23,8 @@ from conceal_jax.splat.gaussians import Gaussians, quaternion_to_rotation
 
 NEIGHBOURS, CANDIDATES, COST_BUCKETS, GROUP_CAPS = 16, 4, 1024, (3, 4)
 MAX_GROUP = GROUP_CAPS[-1]
+# The training merges' capacities are multiples of this many groups.
+CAPACITY_STEP = 1024
 EPS_COV = 1e-8  # the converter's covariance regulariser
 LOG_2PI = np.log(2.0 * np.pi)
 
@@ -143,32 +145,32 @@ def group_members(group: np.ndarray, rows: np.ndarray) -> np.ndarray:
   return members
 
 
-def converter_merges(gaussians: Gaussians, rows: np.ndarray, keeps, capacity: int) -> tuple[decimate.Merges, ...]:
+def converter_merges(gaussians: Gaussians, rows: np.ndarray, keeps, capacity: int = 0) -> tuple[decimate.Merges, ...]:
   """One decimate.Merges per kept fraction of `keeps`: the converter's groups (converter_groups) of `gaussians`
-  that hold any of `rows` (the film), padded to `capacity` groups with members past the last Gaussian (fixed
-  shapes: a regrouped run never recompiles); ValueError when more groups than `capacity` hold the rows."""
-  levels, edges = [], candidate_edges(gaussians)
-  for keep in keeps:
-    members = group_members(converter_groups(gaussians, keep, edges), rows)
-    if len(members) > capacity:
-      raise ValueError(f"{len(members)} converter groups hold the film, more than the capacity {capacity}")
+  that hold any of `rows` (the film), every level padded with members past the last Gaussian to the same number of
+  groups: `capacity`, or the next multiple of CAPACITY_STEP above the most any level has, where that is more (a
+  regrouped run keeps its capacity, so its step keeps its shapes)."""
+  edges = candidate_edges(gaussians)
+  levels = [group_members(converter_groups(gaussians, keep, edges), rows) for keep in keeps]
+  most = max(len(members) for members in levels)
+  capacity = max(capacity, -(-most // CAPACITY_STEP) * CAPACITY_STEP)
+  merges = []
+  for members in levels:
     merged = decimate.moment_matched(gaussians, members)
     pad = capacity - len(members)
     merged = {name: np.concatenate([value, np.zeros((pad,) + value.shape[1:])]) for name, value in merged.items()}
     members = np.concatenate([members, -np.ones((pad, MAX_GROUP), np.int64)])
-    levels.append(decimate.as_merges(merged, np.where(members >= 0, members, gaussians.num)))
-  return tuple(levels)
+    merges.append(decimate.as_merges(merged, np.where(members >= 0, members, gaussians.num)))
+  return tuple(merges)
 
 
-def training_merges(student: Gaussians, offset: int, augmentation) -> tuple[decimate.Merges, ...]:
+def training_merges(student: Gaussians, offset: int, augmentation, capacity: int = 0) -> tuple[decimate.Merges, ...]:
   """What a run's merging check renders merge (conceal.attacks.merge_groups, augment.Augmentation
   `augmentation`) of the film, the rows of `student` from `offset` on: the converter's groups at each of merge_keep
-  (`converter_merges`, padded to one group per film splat), or merge_rounds rounds of near pairs
-  (decimate.film_merges)."""
+  (`converter_merges`, at least `capacity` groups), or merge_rounds rounds of near pairs (decimate.film_merges)."""
   student = jax.tree.map(np.asarray, student)
   if augmentation.merge_groups == "converter":
-    rows = np.arange(offset, student.num)
-    return converter_merges(student, rows, augmentation.merge_keep, capacity=rows.size)
+    return converter_merges(student, np.arange(offset, student.num), augmentation.merge_keep, capacity)
   return decimate.film_merges(jax.tree.map(lambda x: x[offset:], student), offset, augmentation.merge_rounds)
 
 
@@ -190,10 +192,11 @@ class Regrouping:
     self.first = False
     return due
 
-  def __call__(self, student: Gaussians, iteration: int) -> tuple[decimate.Merges, ...]:
-    """training_merges of `student`, the state before step `iteration`."""
+  def __call__(self, student: Gaussians, iteration: int, capacity: int) -> tuple[decimate.Merges, ...]:
+    """training_merges of `student`, the state before step `iteration`, in at least `capacity` groups (the run's
+    merges so far: a capacity that only grows recompiles the step only when it grows)."""
     self.grouped_at = iteration - 1
-    return training_merges(student, self.offset, self.augmentation)
+    return training_merges(student, self.offset, self.augmentation, capacity)
 
 
 def regrouping(offset: int, augmentation, checkpoint_every: int) -> Regrouping | None:

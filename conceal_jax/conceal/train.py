@@ -186,7 +186,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   def step(state, iteration):
     nonlocal data
     if regroup is not None and regroup.due(iteration):  # the converter's groups of the film as it is now
-      data = data.replace(merges=parallel.replicate(regroup(jax.device_get(state.student), iteration), mesh))
+      merges = regroup(jax.device_get(state.student), iteration, data.merges[0].members.shape[0])
+      data = data.replace(merges=parallel.replicate(merges, mesh))
     rng = np.random.default_rng([config.seed, iteration])
     views = [views_lib.draw_normal_view(rng, num_views, len(run.decoys), s.decoy_fraction) for _ in range(2)]
     distortion = augment.draw(rng, s.augmentation) if s.augmentation.draws else None
