@@ -116,6 +116,12 @@ RECIPE_NOTES = {
                       "sample of the design (workdirs/survive_runs/demo_film_long, concealed 2026-11-26)",
     "film_epyc": "lego_conceal.py:recommended concealed again for 10000 steps on the 2-core CPU (AMD EPYC), resumed "
                  "from its checkpoint at 5000 (workdirs/survive_runs/lego_film, 2026-11-27)",
+    "converter_3k": "lego_conceal.py:recommended with the check renders merged as the converter's own decimation "
+                    "to 50% or 80% merges the film (conceal.attacks.merge_groups=converter: its groups reproduced "
+                    "from the student every 500 steps, conceal/grouping.py), for 3000 steps (a design test; "
+                    "workdirs/survive_runs/lego_converter_3k, 2026-11-28)",
+    "nearest_3k": "lego_conceal.py:recommended (merges of near pairs) for 3000 steps beside converter_3k "
+                  "(workdirs/survive_runs/lego_nearest_3k, 2026-11-28)",
     "film_deep": "film_long trained through merges up to 1.5 rounds deep (recipes.DEEP_MERGE_DEPTH; demo.py:film_deep)",
     "film_stack": "film_long with the film's splats in stacks of two at each grid position, their colours trained as "
                   "one at half the rate, and half as many grids (recipes.stacked_film; demo.py:film_stack)",
