@@ -87,7 +87,7 @@ def part_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
     view = jax.tree.map(lambda x, i=index: x[i], views)
     for suffix, read in (("", objective.l1_of_decoded_pair), ("_batched", decoder_pair.batched_l1_of_decoded_pair)):
       def loss(g, d, v=view, read=read):
-        terms = objective.view_terms(g, d, d, v, s, run.options, read_pair=read)
+        terms = objective.view_terms(g, d, d, v, s, run.options, run.data.merges, read_pair=read)
         return terms.student + terms.plus + terms.minus
 
       times[f"{name}_view_terms_fwd_bwd{suffix}"] = median_ms(jax.jit(jax.grad(loss, argnums=(0, 1))), run.start,
@@ -97,7 +97,8 @@ def part_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
   times["decoder_fwd"] = median_ms(jax.jit(apply), decoder, image, repeats=repeats)
   times["decoder_fwd_bwd"] = median_ms(jax.jit(jax.grad(lambda d, x: jnp.sum(apply(d, x)))), decoder, image,
                                        repeats=repeats)
-  grads, _ = jax.jit(lambda g, d: step_lib.gradients(g, d, views, s, run.options))(run.start, decoder)
+  gradients = lambda g, d: step_lib.gradients(g, d, views, s, run.options, merges=run.data.merges)
+  grads, _ = jax.jit(gradients)(run.start, decoder)
   guided = jax.jit(lambda p, m: guidance.guided_decoder_gradient(p, m, 1.0, 1.0, s.granularity))
   times["guidance"] = median_ms(guided, grads["plus"], grads["minus"], repeats=repeats)
   times["student_adam"] = median_ms(jax.jit(student_tx.update), grads["student"], student_tx.init(run.start),
