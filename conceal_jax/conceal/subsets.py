@@ -30,8 +30,7 @@ from conceal_jax.splat.render import RenderOptions
 def screen_radii(gaussians: Gaussians, camera: Camera, options: RenderOptions) -> jax.Array:
   """[N] int32 the renderer's screen radius of each Gaussian at `camera` (render.RenderOutput.radii without the
   render): 0 where it is culled or touches no tile of the image."""
-  degree = gaussians.sh_degree if options.sh_degree is None else min(options.sh_degree, gaussians.sh_degree)
-  splats = project(gaussians, camera, degree, options.near, options.antialiased)
+  splats = project(gaussians, camera, 0, options.near, options.antialiased)  # radii do not depend on colours
   grid = binning.tile_grid(camera.width, camera.height, options.tile_size)
   return binning.on_tile_radii(splats.means2d, splats.radii, options.tile_size, grid)
 
