@@ -120,6 +120,9 @@ RECIPE_NOTES = {
                     "to 50% or 80% merges the film (conceal.attacks.merge_groups=converter: its groups reproduced "
                     "from the student every 500 steps, conceal/grouping.py), for 3000 steps (a design test; "
                     "workdirs/survive_runs/lego_converter_3k, 2026-11-28)",
+    "converter_mf50": "lego_conceal.py:recommended with the converter's own groups (as converter_3k) merged in half "
+                      "the check renders (conceal.attacks.merge_fraction=0.5), for the recipe's 10000 steps "
+                      "(workdirs/survive_runs/lego_converter_mf50, 2026-11-28)",
     "nearest_3k": "lego_conceal.py:recommended (merges of near pairs) for 3000 steps beside converter_3k "
                   "(workdirs/survive_runs/lego_nearest_3k, 2026-11-28)",
     "film_deep": "film_long trained through merges up to 1.5 rounds deep (recipes.DEEP_MERGE_DEPTH; demo.py:film_deep)",

@@ -9,7 +9,8 @@ own): one view's terms (objective.view_terms) with their gradient, for the norma
 two decoder reads in turn and as the step runs them (batched: decoder_pair.py); the decoder alone (forward,
 forward+backward, one image); the guided combination of the two decoder gradients; the two optimiser updates; and
 the whole step with its two views on one device and split over two (core.parallel), taking turns, and where views
-render from the rows that reach them (conceal/subsets.py) the same from the whole student beside it. Writes
+render from the rows that reach them (conceal/subsets.py) the same from the whole student beside it, and where only
+the film's colours train the same with the gradient taken with respect to every parameter. Writes
 conceal_step_profile.json to --out. Run it on a quiet machine.
 """
 from __future__ import annotations
@@ -25,7 +26,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from conceal_jax.conceal import augment, decoder_pair, objective, reveal, step as step_lib, train as conceal_train
+from conceal_jax.conceal import augment, carrier, decoder_pair, objective, reveal, step as step_lib
+from conceal_jax.conceal import train as conceal_train
 from conceal_jax.conceal import guidance, settings as settings_lib, views as views_lib
 from conceal_jax.configs import demo
 from conceal_jax.core import fileio, parallel
@@ -56,6 +58,8 @@ def step_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
   datas = {"": run.data}
   if run.data.rows is not None:
     datas["_whole_renders"] = run.data.replace(rows=None, fixed=None)
+  if run.data.colour_rows is not None:  # the time of a gradient with respect to every parameter (the whole trains)
+    datas["_whole_gradient"] = run.data.replace(colour_rows=None)
   rng = np.random.default_rng(0)
   num_views, num_decoys = run.data.images.shape[0], len(run.decoys)
   normal = [views_lib.draw_normal_view(rng, num_views, num_decoys, settings.decoy_fraction) for _ in range(repeats)]
@@ -83,22 +87,27 @@ def part_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
   s, times = settings, {}
   normal = run.data.images.shape[0] if run.decoys else 0  # a decoy, where the run has them, as most steps draw
   views = views_lib.step_views(run.data, normal, 1, 0, distortion, s)
+  rows = run.data.colour_rows  # what the step differentiates: the trained colours where only they train
+  place = (lambda whole, g: g) if rows is None else (lambda whole, dc: carrier.with_colours(whole, rows, dc))
+  trained = run.start if rows is None else run.start.sh[rows, 0]
   for index, name in enumerate(("normal", "check")):
     view = jax.tree.map(lambda x, i=index: x[i], views)
     for suffix, read in (("", objective.l1_of_decoded_pair), ("_batched", decoder_pair.batched_l1_of_decoded_pair)):
-      def loss(g, d, v=view, read=read):
-        terms = objective.view_terms(g, d, d, v, s, run.options, run.data.merges, read_pair=read)
+      def loss(g, d, whole, v=view, read=read):
+        terms = objective.view_terms(place(whole, g), d, d, v, s, run.options, run.data.merges, read_pair=read)
         return terms.student + terms.plus + terms.minus
 
-      times[f"{name}_view_terms_fwd_bwd{suffix}"] = median_ms(jax.jit(jax.grad(loss, argnums=(0, 1))), run.start,
-                                                              decoder, repeats=repeats)
+      times[f"{name}_view_terms_fwd_bwd{suffix}"] = median_ms(jax.jit(jax.grad(loss, argnums=(0, 1))), trained,
+                                                              decoder, run.start, repeats=repeats)
   image = run.data.teacher_small[0]
   apply = lambda d, x: reveal.decode(d, s.decoder_width, x)
   times["decoder_fwd"] = median_ms(jax.jit(apply), decoder, image, repeats=repeats)
   times["decoder_fwd_bwd"] = median_ms(jax.jit(jax.grad(lambda d, x: jnp.sum(apply(d, x)))), decoder, image,
                                        repeats=repeats)
-  gradients = lambda g, d: step_lib.gradients(g, d, views, s, run.options, merges=run.data.merges)
+  gradients = lambda g, d: step_lib.gradients(g, d, views, s, run.options, merges=run.data.merges, colour_rows=rows)
   grads, _ = jax.jit(gradients)(run.start, decoder)
+  if rows is not None:  # Adam's input as the step makes it
+    grads["student"] = carrier.with_colours(jax.tree.map(jnp.zeros_like, run.start), rows, grads["student"])
   guided = jax.jit(lambda p, m: guidance.guided_decoder_gradient(p, m, 1.0, 1.0, s.granularity))
   times["guidance"] = median_ms(guided, grads["plus"], grads["minus"], repeats=repeats)
   times["student_adam"] = median_ms(jax.jit(student_tx.update), grads["student"], student_tx.init(run.start),

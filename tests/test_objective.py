@@ -10,8 +10,8 @@ import optax
 import pytest
 
 from conceal_jax import RenderOptions, render
-from conceal_jax.conceal import augment, decoder_pair, key as key_lib, objective, reveal, step as step_lib, unet
-from conceal_jax.conceal import views as views_lib
+from conceal_jax.conceal import augment, carrier, decoder_pair, key as key_lib, objective, reveal, step as step_lib
+from conceal_jax.conceal import unet, views as views_lib
 from conceal_jax.conceal.augment import Augmentation
 from conceal_jax.conceal.settings import ConcealSettings
 from conceal_jax.configs import default
@@ -183,6 +183,23 @@ def test_gradients_are_the_pre_redesign_steps(row):
     for i, (a, b) in enumerate(zip(got, want)):
       assert np.all(np.isfinite(a)), name
       np.testing.assert_allclose(sketch(a, i), b, rtol=2e-4, atol=1e-6 * float(b[0]) + 1e-12, err_msg=name)
+
+
+def test_the_gradient_of_the_trained_colours_alone_is_the_whole_gradients():
+  """With colour_rows, the student's gradient is taken with respect to those rows' base colours only: the same
+  values as those entries of the gradient with respect to the whole student, and the same decoder gradients."""
+  student, decoder, data = objective_inputs()
+  s = golden_settings("ours")
+  views = views_lib.step_views(data, 1, 2, 0, None, s)
+  rows = carrier.colour_rows(40, 20)
+  run = jax.jit(lambda st, d, v, r: step_lib.gradients(st, d, v, s, OPTIONS, colour_rows=r))
+  (whole, whole_terms), (part, part_terms) = run(student, decoder, views, None), run(student, decoder, views, rows)
+  assert part["student"].shape == (20, 3) and np.any(np.asarray(part["student"]) != 0)
+  np.testing.assert_allclose(part["student"], whole["student"].sh[40:, 0], rtol=1e-6, atol=1e-12)
+  for name in ("plus", "minus"):
+    close = lambda a, b: np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-5 * float(np.max(np.abs(b))))
+    jax.tree.map(close, part[name], whole[name])  # the same sums, up to float order (cancelling entries)
+  np.testing.assert_allclose(part_terms.student, whole_terms.student, rtol=1e-6)
 
 
 @pytest.mark.parametrize("row", ["ours", pytest.param("released", marks=pytest.mark.slow),

@@ -121,21 +121,18 @@ def unseen_film(teacher: Gaussians, key: Camera, cameras: Sequence[Camera], opti
                    "key); the key does not look where the scene's cameras do not")
 
 
-def trainable_fields(num_teacher: int, carrier: Gaussians) -> Gaussians:
-  """A 0/1 mask shaped like the student teacher + carrier: 1 on the carrier's base colours (SH DC) only. Its SH
+def colour_rows(num_teacher: int, num_film: int) -> jax.Array:
+  """int32 [num_film] the student rows (teacher + film) whose base colours (SH DC) alone train: the film's. Its SH
   bands above DC stay zero (publishing formats drop or coarsen those bands: splat-transform's SH cut, .spz) and
   its opacities stay as placed (3D-GS's opacity reset sets them all alike, which a colour pattern outlives, dimmed):
   a mark in either would go with them."""
-  def mask(field, trained):
-    rows = jnp.concatenate([jnp.zeros((num_teacher,), field.dtype), jnp.full((carrier.num,), 1.0, field.dtype)])
-    rows = rows.reshape((-1,) + (1,) * (field.ndim - 1))
-    return jnp.broadcast_to(rows * jnp.asarray(trained, field.dtype), (num_teacher + carrier.num,) + field.shape[1:])
+  return jnp.arange(num_teacher, num_teacher + num_film, dtype=jnp.int32)
 
-  dc_only = np.zeros(carrier.sh.shape[1:])
-  dc_only[0] = 1.0
-  return Gaussians(means=mask(carrier.means, 0.0), log_scales=mask(carrier.log_scales, 0.0),
-                   quats=mask(carrier.quats, 0.0), opacity_logits=mask(carrier.opacity_logits, 0.0),
-                   sh=mask(carrier.sh, dc_only))
+
+def with_colours(student: Gaussians, rows: jax.Array, dc: jax.Array) -> Gaussians:
+  """student with the base colours of `rows` [F] set to dc [F, 3] (a gradient with respect to dc is the one
+  with respect to those colours alone)."""
+  return student.replace(sh=student.sh.at[rows, 0].set(dc))
 
 
 def tied_rows(num_teacher: int, film_num: int, stack: int) -> jax.Array:
@@ -154,9 +151,7 @@ def tie(grads: Gaussians, stacks: jax.Array) -> Gaussians:
   return jax.tree.map(mean, grads)
 
 
-def bound_colours(student: Gaussians, trainable: Gaussians, bound: float) -> Gaussians:
-  """student with the base colours (SH DC) of its trainable rows (`trainable_fields`' mask) clipped to [-bound,
-  bound]: the projection after each update that keeps the film's colours inside what a format stores."""
-  dc = student.sh[:, 0]
-  bounded = jnp.where(trainable.sh[:, 0] > 0, jnp.clip(dc, -bound, bound), dc)
-  return student.replace(sh=student.sh.at[:, 0].set(bounded))
+def bound_colours(student: Gaussians, rows: jax.Array, bound: float) -> Gaussians:
+  """student with the base colours (SH DC) of `rows` [F] (`colour_rows`) clipped to [-bound, bound]: the
+  projection after each update that keeps the film's colours inside what a format stores."""
+  return with_colours(student, rows, jnp.clip(student.sh[rows, 0], -bound, bound))

@@ -5,7 +5,7 @@ merges the pairs whose merge changes the scene least into one Gaussian that keep
 surface area) and their first two moments, its colour their mass-weighted mean (a moment-matching merge). A film of
 many faint splats side by side merges first and loses the detail between the two splats of each pair.
 
-The film's geometry is fixed during concealment (carrier.trainable_fields), so its groups and what each group merges
+The film's geometry is fixed during concealment (carrier.colour_rows), so its groups and what each group merges
 into are computed on the host (`film_merges`: each splat paired with a near neighbour, round after round; or
 grouping.converter_merges: the converter's own groups of 2 to 4, recomputed as the colours train): the merged
 Gaussian's mean, scales, rotation and opacity (`moment_matched`). Only the colours train, and a merged colour is a

@@ -41,25 +41,31 @@ def create_state(student, decoder, student_tx, decoder_tx) -> ConcealState:
 
 
 def gradients(student, decoder, views: objective.View, settings: ConcealSettings, options: RenderOptions, mesh=None,
-              train_student: bool = True, merges=None):
+              train_student: bool = True, merges=None, colour_rows=None):
   """({'student': ..., 'plus': ..., 'minus': ...} gradients summed over the stacked views [B], their Terms [B]).
-  'student' is the gradient of every term with respect to the student (None without `train_student`: then
-  the renders are not differentiated); 'plus' and 'minus' the decoder's gradients of lambda+ L_d^+ and of
-  lambda- L_d^-. `merges`: the film pairs a decimation merges (views.ConcealData). A view's two decoder reads run
-  as one batch (decoder_pair.py: exact here, where both decoder arguments are `decoder`)."""
+  'student' is the gradient of every term with respect to the student, or where `colour_rows` [F] name the rows
+  whose base colours alone train (views.ConcealData), with respect to those colours [F, 3] (the rest of the
+  student is then a constant, and nothing else is differentiated); None without `train_student` (the renders
+  are not differentiated). 'plus' and 'minus' are the decoder's gradients of lambda+ L_d^+ and of lambda- L_d^-.
+  `merges`: the film pairs a decimation merges (views.ConcealData). A view's two decoder reads run as one batch
+  (decoder_pair.py: exact here, where both decoder arguments are `decoder`)."""
   argnums = (0, 1, 2) if train_student else (1, 2)
 
   def per_view(shared, view):
+    whole, decoder, merges, rows = shared
+    place = (lambda student: student) if rows is None else (lambda dc: carrier.with_colours(whole, rows, dc))
+
     def loss(student, decoder_plus, decoder_minus):
-      terms = objective.view_terms(student, decoder_plus, decoder_minus, view, settings, options, shared[2],
+      terms = objective.view_terms(place(student), decoder_plus, decoder_minus, view, settings, options, merges,
                                    read_pair=decoder_pair.batched_l1_of_decoded_pair)
       return terms.student + terms.plus + terms.minus, terms
 
-    grads, terms = jax.grad(loss, argnums, has_aux=True)(shared[0], shared[1], shared[1])
+    trained = whole if rows is None else whole.sh[rows, 0]
+    grads, terms = jax.grad(loss, argnums, has_aux=True)(trained, decoder, decoder)
     named = dict(zip(("student", "plus", "minus")[3 - len(argnums):], grads))
     return named, terms.replace(overflowed=terms.overflowed.astype(jnp.int32))
 
-  grads, terms = parallel.map_reduce_over_batch(per_view, (student, decoder, merges), views, mesh)
+  grads, terms = parallel.map_reduce_over_batch(per_view, (student, decoder, merges, colour_rows), views, mesh)
   return dict(grads, student=grads.get("student")), terms
 
 
@@ -81,18 +87,20 @@ def make_step(settings: ConcealSettings, options: RenderOptions, student_tx, dec
 
   def step(state: ConcealState, data: ConcealData, view, normal_view, key_number=0, distortion=None):
     views = step_views(data, view, normal_view, key_number, distortion, s)
-    grads, terms = gradients(state.student, state.decoder, views, s, options, mesh, train_student, data.merges)
+    grads, terms = gradients(state.student, state.decoder, views, s, options, mesh, train_student, data.merges,
+                             data.colour_rows)
     new = state.replace(step=state.step + 1)
     if train_student:
       student_grads = grads["student"]
-      if data.trainable is not None:  # what is not trained gets a zero gradient, so Adam leaves it exactly
-        student_grads = jax.tree.map(jnp.multiply, student_grads, data.trainable)
+      if data.colour_rows is not None:  # what is not trained gets a zero gradient, so Adam leaves it exactly
+        zeros = jax.tree.map(jnp.zeros_like, state.student)
+        student_grads = carrier.with_colours(zeros, data.colour_rows, student_grads)
       if data.ties is not None:  # a film's stacks take one gradient, so they keep one colour
         student_grads = carrier.tie(student_grads, data.ties)
       updates, student_opt = student_tx.update(student_grads, state.student_opt, state.student)
       student = optax.apply_updates(state.student, updates)
       if s.film_dc_bound > 0:
-        student = carrier.bound_colours(student, data.trainable, s.film_dc_bound)
+        student = carrier.bound_colours(student, data.colour_rows, s.film_dc_bound)
       new = new.replace(student=student, student_opt=student_opt)
     stats = dict(loss=jnp.sum(terms.student + terms.plus + terms.minus), normal=terms.student[0],
                  plus=terms.plus[1] / s.weight_plus, minus=jnp.sum(terms.minus), psnr=terms.psnr[0],

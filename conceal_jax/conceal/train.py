@@ -92,13 +92,13 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
   # the released variant's check-view L1 target: the training image at a training-camera key, else the
   # teacher's render (an orbit pose has no image)
   key_images = ([scene.train_images[info["index"]] for _, info in keys] if plan.key_kind == "train_index" else None)
-  start, trainable, merges, ties = teacher, None, None, None
+  start, colour_rows, merges, ties = teacher, None, None, None
   if plan.film is not None:  # before the first key, unseen from every training and test view
     film = carrier.unseen_film(teacher, keys[0][0], list(scene.train_cameras) + list(scene.test_cameras), options,
                                plan.film.distance * key_lib.camera_distance(scene.train_cameras),
                                carrier.key_spacing(plan.film.spacing, keys[0][0], s.hidden_size),
                                plan.film.opacity, plan.film.layers, plan.film.stack, plan.film.spread)
-    start, trainable = concatenate([teacher, film]), carrier.trainable_fields(teacher.num, film)
+    start, colour_rows = concatenate([teacher, film]), carrier.colour_rows(teacher.num, film.num)
     ties = carrier.tied_rows(teacher.num, film.num, plan.film.stack) if plan.film.stack > 1 else None
     if s.augmentation.merge_fraction > 0:
       merges = grouping.training_merges(start, teacher.num, s.augmentation)
@@ -108,7 +108,7 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
            if plan.film is not None and s.augmentation.param_noise_max == 0 else {})
   data = views_lib.build_data(scene.train_images, teacher, options, list(scene.train_cameras) + decoys,
                               [camera for camera, _ in keys], hiddens, s.hidden_size, s.reading.clip, key_images,
-                              trainable, merges, ties, **reach)
+                              colour_rows, merges, ties, **reach)
   return Run(plan, teacher, start, scene, hiddens, keys, decoys, options, data, message)
 
 

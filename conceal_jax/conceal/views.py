@@ -34,8 +34,8 @@ NO_DISTORTION = dict(blur=np.float32(0.0), noise=np.float32(0.0), seed=np.uint32
 class ConcealData:
   """images [V, H, W, 3]: ground truth of the training views; teacher [V + D, H, W, 3] and teacher_small
   [V + D, S, S, 3]: the teacher's renders of the normal views (training views, then decoys) at the render's
-  and the decoder's size; cameras: Camera [V + D]; keys: Key [K]; trainable: None (the whole student trains)
-  or a 0/1 Gaussians [N] mask of what does (carrier.trainable_fields); merges: None or the rounds of the carrier
+  and the decoder's size; cameras: Camera [V + D]; keys: Key [K]; colour_rows: None (the whole student trains)
+  or int32 [F] the rows whose base colours alone train (carrier.colour_rows); merges: None or the rounds of the carrier
   film's pairs a decimation merges (decimate.film_merges, for conceal.attacks.merge_fraction); ties: None or the
   int32 [S, stack] student rows of each of the film's stacks, each training as one (carrier.tied_rows); rows:
   None (every render reads the whole student) or int32 [V + D + K, M] the student rows the normal views' then the
@@ -46,7 +46,7 @@ class ConcealData:
   teacher_small: jax.Array
   cameras: Camera
   keys: Key
-  trainable: Any = None
+  colour_rows: Any = None
   merges: Any = None
   ties: Any = None
   rows: Any = None
@@ -54,11 +54,11 @@ class ConcealData:
 
 
 def build_data(train_images, teacher, options: RenderOptions, normal_cameras: list[Camera], key_cameras, hiddens,
-               size: int, clip: bool = False, key_images=None, trainable=None, merges=None,
+               size: int, clip: bool = False, key_images=None, colour_rows=None, merges=None,
                ties=None, student=None, film_rows=None) -> ConcealData:
   """The device-resident inputs of the concealment step. `normal_cameras`: the training cameras then the
   decoys; `key_cameras` and `hiddens` [S, S, 3]: one of each per key; `key_images` [H, W, 3] per key: the
-  released variant's check-view targets (None: the teacher's renders there); `trainable`, `merges`, `ties`:
+  released variant's check-view targets (None: the teacher's renders there); `colour_rows`, `merges`, `ties`:
   ConcealData's. The teacher renders at the decoder size are clipped to [0, 1] first with `clip` (reveal.Reading)."""
   teacher_renders = evaluate.render_images(teacher, normal_cameras, options)
   key_stack = camera_lib.stack(list(key_cameras))
@@ -72,7 +72,7 @@ def build_data(train_images, teacher, options: RenderOptions, normal_cameras: li
                                          np.concatenate([fixed, np.zeros(len(key_cameras), bool)])))
   return ConcealData(images=jnp.asarray(np.stack(train_images)), teacher=teacher_renders,
                      teacher_small=reveal.resize_for_decoder(teacher_renders, size, clip),
-                     cameras=camera_lib.stack(list(normal_cameras)), keys=keys, trainable=trainable, merges=merges,
+                     cameras=camera_lib.stack(list(normal_cameras)), keys=keys, colour_rows=colour_rows, merges=merges,
                      ties=ties, rows=rows, fixed=None if fixed is None else jnp.asarray(fixed))
 
 
