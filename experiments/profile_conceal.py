@@ -59,14 +59,15 @@ def step_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
   if run.data.rows is not None:
     datas["_whole_renders"] = run.data.replace(rows=None, fixed=None)
   if run.data.colour_rows is not None:  # the time of a gradient with respect to every parameter (the whole trains)
-    datas["_whole_gradient"] = run.data.replace(colour_rows=None)
+    datas["_whole_gradient"] = run.data.replace(colour_rows=None, ties=None)
   rng = np.random.default_rng(0)
   num_views, num_decoys = run.data.images.shape[0], len(run.decoys)
   normal = [views_lib.draw_normal_view(rng, num_views, num_decoys, settings.decoy_fraction) for _ in range(repeats)]
   runs = {}
   for (name, mesh), (suffix, data) in itertools.product(meshes.items(), datas.items()):
-    step = step_lib.make_step(settings, run.options, student_tx, decoder_tx, mesh)
-    state = step_lib.create_state(*jax.tree.map(jnp.copy, (run.start, decoder)), student_tx, decoder_tx)
+    tx = student_tx(data.colour_rows is not None)
+    step = step_lib.make_step(settings, run.options, tx, decoder_tx, mesh)
+    state = step_lib.create_state(*jax.tree.map(jnp.copy, (run.start, decoder)), tx, decoder_tx, data.colour_rows)
     state, placed = parallel.replicate(state, mesh), parallel.replicate(data, mesh)
     state, _ = step(state, placed, normal[0], normal[-1], 0, distortion)
     runs[name + suffix] = [step, state, placed, []]
@@ -106,12 +107,10 @@ def part_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
                                        repeats=repeats)
   gradients = lambda g, d: step_lib.gradients(g, d, views, s, run.options, merges=run.data.merges, colour_rows=rows)
   grads, _ = jax.jit(gradients)(run.start, decoder)
-  if rows is not None:  # Adam's input as the step makes it
-    grads["student"] = carrier.with_colours(jax.tree.map(jnp.zeros_like, run.start), rows, grads["student"])
   guided = jax.jit(lambda p, m: guidance.guided_decoder_gradient(p, m, 1.0, 1.0, s.granularity))
   times["guidance"] = median_ms(guided, grads["plus"], grads["minus"], repeats=repeats)
-  times["student_adam"] = median_ms(jax.jit(student_tx.update), grads["student"], student_tx.init(run.start),
-                                    run.start, repeats=repeats)
+  tx = student_tx(rows is not None)
+  times["student_adam"] = median_ms(jax.jit(tx.update), grads["student"], tx.init(trained), trained, repeats=repeats)
   times["decoder_adam"] = median_ms(jax.jit(decoder_tx.update), grads["plus"], decoder_tx.init(decoder), decoder,
                                     repeats=repeats)
   return times
@@ -129,7 +128,7 @@ def profile(scene: str, row: str, width: int, teacher: pathlib.Path, repeats: in
   decoder = conceal_train.initial_decoder(config, s)
   # rows trained through distortions draw one each step; a fixed draw times the same work
   distortion = augment.draw(np.random.default_rng(0), s.augmentation) if s.augmentation.draws else None
-  student_tx = settings_lib.student_optimizer(config, run.scene.scene_extent())
+  student_tx = lambda colours: settings_lib.student_optimizer(config, run.scene.scene_extent(), colours)
   decoder_tx = settings_lib.decoder_optimizer(config)
   times = part_ms(run, s, student_tx, decoder_tx, decoder, distortion, repeats)
   times.update(step_ms(run, s, student_tx, decoder_tx, decoder, distortion, repeats))

@@ -202,6 +202,26 @@ def test_the_gradient_of_the_trained_colours_alone_is_the_whole_gradients():
   np.testing.assert_allclose(part_terms.student, whole_terms.student, rtol=1e-6)
 
 
+def test_adam_of_the_colours_alone_moves_them_as_over_the_whole_student():
+  """gaussian_optimizer(colours_only): three updates of base colours [F, 3] bit for bit those of the same rows'
+  DC terms under the whole student's Adam, given no gradient elsewhere (warm-up included)."""
+  student, _, _ = objective_inputs()
+  rows = carrier.colour_rows(40, 20)
+  lr, rng = default.get_config().conceal.lr, np.random.default_rng(3)
+  whole_tx, colour_tx = (optimizer.gaussian_optimizer(lr, 2.0, 100, colours) for colours in (False, True))
+  whole, colours = student, student.sh[rows, 0]
+  whole_state, colour_state = whole_tx.init(whole), colour_tx.init(colours)
+  for _ in range(3):
+    g = jnp.asarray(rng.normal(size=(20, 3)), jnp.float32)
+    full = carrier.with_colours(jax.tree.map(jnp.zeros_like, whole), rows, g)
+    updates, whole_state = jax.jit(whole_tx.update)(full, whole_state, whole)
+    whole = optax.apply_updates(whole, updates)
+    updates, colour_state = jax.jit(colour_tx.update)(g, colour_state, colours)
+    colours = optax.apply_updates(colours, updates)
+  np.testing.assert_array_equal(np.asarray(colours), np.asarray(whole.sh[rows, 0]))
+  assert not np.array_equal(np.asarray(colours), np.asarray(student.sh[rows, 0]))
+
+
 @pytest.mark.parametrize("row", ["ours", pytest.param("released", marks=pytest.mark.slow),
                                  pytest.param("perturbed", marks=pytest.mark.slow)])
 def test_two_guided_steps_are_the_pre_redesign_steps(row):

@@ -135,14 +135,15 @@ def with_colours(student: Gaussians, rows: jax.Array, dc: jax.Array) -> Gaussian
   return student.replace(sh=student.sh.at[rows, 0].set(dc))
 
 
-def tied_rows(num_teacher: int, film_num: int, stack: int) -> jax.Array:
-  """[film_num / stack, stack] int32 student rows of each of the film's stacks: `stack` consecutive rows (`film`)
-  after the teacher's `num_teacher`. The rows of a stack train as one (`tie`)."""
-  return jnp.asarray(num_teacher + np.arange(film_num).reshape(-1, stack), jnp.int32)
+def tied_rows(film_num: int, stack: int) -> jax.Array:
+  """[film_num / stack, stack] int32 the rows of the film's colours (`colour_rows`' order) in each of its stacks:
+  `stack` consecutive splats (`film`). The rows of a stack train as one (`tie`)."""
+  return jnp.asarray(np.arange(film_num).reshape(-1, stack), jnp.int32)
 
 
-def tie(grads: Gaussians, stacks: jax.Array) -> Gaussians:
-  """grads with each stack's rows (`tied_rows`, [S, stack]) replaced by their mean, every other row as it is: rows
+def tie(grads, stacks: jax.Array):
+  """grads (a pytree of [N, ...] rows) with each stack's rows (`tied_rows`, [S, stack]) replaced by their mean, every
+  other row as it is: rows
   that start alike and take the same gradient take the same (elementwise) optimiser update, so a stack keeps one
   colour through training."""
   def mean(g):
@@ -150,8 +151,3 @@ def tie(grads: Gaussians, stacks: jax.Array) -> Gaussians:
     return g.at[stacks].set(jnp.broadcast_to(jnp.mean(stacked, axis=1, keepdims=True), stacked.shape))
   return jax.tree.map(mean, grads)
 
-
-def bound_colours(student: Gaussians, rows: jax.Array, bound: float) -> Gaussians:
-  """student with the base colours (SH DC) of `rows` [F] (`colour_rows`) clipped to [-bound, bound]: the
-  projection after each update that keeps the film's colours inside what a format stores."""
-  return with_colours(student, rows, jnp.clip(student.sh[rows, 0], -bound, bound))

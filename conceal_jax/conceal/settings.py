@@ -245,6 +245,6 @@ def decoder_optimizer(config: ml_collections.ConfigDict) -> optax.GradientTransf
                                  clip_name="conceal.decoder_opt.update_clip")
 
 
-def student_optimizer(config: ml_collections.ConfigDict, extent: float) -> optax.GradientTransformation:
-  """The student's per-field Adam at conceal.lr (the means' rate in units of the scene `extent`)."""
-  return optimizer.gaussian_optimizer(config.conceal.lr, extent, config.conceal.iterations)
+def student_optimizer(config: ml_collections.ConfigDict, extent: float, colours=False) -> optax.GradientTransformation:
+  """The student's Adam at conceal.lr (means in units of the scene `extent`; of base colours alone with `colours`)."""
+  return optimizer.gaussian_optimizer(config.conceal.lr, extent, config.conceal.iterations, colours)

@@ -26,7 +26,8 @@ from conceal_jax.splat.render import RenderOptions
 
 @struct.dataclass
 class ConcealState:
-  """step: int32; student: Gaussians [N]; decoder: U-Net params ({} without a decoder); their optimiser states."""
+  """step: int32; student: Gaussians [N]; decoder: U-Net params ({} without a decoder); their optimiser states (the
+  student's of what trains: the whole student, or the base colours [F, 3] of views.ConcealData.colour_rows)."""
   step: jax.Array
   student: Any
   decoder: Any
@@ -34,10 +35,11 @@ class ConcealState:
   decoder_opt: Any
 
 
-def create_state(student, decoder, student_tx, decoder_tx) -> ConcealState:
-  """The step-0 state."""
+def create_state(student, decoder, student_tx, decoder_tx, colour_rows=None) -> ConcealState:
+  """The step-0 state; with `colour_rows` [F], student_tx optimises their base colours alone."""
+  trained = student if colour_rows is None else student.sh[colour_rows, 0]
   return ConcealState(step=jnp.zeros((), jnp.int32), student=student, decoder=decoder,
-                      student_opt=student_tx.init(student), decoder_opt=decoder_tx.init(decoder))
+                      student_opt=student_tx.init(trained), decoder_opt=decoder_tx.init(decoder))
 
 
 def gradients(student, decoder, views: objective.View, settings: ConcealSettings, options: RenderOptions, mesh=None,
@@ -91,16 +93,15 @@ def make_step(settings: ConcealSettings, options: RenderOptions, student_tx, dec
                              data.colour_rows)
     new = state.replace(step=state.step + 1)
     if train_student:
-      student_grads = grads["student"]
-      if data.colour_rows is not None:  # what is not trained gets a zero gradient, so Adam leaves it exactly
-        zeros = jax.tree.map(jnp.zeros_like, state.student)
-        student_grads = carrier.with_colours(zeros, data.colour_rows, student_grads)
+      rows, student_grads = data.colour_rows, grads["student"]
+      trained = state.student if rows is None else state.student.sh[rows, 0]  # what trains: all, or colours
       if data.ties is not None:  # a film's stacks take one gradient, so they keep one colour
         student_grads = carrier.tie(student_grads, data.ties)
-      updates, student_opt = student_tx.update(student_grads, state.student_opt, state.student)
-      student = optax.apply_updates(state.student, updates)
-      if s.film_dc_bound > 0:
-        student = carrier.bound_colours(student, data.colour_rows, s.film_dc_bound)
+      updates, student_opt = student_tx.update(student_grads, state.student_opt, trained)
+      trained = optax.apply_updates(trained, updates)
+      if s.film_dc_bound > 0 and rows is not None:  # the film's colours inside what a format stores
+        trained = jnp.clip(trained, -s.film_dc_bound, s.film_dc_bound)
+      student = trained if rows is None else carrier.with_colours(state.student, rows, trained)
       new = new.replace(student=student, student_opt=student_opt)
     stats = dict(loss=jnp.sum(terms.student + terms.plus + terms.minus), normal=terms.student[0],
                  plus=terms.plus[1] / s.weight_plus, minus=jnp.sum(terms.minus), psnr=terms.psnr[0],

@@ -99,7 +99,7 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
                                carrier.key_spacing(plan.film.spacing, keys[0][0], s.hidden_size),
                                plan.film.opacity, plan.film.layers, plan.film.stack, plan.film.spread)
     start, colour_rows = concatenate([teacher, film]), carrier.colour_rows(teacher.num, film.num)
-    ties = carrier.tied_rows(teacher.num, film.num, plan.film.stack) if plan.film.stack > 1 else None
+    ties = carrier.tied_rows(film.num, plan.film.stack) if plan.film.stack > 1 else None
     if s.augmentation.merge_fraction > 0:
       merges = grouping.training_merges(start, teacher.num, s.augmentation)
   # with only the film's colours trained, each view renders the rows that reach it (subsets.py); not where
@@ -168,7 +168,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   run = prepare(config, plan)
   mesh = parallel.batch_mesh(2)  # a step renders two views
   data = parallel.replicate(run.data, mesh)
-  student_tx = settings_lib.student_optimizer(config, run.scene.scene_extent())
+  student_tx = settings_lib.student_optimizer(config, run.scene.scene_extent(), run.data.colour_rows is not None)
   decoder_tx = settings_lib.decoder_optimizer(config)
   traces = loop.TraceCounter()
   # GrowingSteps' key is the phase: the joint steps (True), then the decoder polish's
@@ -179,7 +179,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
 
   def fresh(_meta=None):
     student = jax.tree.map(lambda x: jnp.array(x, copy=True), run.start)  # the step donates its buffers
-    return create_state(student, initial_decoder(config, s), student_tx, decoder_tx)
+    return create_state(student, initial_decoder(config, s), student_tx, decoder_tx, run.data.colour_rows)
 
   regroup = grouping.regrouping(run.teacher.num, s.augmentation, c.checkpoint_every)
 

@@ -37,7 +37,7 @@ class ConcealData:
   and the decoder's size; cameras: Camera [V + D]; keys: Key [K]; colour_rows: None (the whole student trains)
   or int32 [F] the rows whose base colours alone train (carrier.colour_rows); merges: None or the rounds of the carrier
   film's pairs a decimation merges (decimate.film_merges, for conceal.attacks.merge_fraction); ties: None or the
-  int32 [S, stack] student rows of each of the film's stacks, each training as one (carrier.tied_rows); rows:
+  int32 [S, stack] rows of colour_rows in each of the film's stacks, each training as one (carrier.tied_rows); rows:
   None (every render reads the whole student) or int32 [V + D + K, M] the student rows the normal views' then the
   keys' renders read (subsets.view_rows), with fixed [V + D] bool: the normal views rendered by no row that trains,
   whose render is the teacher's."""

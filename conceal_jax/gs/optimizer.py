@@ -111,10 +111,12 @@ def linear_warmup(steps: int) -> optax.Schedule:
   return lambda count: jnp.minimum(1.0, (count + 1) / steps)
 
 
-def gaussian_optimizer(lr: ml_collections.ConfigDict, extent: float,
-                       run_steps: int = 0) -> optax.GradientTransformation:
+def gaussian_optimizer(lr: ml_collections.ConfigDict, extent: float, run_steps: int = 0,
+                       colours_only: bool = False) -> optax.GradientTransformation:
   """Adam (b1 0.9, b2 0.999, eps 1e-15) with the 3D-GS learning rates of `lr`, scaled by scene extent;
-  run_steps: the run's length, over which the means decay when lr.means_steps is 0.
+  run_steps: the run's length, over which the means decay when lr.means_steps is 0. With `colours_only`, of base
+  colours alone ([F, 3] SH DC terms, at lr.sh_dc): the same updates of them as over whole `Gaussians` whose
+  other entries have no gradient (Adam is element-wise).
 
   A warmup (not in 3D-GS; `warmup_length`: lr.warmup_steps, or lr.warmup_fraction of run_steps where
   longer) ramps every update linearly from 1/warmup to full size. Fresh
@@ -123,7 +125,8 @@ def gaussian_optimizer(lr: ml_collections.ConfigDict, extent: float,
   first steps of concealment.
   """
   warmup = warmup_length(lr, run_steps)
-  chain = [optax.scale_by_adam(b1=0.9, b2=0.999, eps=ADAM_EPS), scale_by_gaussian_learning_rates(lr, extent, run_steps)]
+  rates = optax.scale(-lr.sh_dc) if colours_only else scale_by_gaussian_learning_rates(lr, extent, run_steps)
+  chain = [optax.scale_by_adam(b1=0.9, b2=0.999, eps=ADAM_EPS), rates]
   if warmup:
     chain.append(optax.scale_by_schedule(linear_warmup(warmup)))
   return optax.chain(*chain)
