@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conceal_jax.conceal import augment, train as conceal_train
+from conceal_jax.conceal import augment, perturb, train as conceal_train
 from conceal_jax.gs import densify
 from conceal_jax.robust import image_attacks, model_attacks
 from conceal_jax.splat.gaussians import Gaussians
@@ -96,14 +96,14 @@ def test_perturb_gaussians_noises_by_the_fields_spread_and_drops_at_the_drawn_ra
   g = _random_gaussians(20_000)
   level, rate = 0.05, 0.3
   drawn = dict(dropout=np.float32(0.0), param_noise=np.float32(level), model_seed=np.uint32(4))
-  noised = augment.perturb_gaussians(g, drawn, MODEL)
-  for name in augment.MODEL_FIELDS:
+  noised = perturb.perturb_gaussians(g, drawn, MODEL)
+  for name in perturb.MODEL_FIELDS:
     x = np.asarray(getattr(g, name), np.float64)
     relative = (np.asarray(getattr(noised, name), np.float64) - x) / (level * x.std(axis=0, keepdims=True))
     assert np.all(np.abs(relative.reshape(len(x), -1).std(axis=0) - 1.0) < 0.03), name
     assert np.all(np.abs(relative.reshape(len(x), -1).mean(axis=0)) < 0.03), name
-  both = augment.perturb_gaussians(g, dict(drawn, dropout=np.float32(rate)), MODEL)
-  dropped = np.asarray(both.opacity_logits) == augment.DROPPED_LOGIT
+  both = perturb.perturb_gaussians(g, dict(drawn, dropout=np.float32(rate)), MODEL)
+  dropped = np.asarray(both.opacity_logits) == perturb.DROPPED_LOGIT
   assert abs(dropped.mean() - rate) < 0.015
   np.testing.assert_array_equal(np.asarray(both.opacity_logits)[~dropped], np.asarray(noised.opacity_logits)[~dropped])
   np.testing.assert_array_equal(np.asarray(both.means), np.asarray(noised.means))
@@ -112,13 +112,13 @@ def test_perturb_gaussians_noises_by_the_fields_spread_and_drops_at_the_drawn_ra
 def test_perturb_gaussians_at_level_zero_is_the_identity_with_finite_gradients():
   g = _random_gaussians(500, seed=1)
   zero = dict(dropout=np.float32(0.0), param_noise=np.float32(0.0), model_seed=np.uint32(9))
-  for a, b in zip(jax.tree.leaves(augment.perturb_gaussians(g, zero, MODEL)), jax.tree.leaves(g)):
+  for a, b in zip(jax.tree.leaves(perturb.perturb_gaussians(g, zero, MODEL)), jax.tree.leaves(g)):
     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
   # the noise's scale is a constant and a dropped Gaussian's opacity gets no gradient
   drawn = dict(zero, dropout=np.float32(0.4), param_noise=np.float32(0.1))
-  loss = lambda gs: sum(jnp.sum(x) for x in jax.tree.leaves(augment.perturb_gaussians(gs, drawn, MODEL)))
+  loss = lambda gs: sum(jnp.sum(x) for x in jax.tree.leaves(perturb.perturb_gaussians(gs, drawn, MODEL)))
   grads = jax.grad(loss)(g)
-  kept = np.asarray(augment.perturb_gaussians(g, drawn, MODEL).opacity_logits) != augment.DROPPED_LOGIT
+  kept = np.asarray(perturb.perturb_gaussians(g, drawn, MODEL).opacity_logits) != perturb.DROPPED_LOGIT
   np.testing.assert_array_equal(np.asarray(grads.opacity_logits), kept.astype(np.float32))
   for name in ("means", "log_scales", "quats", "sh"):
     np.testing.assert_array_equal(np.asarray(getattr(grads, name)), 1.0)
@@ -129,7 +129,7 @@ def test_quantize_8bit_matches_the_formats_bytes_and_passes_gradients_through():
   a floor to 256 levels of [-4, 4) read back at the level's centre): the values land on those grids, the
   other fields stay, the gradient is the identity's; a step that does not quantize leaves the Gaussians."""
   g = _random_gaussians(2000, seed=3)
-  q = augment.quantize_8bit(g)
+  q = perturb.quantize_8bit(g)
   dc = np.asarray(g.sh[:, 0], np.float64)
   byte = np.clip(np.round(255 * (0.15 * dc + 0.5)), 0, 255)
   np.testing.assert_allclose(np.asarray(q.sh[:, 0]), (byte / 255 - 0.5) / 0.15, atol=1e-5)
@@ -138,16 +138,17 @@ def test_quantize_8bit_matches_the_formats_bytes_and_passes_gradients_through():
   rest_byte = np.clip(np.floor(256 * (np.asarray(g.sh[:, 1:], np.float64) + 4) / 8), 0, 255)
   np.testing.assert_allclose(np.asarray(q.sh[:, 1:]), (rest_byte + 0.5) / 256 * 8 - 4, atol=1e-6)
   np.testing.assert_array_equal(np.asarray(q.means), np.asarray(g.means))
-  grads = jax.grad(lambda gs: sum(jnp.sum(x) for x in jax.tree.leaves(augment.quantize_8bit(gs))))(g)
+  grads = jax.grad(lambda gs: sum(jnp.sum(x) for x in jax.tree.leaves(perturb.quantize_8bit(gs))))(g)
   assert all(np.all(np.asarray(x) == 1.0) for x in jax.tree.leaves(grads))
   a = augment.Augmentation(quantize_fraction=0.5)
   draws = [augment.draw(np.random.default_rng(i), a)["quantize"] for i in range(400)]
   assert set(draws) == {0.0, 1.0} and abs(np.mean(draws) - 0.5) < 0.1
   drawn = dict(augment.draw(np.random.default_rng(0), a), quantize=np.float32(0.0))
-  for x, y in zip(jax.tree.leaves(augment.perturb_gaussians(g, drawn, a)), jax.tree.leaves(g)):
+  for x, y in zip(jax.tree.leaves(perturb.perturb_gaussians(g, drawn, a)), jax.tree.leaves(g)):
     np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
   drawn.update(quantize=np.float32(1.0), rounding=np.float32(0.5))
-  for x, y in zip(jax.tree.leaves(augment.perturb_gaussians(g, drawn, a)), jax.tree.leaves(q)):
+  compiled = jax.jit(perturb.quantize_8bit)(g)  # as perturb_gaussians runs it (under lax.cond: compiled)
+  for x, y in zip(jax.tree.leaves(perturb.perturb_gaussians(g, drawn, a)), jax.tree.leaves(compiled)):
     np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
@@ -159,15 +160,15 @@ def test_quantize_8bit_rounds_where_it_is_told_as_the_formats_do():
   g = _random_gaussians(500, seed=4)
   logits = np.asarray(g.opacity_logits, np.float64)
   down = np.clip(np.floor(255 / (1 + np.exp(-logits))), 0.5, 254.5) / 255
-  np.testing.assert_allclose(np.asarray(jax.nn.sigmoid(augment.quantize_8bit(g, 0.0).opacity_logits)), down,
+  np.testing.assert_allclose(np.asarray(jax.nn.sigmoid(perturb.quantize_8bit(g, 0.0).opacity_logits)), down,
                              atol=1e-6)
   faint = g.replace(opacity_logits=jnp.full_like(g.opacity_logits, float(np.log(0.01 / 0.99))))
   opacity = lambda rounding: np.unique(np.asarray(jax.nn.sigmoid(
-      augment.quantize_8bit(faint, rounding).opacity_logits)))
+      perturb.quantize_8bit(faint, rounding).opacity_logits)))
   np.testing.assert_allclose(opacity(0.0), [2 / 255], rtol=1e-5)
   np.testing.assert_allclose(opacity(0.5), [3 / 255], rtol=1e-5)
   bands_of_zeros = g.replace(sh=g.sh.at[:, 1:].set(0.0))
-  rest = lambda rounding: np.unique(np.asarray(augment.quantize_8bit(bands_of_zeros, rounding).sh[:, 1:]))
+  rest = lambda rounding: np.unique(np.asarray(perturb.quantize_8bit(bands_of_zeros, rounding).sh[:, 1:]))
   np.testing.assert_allclose(rest(0.5), [1 / 64], rtol=1e-6)  # .compressed.ply's converter writes this
   np.testing.assert_allclose(rest(0.0), [-1 / 64], rtol=1e-6)
   a = augment.Augmentation(quantize_fraction=0.5)
@@ -200,12 +201,12 @@ def test_an_opacity_reset_caps_every_opacity_where_drawn():
   g = _random_gaussians(500, seed=5)
   a = augment.Augmentation(reset_fraction=0.5)
   drawn = dict(augment.draw(np.random.default_rng(0), a), reset=np.float32(1.0))
-  reset = augment.perturb_gaussians(g, drawn, a)
+  reset = perturb.perturb_gaussians(g, drawn, a)
   opacity, before = (np.asarray(jax.nn.sigmoid(x.opacity_logits), np.float64) for x in (reset, g))
   np.testing.assert_allclose(opacity, np.minimum(before, densify.RESET_CEILING), rtol=1e-5)
   np.testing.assert_array_equal(np.asarray(reset.sh), np.asarray(g.sh))
   drawn["reset"] = np.float32(0.0)
-  for x, y in zip(jax.tree.leaves(augment.perturb_gaussians(g, drawn, a)), jax.tree.leaves(g)):
+  for x, y in zip(jax.tree.leaves(perturb.perturb_gaussians(g, drawn, a)), jax.tree.leaves(g)):
     np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
@@ -223,11 +224,11 @@ def test_size_pruning_drops_what_the_prune_attack_removes(share):
   drawn = dict(dropout=np.float32(0.0), param_noise=np.float32(0.0), model_seed=np.uint32(0),
                prune_small=np.float32(share))
   model = Augmentation(prune_small_max=0.6)
-  out = augment.perturb_gaussians(g, drawn, model)
-  kept = np.asarray(out.opacity_logits) != augment.DROPPED_LOGIT
+  out = perturb.perturb_gaussians(g, drawn, model)
+  kept = np.asarray(out.opacity_logits) != perturb.DROPPED_LOGIT
   np.testing.assert_array_equal(kept, expected)
   np.testing.assert_array_equal(np.asarray(out.opacity_logits)[kept], np.asarray(g.opacity_logits)[kept])
-  grads = jax.grad(lambda gs: jnp.sum(augment.perturb_gaussians(gs, drawn, model).opacity_logits))(g)
+  grads = jax.grad(lambda gs: jnp.sum(perturb.perturb_gaussians(gs, drawn, model).opacity_logits))(g)
   np.testing.assert_array_equal(np.asarray(grads.opacity_logits), kept.astype(np.float32))
   assert np.isfinite(np.asarray(grads.log_scales)).all()
 

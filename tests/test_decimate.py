@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conceal_jax.conceal import augment, carrier, decimate
+from conceal_jax.conceal import augment, carrier, decimate, perturb
 from conceal_jax.gs import similarity
 from conceal_jax.splat.camera import Camera
 from tests.test_augment import _random_gaussians
@@ -108,7 +108,7 @@ def test_the_check_render_merges_the_drawn_share_of_the_films_pairs():
   a = augment.Augmentation(merge_fraction=0.5)
   shares = np.array([augment.draw(np.random.default_rng(i), a)["merge"] for i in range(400)])
   assert abs(np.mean(shares > 0) - 0.5) < 0.1 and shares.max() < 1.0
-  dropped = lambda share: np.sum(np.asarray(augment.perturb_gaussians(
+  dropped = lambda share: np.sum(np.asarray(perturb.perturb_gaussians(
       film, dict(augment.draw(np.random.default_rng(0), a), merge=np.float32(share), model_seed=np.uint32(3)), a,
       merges).opacity_logits) == decimate.DROPPED_LOGIT)
   assert dropped(1.0) == film.num // 2 and dropped(0.0) == 0 and 0 < dropped(0.5) < film.num // 2

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conceal_jax.conceal import augment, carrier, grouping, key as key_lib, near, objective, subsets
+from conceal_jax.conceal import augment, carrier, grouping, key as key_lib, near, objective, perturb, subsets
 from conceal_jax.conceal.views import NO_DISTORTION
 from conceal_jax.gs import init
 from conceal_jax.splat.camera import Camera, look_at
@@ -63,8 +63,8 @@ def test_the_rows_that_reach_a_view_render_it_and_its_gradient_bit_for_bit(scene
   @jax.jit
   def image(dc, distortion, camera, reading):
     moved = student.replace(sh=student.sh.at[offset:, 0].set(dc))
-    perturbed = augment.perturb_gaussians(moved, distortion, ATTACKS, merges)
-    return objective.rendered(perturbed, view(camera, reading), OPTIONS).rgb
+    perturbed = lambda g, rows: perturb.perturb_gaussians(g, distortion, ATTACKS, merges, rows)
+    return objective.rendered(moved, view(camera, reading), OPTIONS, perturbed).rgb  # of its rows alone with them
 
   weights = jax.random.uniform(jax.random.key(1), (32, 32, 3))
   grad = jax.jit(jax.grad(lambda *args: jnp.sum(weights * image(*args))))
@@ -88,3 +88,24 @@ def test_a_fixed_view_is_its_held_image_and_reads_no_row(scene):
   assert int(out.num_pairs) == 0
   gathered = subsets.gather(student, jnp.asarray(rows[0]))
   assert gathered.num == rows.shape[1] and np.all(np.isnan(np.asarray(gathered.means)))
+
+
+@pytest.mark.parametrize("noise", [0.0, 0.2])
+def test_a_perturbed_subset_is_those_rows_of_the_perturbed_student(scene, noise):
+  """perturb_gaussians of `rows` alone: bit for bit those rows of the whole student perturbed (every attack drawn,
+  merges at both levels and none), the rows past the end NaN; with parameter noise too (its spread is over all)."""
+  student, offset, _, key, _ = scene
+  attacks = dataclasses.replace(ATTACKS, param_noise_max=noise)
+  merges = grouping.training_merges(jax.tree.map(np.asarray, student), offset, attacks)
+  rows = jnp.asarray(np.concatenate([np.arange(0, student.num, 3), [student.num] * 5]), jnp.int32)
+  real = np.asarray(rows) < student.num
+  both = jax.jit(lambda d: (perturb.perturb_gaussians(student, d, attacks, merges),
+                            perturb.perturb_gaussians(student, d, attacks, merges, rows)))
+  for seed, level in ((0, 0.0), (1, 1.0), (2, 2.0)):
+    drawn = dict(augment.draw(np.random.default_rng(seed), attacks), merge=np.float32(level), quantize=np.float32(1),
+                 reset=np.float32(seed % 2))
+    whole, part = both(drawn)
+    for field in perturb.MODEL_FIELDS:
+      got, want = np.asarray(getattr(part, field)), np.asarray(getattr(whole, field))[np.asarray(rows)[real]]
+      np.testing.assert_array_equal(got[real], want, err_msg=field)
+    assert np.all(np.isnan(np.asarray(part.means)[~real]))

@@ -5,13 +5,8 @@ JPEG of the check render cost. Each step draws a distortion on the host (`draw`;
 never retraces) within the maxima of conceal.attacks, as watermarking methods train through attack layers:
 - of the image (`distort`): brightness and contrast (`photometric`), a Gaussian blur, normal noise, before the
   decoder reads the render for L_d^+ (eq. 5); identity_distorted shows L_d^- the student's normal render alike;
-- of the scene (`perturb_gaussians`), the model attacks of robust/model_attacks.py: each Gaussian dropped with a
-  drawn probability, every stored parameter moved by relative normal noise (model_attacks.parameter_noise's), a
-  drawn share of the smallest Gaussians dropped (`kept_by_size`, a size pruning); on a share of the steps the base
-  colours and opacities on the 8-bit grids of .spz and the higher SH bands on .compressed.ply's (`quantize_8bit`,
-  rounding at a point drawn anew, since the formats round to the nearest or down; the gradient passes straight
-  through), every opacity at most densify.RESET_CEILING (3D-GS's opacity reset), or the carrier film's
-  neighbouring splats merged as a converter's decimation merges them (decimate.merge_film).
+- of the scene (perturb.py): Gaussians dropped, parameter noise, size pruning, 8-bit colours, opacity resets,
+  the carrier film's splats merged.
 What each distortion gained and cost is in experiments/results/conceal_options.md.
 """
 from __future__ import annotations
@@ -24,25 +19,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from conceal_jax.conceal import decimate
-from conceal_jax.gs import densify
-from conceal_jax.splat.gaussians import opacity_logit
 
 
 # Below this a sigma is a point kernel: exp(-1 / (2 * 1e-3^2)) underflows to 0 off the centre.
 _MIN_SIGMA = 1e-3
 # Kernel half-width in standard deviations (skimage.filters.gaussian's default truncate).
 TRUNCATE = 4.0
-# A dropped Gaussian's opacity logit (the one a merged-away splat gets too).
-DROPPED_LOGIT = decimate.DROPPED_LOGIT
-# .spz's 8-bit base colour: byte = round(255 (0.15 dc + 0.5)), the SH DC term scaled by this before the offset.
-SPZ_COLOR_SCALE = 0.15
-# .compressed.ply's higher SH bands: byte = floor(256 (v + 4) / 8), read back as the centre of its cell of this width.
-REST_CELL = 8.0 / 256.0
 # An Augmentation field f is config key conceal.attacks.<f>; a contrast factor and a dropout probability stay below 1.
 UPPER_BOUNDS = dict(contrast_max=1.0, dropout_max=1.0, quantize_fraction=1.0 + 1e-9, reset_fraction=1.0 + 1e-9,
                     merge_fraction=1.0 + 1e-9, prune_small_max=1.0)
-# Gaussians fields that parameter noise moves: all of them (robust.model_attacks.FIELDS).
-MODEL_FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 
 
 def blur_radius(sigma_max: float) -> int:
@@ -83,13 +68,13 @@ class Augmentation:
   noise_max: float = 0.0        # noise sigma ~ U[0, max]
   brightness_max: float = 0.0   # offset ~ U[-max, max] (`photometric`)
   contrast_max: float = 0.0     # factor ~ 1 + U[-max, max]
-  dropout_max: float = 0.0      # each Gaussian dropped with probability ~ U[0, max] (`perturb_gaussians`)
+  dropout_max: float = 0.0      # each Gaussian dropped with probability ~ U[0, max] (perturb.perturb_gaussians)
   param_noise_max: float = 0.0  # relative parameter noise ~ U[0, max]
   quantize_fraction: float = 0.0  # the share of steps whose check render is of 8-bit colours and opacities
   reset_fraction: float = 0.0  # the share of steps whose check render is of opacities reset to densify.RESET_CEILING
   merge_fraction: float = 0.0  # the share of steps whose check render merges film pairs (decimate.merge_rounds)
   merge_depth: float = 1.0  # the rounds of merges such a render goes up to: its depth ~ U[0, merge_depth]
-  prune_small_max: float = 0.0  # the share ~ U[0, max] of smallest Gaussians dropped (`kept_by_size`)
+  prune_small_max: float = 0.0  # the share ~ U[0, max] of smallest Gaussians dropped (perturb.kept_by_size)
   merge_groups: str = "nearest"  # 'nearest': merge_depth rounds of near pairs; 'converter': the converter's groups
   merge_keep: tuple = (0.5, 0.8)  # with 'converter': the fractions kept, one drawn per merging step
   regroup_every: int = 500  # with 'converter': the steps between groupings from the trained colours
@@ -120,7 +105,7 @@ class Augmentation:
 
   @property
   def perturbs_model(self) -> bool:
-    """Whether a step renders the check view from a perturbed student (`perturb_gaussians`)."""
+    """Whether a step renders the check view from a perturbed student (perturb.perturb_gaussians)."""
     return max(self.dropout_max, self.param_noise_max, self.quantize_fraction, self.reset_fraction,
                self.merge_fraction, self.prune_small_max) > 0
 
@@ -146,89 +131,13 @@ def distort(image: jax.Array, distortion: dict | None, augmentation: Augmentatio
   return image
 
 
-def quantize_8bit(gaussians, rounding=0.5):
-  """Gaussians with their base colours (SH DC) and opacities on .spz's 8-bit grids (SPZ_COLOR_SCALE; opacity in
-  steps of 1/255), each value taken to the step below value + `rounding` steps (0.5: the nearest, as .spz; 0: the
-  one below; traced), and their higher SH bands on .compressed.ply's 8-bit grid (REST_CELL-wide cells of
-  [-4, 4), each read back at its centre, so a band of zeros comes back at +-REST_CELL / 2: the cell below
-  value + `rounding` - 1/2 cells; 0.5 is the converter's floor); the rounding passed straight through by the
-  gradient."""
-  straight_through = lambda x, rounded: x + jax.lax.stop_gradient(rounded - x)
-  dc = gaussians.sh[:, 0]
-  byte = jnp.clip(jnp.floor(255.0 * (SPZ_COLOR_SCALE * dc + 0.5) + rounding), 0.0, 255.0)
-  dc_8bit = (byte / 255.0 - 0.5) / SPZ_COLOR_SCALE
-  rest = gaussians.sh[:, 1:]
-  cell = jnp.clip(jnp.floor(rest / REST_CELL + rounding - 0.5), -128.0, 127.0)
-  sh_8bit = jnp.concatenate([dc_8bit[:, None], (cell + 0.5) * REST_CELL], axis=1)
-  opacity = jnp.clip(jnp.floor(255.0 * jax.nn.sigmoid(gaussians.opacity_logits) + rounding), 0.5, 254.5) / 255.0
-  return gaussians.replace(sh=straight_through(gaussians.sh, sh_8bit),
-                           opacity_logits=straight_through(gaussians.opacity_logits, opacity_logit(opacity)))
-
-
-def kept_by_size(log_scales: jax.Array, share) -> jax.Array:
-  """[N] bool: False for the floor(share N) of N Gaussians of smallest volume (the sum of their log scales [N, 3],
-  robust.model_attacks.prune_smallest's order, ties to the lower index), as a size pruning leaves them. `share` in
-  [0, 1) may be traced; 0 keeps all."""
-  volume = jax.lax.stop_gradient(jnp.sum(log_scales, -1))
-  n = volume.shape[0]
-  rank = jnp.zeros((n,), jnp.int32).at[jnp.argsort(volume, stable=True)].set(jnp.arange(n, dtype=jnp.int32))
-  return rank >= jnp.floor(share * n).astype(jnp.int32)
-
-
-def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmentation,
-                      merges: tuple[decimate.Merges, ...] | None = None):
-  """Gaussians [N] as the check render sees them: every field of MODEL_FIELDS plus normal noise of
-  distortion["param_noise"] times that field's per-channel standard deviation over the N Gaussians (a constant:
-  the noise's scale is not trained), then each Gaussian dropped (opacity logit DROPPED_LOGIT, no gradient) with
-  probability distortion["dropout"]; drawn from the PRNG seed distortion["model_seed"]; then the share
-  distortion["prune_small"] of smallest Gaussians dropped (`kept_by_size`, by the volumes before the noise).
-  First, where distortion["quantize"] is 1, the 8-bit colours and opacities (`quantize_8bit`, rounding at
-  distortion["rounding"]), and where distortion["reset"] is 1, every opacity at most densify.RESET_CEILING; before
-  all, the film decimated distortion["merge"] rounds deep by the rounds of `merges` (decimate.merge_rounds, from
-  the PRNG seed distortion["model_seed"]; with merge_groups 'converter', decimate.merge_levels' level). A kind whose
-  maximum in `augmentation` is 0 is left out at trace time (without any, the Gaussians themselves, and
-  `distortion` may be None); at level 0 each is the identity, values and gradients."""
-  a = augmentation
-  if not a.perturbs_model:
-    return gaussians
-  model_key = jax.random.key(distortion["model_seed"])
-  if a.merge_fraction > 0:
-    gaussians = decimate.merge_film(gaussians, merges, distortion["merge"], a.merge_groups == "converter",
-                                    jax.random.fold_in(model_key, 2))
-  if a.quantize_fraction > 0:
-    quantized = quantize_8bit(gaussians, distortion["rounding"])
-    gaussians = jax.tree.map(lambda q, x: jnp.where(distortion["quantize"] > 0, q, x), quantized, gaussians)
-  if a.reset_fraction > 0:
-    reset = densify.reset_opacity(gaussians.opacity_logits)
-    gaussians = gaussians.replace(opacity_logits=jnp.where(distortion["reset"] > 0, reset,
-                                                           gaussians.opacity_logits))
-  noise_key, drop_key = jax.random.split(model_key)
-  sized = kept_by_size(gaussians.log_scales, distortion["prune_small"]) if a.prune_small_max > 0 else None
-  if a.param_noise_max > 0:
-    keys = dict(zip(MODEL_FIELDS, jax.random.split(noise_key, len(MODEL_FIELDS))))
-    level = distortion["param_noise"]
-
-    def noisy(name):
-      x = getattr(gaussians, name)
-      spread = jax.lax.stop_gradient(jnp.std(x, axis=0, keepdims=True))
-      return x + level * spread * jax.random.normal(keys[name], x.shape, x.dtype)
-
-    gaussians = gaussians.replace(**{name: noisy(name) for name in MODEL_FIELDS})
-  if a.dropout_max > 0:
-    keep = jax.random.uniform(drop_key, gaussians.opacity_logits.shape) >= distortion["dropout"]
-    gaussians = gaussians.replace(opacity_logits=jnp.where(keep, gaussians.opacity_logits, DROPPED_LOGIT))
-  if sized is not None:
-    gaussians = gaussians.replace(opacity_logits=jnp.where(sized, gaussians.opacity_logits, DROPPED_LOGIT))
-  return gaussians
-
-
 def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   """One step's distortion within `augmentation`'s maxima: blur sigma ~ U[0, blur_max], noise sigma ~ U[0, noise_max],
-  a noise seed; of the model (`perturb_gaussians`) a dropout probability ~ U[0, dropout_max], a relative parameter
+  a noise seed; of the model (perturb.perturb_gaussians) a dropout probability ~ U[0, dropout_max], a relative parameter
   noise ~ U[0, param_noise_max] and their seed; brightness ~ U[-brightness_max, brightness_max] and contrast ~ 1 +
   U[-contrast_max, contrast_max]; whether the step quantizes (1 with probability quantize_fraction) and resets the
   opacities (1 with probability reset_fraction); with quantize_fraction, the point its grids round at ~ U[0, 1)
-  (`quantize_8bit`); the depth of the film's merges (~ U[0, merge_depth] with probability merge_fraction, else 0:
+  (perturb.quantize_8bit); the depth of the film's merges (~ U[0, merge_depth] with probability merge_fraction, else 0:
   decimate.merge_rounds; with merge_groups 'converter' the number of one of merge_keep's levels); the share of
   smallest Gaussians dropped ~ U[0, prune_small_max]. Later kinds are drawn after earlier ones, so a run without
   them sees the distortions it always did."""

@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from conceal_jax.conceal import augment, reveal, subsets
+from conceal_jax.conceal import augment, perturb, reveal, subsets
 from conceal_jax.conceal.settings import ConcealSettings
 from conceal_jax.gs import losses, metrics
 from conceal_jax.splat.camera import Camera
@@ -97,14 +97,15 @@ def l1_of_decoded_pair(decoders, images: jax.Array, targets: jax.Array, settings
 def view_terms(student, decoder_plus, decoder_minus, view: View, settings: ConcealSettings,
                options: RenderOptions, merges=None, read_pair=l1_of_decoded_pair) -> Terms:
   """The terms of one view: the student rendered through view.model (with `merges`, the film pairs a decimation
-  merges: augment.perturb_gaussians) and its pixel loss; the render read by F
+  merges: perturb.perturb_gaussians) and its pixel loss; the render read by F
   at the decoder size (through view.image), once: against I where the view carries L_d^+ (lambda+ L_d^+,
   eq. 5, through the render, F as `decoder_plus`), else against itself as a constant (its L_d^- share, eq. 4,
   F as `decoder_minus`); and the teacher render against itself (its L_d^- share). A view carries L_d^+ or
   holds F to the identity on its own render, never both (views.step_views). `read_pair` computes the two reads
   (l1_of_decoded_pair, or decoder_pair.py's batch of two)."""
   s = settings
-  out = rendered(augment.perturb_gaussians(student, view.model, s.augmentation, merges), view, options)
+  out = rendered(student, view, options,
+                 lambda g, rows: perturb.perturb_gaussians(g, view.model, s.augmentation, merges, rows))
   seen = decoder_view(augment.distort(out.rgb, view.image, s.augmentation), s)
   reads_hidden = view.plus_weight > 0
   own_decoder = jax.tree.map(lambda p, m: jnp.where(reads_hidden, p, m), decoder_plus, decoder_minus)
@@ -118,14 +119,15 @@ def view_terms(student, decoder_plus, decoder_minus, view: View, settings: Conce
                overflowed=out.overflowed)
 
 
-def rendered(gaussians, view: View, options: RenderOptions) -> RenderOutput:
-  """The view's render of `gaussians` (its rgb and pair counts): of its rows alone where it has them (the same
-  image: subsets.py), and where it is fixed its fixed image, not rendered (no pairs)."""
+def rendered(gaussians, view: View, options: RenderOptions, perturbed=subsets.rows_of) -> RenderOutput:
+  """The view's render of `gaussians` (its rgb and pair counts), as `perturbed(gaussians, rows)` gives them (the
+  rows [M] it reads, or None: all; default: as they are): of its rows alone where it has them (the same image:
+  subsets.py), and where it is fixed its fixed image, neither perturbed nor rendered (no pairs)."""
   if view.rows is None:
-    return render(gaussians, view.camera, options)
+    return render(perturbed(gaussians, None), view.camera, options)
 
   def draw():
-    out = render(subsets.gather(gaussians, view.rows), view.camera, options)
+    out = render(perturbed(gaussians, view.rows), view.camera, options)
     return out.replace(radii=jnp.zeros((), jnp.int32))  # the subset's, not the student's
 
   held = lambda: jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(draw)).replace(rgb=view.fixed_rgb)

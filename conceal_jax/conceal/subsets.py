@@ -54,3 +54,8 @@ def gather(gaussians: Gaussians, rows: jax.Array) -> Gaussians:
   """Gaussians [M]: the `rows` [M] of `gaussians`; a row past the last is a Gaussian of NaN parameters, which
   the renderer culls (projection.project) and whose gradient is dropped."""
   return jax.tree.map(lambda x: x.at[rows].get(mode="fill", fill_value=jnp.nan), gaussians)
+
+
+def rows_of(gaussians: Gaussians, rows: jax.Array | None) -> Gaussians:
+  """The Gaussians a render of `rows` ([M], or None: all) reads: `gather`'s, or all of them."""
+  return gaussians if rows is None else gather(gaussians, rows)

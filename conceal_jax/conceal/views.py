@@ -22,7 +22,7 @@ from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.render import RenderOptions, render_batch
 
-# augment.distort and perturb_gaussians with these levels are the identity (a point kernel, zero noise, no
+# augment.distort and perturb.perturb_gaussians with these levels are the identity (a point kernel, zero noise, no
 # dropout, brightness 0, contrast 1): the distortion of a view that is not distorted
 NO_DISTORTION = dict(blur=np.float32(0.0), noise=np.float32(0.0), seed=np.uint32(0), dropout=np.float32(0.0),
                      param_noise=np.float32(0.0), model_seed=np.uint32(0), brightness=np.float32(0.0),
