@@ -123,6 +123,9 @@ RECIPE_NOTES = {
     "converter_mf50": "lego_conceal.py:recommended with the converter's own groups (as converter_3k) merged in half "
                       "the check renders (conceal.attacks.merge_fraction=0.5), for the recipe's 10000 steps "
                       "(workdirs/survive_runs/lego_converter_mf50, 2026-11-28)",
+    "converter_mf50_rot5": "converter_mf50 with its decoys turned 1-5 degrees rather than 1-10 (conceal.leakage."
+                           "decoy_rotation_deg), to hold the decoder to the identity at the 2-degree turns where "
+                           "converter_mf50 leaked (workdirs/survive_runs/lego_converter_mf50_rot5)",
     "nearest_3k": "lego_conceal.py:recommended (merges of near pairs) for 3000 steps beside converter_3k "
                   "(workdirs/survive_runs/lego_nearest_3k, 2026-11-28)",
     "film_deep": "film_long trained through merges up to 1.5 rounds deep (recipes.DEEP_MERGE_DEPTH; demo.py:film_deep)",
