@@ -89,8 +89,8 @@ def part_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
   normal = run.data.images.shape[0] if run.decoys else 0  # a decoy, where the run has them, as most steps draw
   views = views_lib.step_views(run.data, normal, 1, 0, distortion, s)
   rows = run.data.colour_rows  # what the step differentiates: the trained colours where only they train
-  place = (lambda whole, g: g) if rows is None else (lambda whole, dc: carrier.with_colours(whole, rows, dc))
-  trained = run.start if rows is None else run.start.sh[rows, 0]
+  place = lambda whole, g: carrier.with_trained(whole, rows, g)
+  trained = carrier.trained_part(run.start, rows)
   for index, name in enumerate(("normal", "check")):
     view = jax.tree.map(lambda x, i=index: x[i], views)
     for suffix, read in (("", objective.l1_of_decoded_pair), ("_batched", decoder_pair.batched_l1_of_decoded_pair)):

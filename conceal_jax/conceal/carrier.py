@@ -135,6 +135,16 @@ def with_colours(student: Gaussians, rows: jax.Array, dc: jax.Array) -> Gaussian
   return student.replace(sh=student.sh.at[rows, 0].set(dc))
 
 
+def trained_part(student: Gaussians, rows: jax.Array | None):
+  """What of `student` trains: all of it (rows None), or the base colours [F, 3] of `rows` (`colour_rows`)."""
+  return student if rows is None else student.sh[rows, 0]
+
+
+def with_trained(student: Gaussians, rows: jax.Array | None, trained) -> Gaussians:
+  """student with its `trained_part` replaced by `trained`."""
+  return trained if rows is None else with_colours(student, rows, trained)
+
+
 def tied_rows(film_num: int, stack: int) -> jax.Array:
   """[film_num / stack, stack] int32 the rows of the film's colours (`colour_rows`' order) in each of its stacks:
   `stack` consecutive splats (`film`). The rows of a stack train as one (`tie`)."""

@@ -37,9 +37,9 @@ class ConcealState:
 
 def create_state(student, decoder, student_tx, decoder_tx, colour_rows=None) -> ConcealState:
   """The step-0 state; with `colour_rows` [F], student_tx optimises their base colours alone."""
-  trained = student if colour_rows is None else student.sh[colour_rows, 0]
   return ConcealState(step=jnp.zeros((), jnp.int32), student=student, decoder=decoder,
-                      student_opt=student_tx.init(trained), decoder_opt=decoder_tx.init(decoder))
+                      student_opt=student_tx.init(carrier.trained_part(student, colour_rows)),
+                      decoder_opt=decoder_tx.init(decoder))
 
 
 def gradients(student, decoder, views: objective.View, settings: ConcealSettings, options: RenderOptions, mesh=None,
@@ -55,15 +55,14 @@ def gradients(student, decoder, views: objective.View, settings: ConcealSettings
 
   def per_view(shared, view):
     whole, decoder, merges, rows = shared
-    place = (lambda student: student) if rows is None else (lambda dc: carrier.with_colours(whole, rows, dc))
 
-    def loss(student, decoder_plus, decoder_minus):
-      terms = objective.view_terms(place(student), decoder_plus, decoder_minus, view, settings, options, merges,
+    def loss(trained, decoder_plus, decoder_minus):
+      student = carrier.with_trained(whole, rows, trained)
+      terms = objective.view_terms(student, decoder_plus, decoder_minus, view, settings, options, merges,
                                    read_pair=decoder_pair.batched_l1_of_decoded_pair)
       return terms.student + terms.plus + terms.minus, terms
 
-    trained = whole if rows is None else whole.sh[rows, 0]
-    grads, terms = jax.grad(loss, argnums, has_aux=True)(trained, decoder, decoder)
+    grads, terms = jax.grad(loss, argnums, has_aux=True)(carrier.trained_part(whole, rows), decoder, decoder)
     named = dict(zip(("student", "plus", "minus")[3 - len(argnums):], grads))
     return named, terms.replace(overflowed=terms.overflowed.astype(jnp.int32))
 
@@ -94,15 +93,14 @@ def make_step(settings: ConcealSettings, options: RenderOptions, student_tx, dec
     new = state.replace(step=state.step + 1)
     if train_student:
       rows, student_grads = data.colour_rows, grads["student"]
-      trained = state.student if rows is None else state.student.sh[rows, 0]  # what trains: all, or colours
+      trained = carrier.trained_part(state.student, rows)
       if data.ties is not None:  # a film's stacks take one gradient, so they keep one colour
         student_grads = carrier.tie(student_grads, data.ties)
       updates, student_opt = student_tx.update(student_grads, state.student_opt, trained)
       trained = optax.apply_updates(trained, updates)
       if s.film_dc_bound > 0 and rows is not None:  # the film's colours inside what a format stores
         trained = jnp.clip(trained, -s.film_dc_bound, s.film_dc_bound)
-      student = trained if rows is None else carrier.with_colours(state.student, rows, trained)
-      new = new.replace(student=student, student_opt=student_opt)
+      new = new.replace(student=carrier.with_trained(state.student, rows, trained), student_opt=student_opt)
     stats = dict(loss=jnp.sum(terms.student + terms.plus + terms.minus), normal=terms.student[0],
                  plus=terms.plus[1] / s.weight_plus, minus=jnp.sum(terms.minus), psnr=terms.psnr[0],
                  num_pairs=jnp.max(terms.num_pairs))
