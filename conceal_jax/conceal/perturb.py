@@ -85,7 +85,7 @@ def perturb_gaussians(gaussians, distortion: dict | None, augmentation: Augmenta
     gaussians = decimate.merge_film(gaussians, merges, distortion["merge"], a.merge_groups == "converter",
                                     jax.random.fold_in(model_key, 2))
   noise_key, drop_key = jax.random.split(model_key)
-  pick = (lambda x: x) if rows is None else (lambda x: x.at[rows].get(mode="fill", fill_value=True))
+  pick = lambda mask: subsets.rows_of(mask, rows, fill=True)
   kept = (pick(jax.random.uniform(drop_key, gaussians.opacity_logits.shape) >= distortion["dropout"])
           if a.dropout_max > 0 else None)
   sized = pick(kept_by_size(gaussians.log_scales, distortion["prune_small"])) if a.prune_small_max > 0 else None

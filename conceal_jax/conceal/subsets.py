@@ -50,12 +50,12 @@ def view_rows(gaussians: Gaussians, cameras: Sequence[Camera], options: RenderOp
   return padded
 
 
-def gather(gaussians: Gaussians, rows: jax.Array) -> Gaussians:
-  """Gaussians [M]: the `rows` [M] of `gaussians`; a row past the last is a Gaussian of NaN parameters, which
-  the renderer culls (projection.project) and whose gradient is dropped."""
-  return jax.tree.map(lambda x: x.at[rows].get(mode="fill", fill_value=jnp.nan), gaussians)
+def gather(gaussians: Gaussians, rows: jax.Array, fill=jnp.nan) -> Gaussians:
+  """Gaussians [M] (or any pytree of [N, ...] rows): the `rows` [M] of `gaussians`; a row past the last is `fill`,
+  for Gaussians NaN parameters, which the renderer culls (projection.project) and whose gradient is dropped."""
+  return jax.tree.map(lambda x: x.at[rows].get(mode="fill", fill_value=fill), gaussians)
 
 
-def rows_of(gaussians: Gaussians, rows: jax.Array | None) -> Gaussians:
+def rows_of(gaussians: Gaussians, rows: jax.Array | None, fill=jnp.nan) -> Gaussians:
   """The Gaussians a render of `rows` ([M], or None: all) reads: `gather`'s, or all of them."""
-  return gaussians if rows is None else gather(gaussians, rows)
+  return gaussians if rows is None else gather(gaussians, rows, fill)

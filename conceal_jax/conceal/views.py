@@ -55,11 +55,12 @@ class ConcealData:
 
 def build_data(train_images, teacher, options: RenderOptions, normal_cameras: list[Camera], key_cameras, hiddens,
                size: int, clip: bool = False, key_images=None, colour_rows=None, merges=None,
-               ties=None, student=None, film_rows=None) -> ConcealData:
+               ties=None, student=None) -> ConcealData:
   """The device-resident inputs of the concealment step. `normal_cameras`: the training cameras then the
   decoys; `key_cameras` and `hiddens` [S, S, 3]: one of each per key; `key_images` [H, W, 3] per key: the
   released variant's check-view targets (None: the teacher's renders there); `colour_rows`, `merges`, `ties`:
-  ConcealData's. The teacher renders at the decoder size are clipped to [0, 1] first with `clip` (reveal.Reading)."""
+  ConcealData's. The teacher renders at the decoder size are clipped to [0, 1] first with `clip` (reveal.Reading).
+  With `student` (where only colour_rows train), ConcealData's rows and fixed: every render reads colour_rows."""
   teacher_renders = evaluate.render_images(teacher, normal_cameras, options)
   key_stack = camera_lib.stack(list(key_cameras))
   teacher_keys = render_batch(teacher, key_stack, options).rgb
@@ -68,7 +69,8 @@ def build_data(train_images, teacher, options: RenderOptions, normal_cameras: li
   rows = fixed = None
   if student is not None:
     fixed = np.arange(len(normal_cameras)) < len(train_images)
-    rows = jnp.asarray(subsets.view_rows(student, list(normal_cameras) + list(key_cameras), options, film_rows,
+    always = np.isin(np.arange(student.num), np.asarray(colour_rows))  # what trains is read by every render
+    rows = jnp.asarray(subsets.view_rows(student, list(normal_cameras) + list(key_cameras), options, always,
                                          np.concatenate([fixed, np.zeros(len(key_cameras), bool)])))
   return ConcealData(images=jnp.asarray(np.stack(train_images)), teacher=teacher_renders,
                      teacher_small=reveal.resize_for_decoder(teacher_renders, size, clip),
