@@ -110,6 +110,41 @@ def _num_blocks(count, block):
   return (count + block - 1) // block
 
 
+def _block_weights(pixels, means2d, conics, opacities, first, carry_log_t):
+  """A block's compositing weights alpha_i T_i [B, P, L] (0 where a pixel has stopped) with what the forward pass
+  keeps of them: (weights, keep [B, P, L], log(1 - alpha) [B, P, L], log T in front of each segment [B, P], log T
+  running on after the block [P])."""
+  alpha, _ = pair_alpha(pixels, means2d, conics, opacities)
+  log_1m = jnp.log1p(-alpha)
+  cum = running_sum(log_1m)
+  start, carry_log_t = chain_segments(cum[..., -1], first, carry_log_t)
+  seen = start[..., None] + cum
+  # T only decreases, so "not stopped yet" is the prefix where T after this splat stays >= 1e-4. Every
+  # splat before a kept one was kept too, so its transmittance is the seen one: one prefix sum suffices.
+  keep = seen >= LOG_T_MIN
+  weights = jnp.where(keep, alpha * jnp.exp(seen - log_1m), 0.0)
+  return weights, keep, log_1m, start, carry_log_t
+
+
+def pair_weights(means2d, conics, opacities, seg_splats, seg_tiles, seg_first, num_segments,
+                 tile_size: int, grid: tuple[int, int], block: int) -> jax.Array:
+  """The weight alpha_i T_i of every segment's splat at every pixel of its tile, [S, S*S, L] (0 for padding and
+  where a pixel has stopped), as `composite` composites them: its values are sum_i c_i alpha_i T_i. The
+  arguments are `composite`'s but the values."""
+  pixels, origins = _geometry(tile_size, grid, means2d.dtype)
+  padded = tuple(map(_pad, (means2d, conics, opacities, jnp.zeros((means2d.shape[0], 0), means2d.dtype))))
+
+  def body(b, state):
+    out, carry_log_t = state
+    _, _, first, m, con, op, _ = _block_inputs(b, block, seg_splats, seg_tiles, seg_first, origins, *padded)
+    weights, _, _, _, carry_log_t = _block_weights(pixels, m, con, op, first, carry_log_t)
+    return jax.lax.dynamic_update_slice_in_dim(out, weights, b * block, 0), carry_log_t
+
+  out = jnp.zeros(seg_splats.shape[:1] + (tile_size * tile_size, seg_splats.shape[1]), means2d.dtype)
+  carry = jnp.zeros((tile_size * tile_size,), means2d.dtype)
+  return jax.lax.fori_loop(0, _num_blocks(num_segments, block), body, (out, carry))[0]
+
+
 @functools.partial(jax.custom_vjp, nondiff_argnums=(8, 9, 10))
 def composite(means2d, conics, opacities, values, seg_splats, seg_tiles, seg_first, num_segments,
               tile_size: int, grid: tuple[int, int], block: int):
@@ -151,15 +186,7 @@ def _composite_fwd(means2d, conics, opacities, values, seg_splats, seg_tiles, se
     out_values, out_log_t, in_front_log_t, in_front_values, carry_log_t, carry_values = state
     idx, tiles, first, m, con, op, val = _block_inputs(b, block, seg_splats, seg_tiles, seg_first, origins,
                                                        *padded)
-    alpha, _ = pair_alpha(pixels, m, con, op)
-    log_1m = jnp.log1p(-alpha)
-    cum = running_sum(log_1m)
-    start, carry_log_t = chain_segments(cum[..., -1], first, carry_log_t)
-    seen = start[..., None] + cum
-    # T only decreases, so "not stopped yet" is the prefix where T after this splat stays >= 1e-4. Every
-    # splat before a kept one was kept too, so its transmittance is the seen one: one prefix sum suffices.
-    keep = seen >= LOG_T_MIN
-    weights = jnp.where(keep, alpha * jnp.exp(seen - log_1m), 0.0)
+    weights, keep, log_1m, start, carry_log_t = _block_weights(pixels, m, con, op, first, carry_log_t)
     seg_values = jnp.einsum("bpl,blc->bpc", weights, val)
     seg_log_t = jnp.sum(jnp.where(keep, log_1m, 0.0), -1)
     front_values, carry_values = chain_segments(seg_values, first, carry_values)

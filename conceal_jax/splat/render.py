@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+from typing import Any, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -198,30 +199,51 @@ def _render(gaussians: Gaussians, camera: Camera, options: RenderOptions,
   capacity = options.pair_capacity
   if gaussians.num == 0:
     return _background_only(camera, background, options)
-  splats = project(gaussians, camera, degree, options.near, options.antialiased)
-  if means2d_offset is not None:
-    splats = splats.replace(means2d=splats.means2d + jnp.where(splats.radii[:, None] > 0, means2d_offset, 0))
-  ts, length = options.tile_size, options.segment_size
-  grid = binning.tile_grid(camera.width, camera.height, ts)
-  splats = splats.replace(radii=binning.on_tile_radii(splats.means2d, splats.radii, ts, grid))
-  num_tiles = grid[0] * grid[1]
-  pairs = binning.bin_pairs(splats.means2d, splats.cov2d, splats.depths, splats.opacities, splats.radii, ts,
-                            grid, capacity)
-  block, slots = segment_blocks(options, num_tiles)
-  segs, overflow_tiles = segments_lib.segment_layout(pairs, gaussians.num, length, slots, options.max_per_tile)
+  view = tile_layout(gaussians, camera, options, degree, means2d_offset)
+  splats, segs, grid, ts = view.splats, view.segments, view.grid, options.tile_size
   values = splats.colors
   if options.with_depth:
     values = jnp.concatenate([values, splats.depths[:, None]], -1)
   tile_values, log_t = composite.composite(splats.means2d, splats.conics, splats.opacities, values,
-                                           segs.splats, segs.tiles, segs.first, segs.count, ts, grid, block)
+                                           segs.splats, segs.tiles, segs.first, segs.count, ts, grid, view.block)
   t_final = jnp.exp(log_t)
   rgb = tile_values[..., :3] + t_final[..., None] * background
   alpha = 1.0 - t_final
   depth = tile_values[..., 3] / jnp.maximum(alpha, _DEPTH_ALPHA_FLOOR) if options.with_depth else None
-  untile = lambda x: _untile(x, grid, ts, camera) if x is not None else None
+  untile = lambda x: untile_image(x, grid, ts, camera) if x is not None else None
   return RenderOutput(rgb=untile(rgb), alpha=untile(alpha) if options.with_alpha else None,
-                      depth=untile(depth), num_overflow_tiles=overflow_tiles, radii=splats.radii,
-                      num_pairs=pairs.num_pairs, pair_capacity=capacity)
+                      depth=untile(depth), num_overflow_tiles=view.num_overflow_tiles, radii=splats.radii,
+                      num_pairs=view.num_pairs, pair_capacity=capacity)
+
+
+class TileLayout(NamedTuple):
+  """One view's splats cut into the compositor's tile segments: splats (projection.Splats, radii on the tiles),
+  segments (segments.Segments), grid (tiles across, down), block (segments a compositing iteration takes),
+  num_pairs and num_overflow_tiles (int32)."""
+  splats: Any
+  segments: Any
+  grid: tuple[int, int]
+  block: int
+  num_pairs: jax.Array
+  num_overflow_tiles: jax.Array
+
+
+def tile_layout(gaussians: Gaussians, camera: Camera, options: RenderOptions, degree: int,
+                means2d_offset: jax.Array | None = None) -> TileLayout:
+  """Projects `gaussians` (SH up to `degree`) into `camera`, bins the splat-tile pairs into `options`' static
+  pair capacity and cuts each tile's depth-sorted run into segments: everything a view's compositing reads."""
+  splats = project(gaussians, camera, degree, options.near, options.antialiased)
+  if means2d_offset is not None:
+    splats = splats.replace(means2d=splats.means2d + jnp.where(splats.radii[:, None] > 0, means2d_offset, 0))
+  ts = options.tile_size
+  grid = binning.tile_grid(camera.width, camera.height, ts)
+  splats = splats.replace(radii=binning.on_tile_radii(splats.means2d, splats.radii, ts, grid))
+  pairs = binning.bin_pairs(splats.means2d, splats.cov2d, splats.depths, splats.opacities, splats.radii, ts,
+                            grid, options.pair_capacity)
+  block, slots = segment_blocks(options, grid[0] * grid[1])
+  segs, overflow_tiles = segments_lib.segment_layout(pairs, gaussians.num, options.segment_size, slots,
+                                                     options.max_per_tile)
+  return TileLayout(splats, segs, grid, block, pairs.num_pairs, overflow_tiles)
 
 
 def segment_blocks(options: RenderOptions, num_tiles: int) -> tuple[int, int]:
@@ -232,7 +254,7 @@ def segment_blocks(options: RenderOptions, num_tiles: int) -> tuple[int, int]:
   return block, segments_lib.segment_capacity(options.pair_capacity, num_tiles, length, block, options.max_per_tile)
 
 
-def _untile(per_tile: jax.Array, grid: tuple[int, int], tile_size: int, camera: Camera) -> jax.Array:
+def untile_image(per_tile: jax.Array, grid: tuple[int, int], tile_size: int, camera: Camera) -> jax.Array:
   """[T, S*S, ...] per-tile pixels -> [H, W, ...] image, cropping tiles that stick out of the image."""
   tiles_x, tiles_y = grid
   rest = per_tile.shape[2:]
