@@ -126,6 +126,9 @@ RECIPE_NOTES = {
     "converter_mf50_rot5": "converter_mf50 with its decoys turned 1-5 degrees rather than 1-10 (conceal.leakage."
                            "decoy_rotation_deg), to hold the decoder to the identity at the 2-degree turns where "
                            "converter_mf50 leaked (workdirs/survive_runs/lego_converter_mf50_rot5)",
+    "converter_mf35_rot5": "converter_mf50_rot5 with the converter's groups merged in 35% of the check renders "
+                           "(conceal.attacks.merge_fraction=0.35): the near-key reading against decimation "
+                           "(workdirs/survive_runs/lego_converter_mf35_rot5)",
     "nearest_3k": "lego_conceal.py:recommended (merges of near pairs) for 3000 steps beside converter_3k "
                   "(workdirs/survive_runs/lego_nearest_3k, 2026-11-28)",
     "film_deep": "film_long trained through merges up to 1.5 rounds deep (recipes.DEEP_MERGE_DEPTH; demo.py:film_deep)",
