@@ -24,7 +24,7 @@ def opaque_scene(dtype=jnp.float32):
 def test_the_linear_image_is_the_render_on_an_image_of_partial_tiles():
   g, cam = opaque_scene(), make_camera(30, 22)  # 8-pixel tiles stick out of a 30x22 image
   weights = linear.colour_weights(g, cam, OPTIONS)
-  assert weights.num_weights > 0 and np.all(np.asarray(weights.weights) != 0)
+  assert weights.weights.size > 0 and np.all(np.asarray(weights.weights) != 0)
   assert np.all(np.diff(np.asarray(weights.pixels)) >= 0) and int(jnp.max(weights.pixels)) < 30 * 22
   image = linear.linear_image(weights, linear.view_colours(g, cam, 1), jnp.asarray(OPTIONS.background))
   np.testing.assert_allclose(image, render(g, cam, OPTIONS).rgb, atol=2e-6, rtol=0)

@@ -22,7 +22,7 @@ from conceal_jax.splat import binning, composite
 from conceal_jax.splat import sh as sh_lib
 from conceal_jax.splat.camera import Camera, camera_center
 from conceal_jax.splat.gaussians import Gaussians
-from conceal_jax.splat.render import RenderOptions, render, tile_layout
+from conceal_jax.splat.render import RenderOptions, render, tile_layout, untile_image
 
 
 @struct.dataclass
@@ -33,10 +33,6 @@ class ColourWeights:
   rows: jax.Array
   weights: jax.Array
   transmittance: jax.Array
-
-  @property
-  def num_weights(self) -> int:
-    return int(self.weights.shape[0])
 
 
 def colour_weights(gaussians: Gaussians, camera: Camera, options: RenderOptions = RenderOptions()) -> ColourWeights:
@@ -49,19 +45,27 @@ def colour_weights(gaussians: Gaussians, camera: Camera, options: RenderOptions 
     return ColourWeights(nothing, nothing, jnp.zeros((0,), out.alpha.dtype), 1.0 - out.alpha)
   options = dataclasses.replace(options, pair_capacity=out.pair_capacity)
   weights, splats, tiles, count = _segment_weights(gaussians, camera, options)
-  count, ts = int(count), options.tile_size
-  grid = binning.tile_grid(camera.width, camera.height, ts)
-  weights, splats, tiles = (np.asarray(x)[:count] for x in (weights, splats, tiles))
+  weights, splats, tiles = (np.asarray(x)[:int(count)] for x in (weights, splats, tiles))
   seg, pixel, lane = np.nonzero(weights)
-  x = tiles[seg] % grid[0] * ts + pixel % ts
-  y = tiles[seg] // grid[0] * ts + pixel // ts
-  inside = (x < camera.width) & (y < camera.height)
-  flat = (y * camera.width + x)[inside]
+  flat = image_pixels(camera, options.tile_size)[tiles[seg], pixel]
+  inside = flat >= 0
+  flat = flat[inside]
   order = np.argsort(flat, kind="stable")
   pick = lambda a: jnp.asarray(a[inside][order])
   return ColourWeights(pixels=jnp.asarray(flat[order].astype(np.int32)),
                        rows=pick(splats[seg, lane].astype(np.int32)), weights=pick(weights[seg, pixel, lane]),
                        transmittance=1.0 - out.alpha)
+
+
+def image_pixels(camera: Camera, tile_size: int) -> np.ndarray:
+  """[T, S*S] the flat image index y * width + x of every tile pixel, -1 where its tile sticks out of the image:
+  render.untile_image's layout, inverted (host-side)."""
+  grid = binning.tile_grid(camera.width, camera.height, tile_size)
+  num = grid[0] * grid[1] * tile_size * tile_size
+  tile_pixel = np.asarray(untile_image(jnp.arange(num).reshape(-1, tile_size * tile_size), grid, tile_size, camera))
+  index = np.full(num, -1, np.int64)
+  index[tile_pixel.ravel()] = np.arange(tile_pixel.size)
+  return index.reshape(-1, tile_size * tile_size)
 
 
 @functools.partial(jax.jit, static_argnames=("options",))
