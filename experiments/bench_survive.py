@@ -18,6 +18,9 @@ is skipped with a note. Attacks (`level` in brackets):
   (hidden_*) and after re-alignment (`aligned`); `moved`: the same round trip of the student moved by a random
   similarity first (any rotation, translation up to 10 radii, scale in [1/10, 10]), revealed after re-alignment
   (floater filtering, `-F`, is not among them: splat-transform 3.7.0 runs its voxelisation only on a GPU device);
+- decimate_scaled (factor): the student resized by the factor about its centroid (Gaussians shuffled), then
+  decimated to 50% by the converter, revealed after re-alignment: the converter's merges are not scale-free
+  (conceal/grouping.py), so this is how a decimation survives at every size someone may give the scene;
 - finetune, finetune_densify (steps): 3D-GS training continued from the student on the training views with the
   run's own training recipe, without and with densification (snapshots of one run per schedule);
 - extraction (views; `steps` in the row), with --extraction only: renders of the student at its training
@@ -82,6 +85,8 @@ CONVERSIONS = ([("sog", None, dict(fmt="sog")), ("spz", None, dict(fmt="spz")),
                 ("compressed_ply", None, dict(fmt="compressed.ply"))]
                + [("decimate", k, dict(fmt="ply", decimate=k)) for k in (0.8, 0.5)]
                + [("sh_bands", d, dict(fmt="ply", sh_degree=d)) for d in (2, 1, 0)])
+# the factors the student is resized by before a converter's decimation to SCALED_KEEP (decimate_scaled)
+SCALED_FACTORS, SCALED_KEEP = (0.1, 0.15, 0.4, 1.6, 4.0), 0.5
 CONVERTER_TIMEOUT_S = 3600  # per converter call: .sog clusters a lego scene for many minutes on a CPU
 # What each recipe label of the rows is (the survival designs of issue 39 beside the in_scene recipe).
 RECIPE_NOTES = {
@@ -129,6 +134,10 @@ RECIPE_NOTES = {
     "converter_mf35_rot5": "converter_mf50_rot5 with the converter's groups merged in 35% of the check renders "
                            "(conceal.attacks.merge_fraction=0.35): the near-key reading against decimation "
                            "(workdirs/survive_runs/lego_converter_mf35_rot5)",
+    "converter_mf35_rot5_scales": "converter_mf35_rot5 with the converter's groups computed on copies of the student "
+                                  "scaled by 0.1, 0.25, 0.6, 1 and 2.5 (conceal.attacks.merge_scales), regrouped "
+                                  "every 1000 steps: a decimation of the scene at another size "
+                                  "(workdirs/survive_runs/lego_converter_mf35_rot5_scales)",
     "nearest_3k": "lego_conceal.py:recommended (merges of near pairs) for 3000 steps beside converter_3k "
                   "(workdirs/survive_runs/lego_nearest_3k, 2026-11-28)",
     "film_deep": "film_long trained through merges up to 1.5 rounds deep (recipes.DEEP_MERGE_DEPTH; demo.py:film_deep)",
@@ -319,6 +328,31 @@ def converter_rows(scene: Scene, todo) -> list[dict]:
     realigned = aligned(scene, published)
     rows.append(scene.row(attack, level, scores, realigned.pop("test"), aligned=realigned,
                           moved=dict(aligned(scene, moved, applied), similarity=align.similarity_report(applied))))
+    print(json.dumps({k: v for k, v in rows[-1].items() if not isinstance(v, dict)}), flush=True)
+  return rows
+
+
+def scaled_decimation_rows(scene: Scene, factors) -> list[dict]:
+  """decimate_scaled rows: the student resized by each of `factors` (scene_attacks' `scale`), decimated to
+  SCALED_KEEP by the converter, scored re-aligned (hidden_*; `registration` against the resize); a factor the
+  converter fails on is skipped with a note."""
+  rows = []
+  for factor in factors:
+    folder = scene.cache / f"decimate_scaled_{factor:g}"
+    resized, applied = scene_attacks.attack(jax.tree.map(jnp.asarray, scene.student), "scale", factor)
+    try:
+      published = cached_ply(folder / "scene.ply", lambda: converter.round_trip(
+          resized, decimate=SCALED_KEEP, workdir=folder / "work", timeout_s=CONVERTER_TIMEOUT_S))
+    except converter.ConverterError as e:
+      print(f"skipping decimate_scaled {factor:g} of {scene.name} ({scene.recipe}): {e}", flush=True)
+      continue
+    plain = scores_of(scene, robustness.pad_like(published, max(scene.student.num, published.num),
+                                                 scene.student.sh_degree), applied)
+    realigned = aligned(scene, published, applied)
+    registration, test = realigned.pop("registration"), realigned.pop("test")
+    realigned.pop("decided")
+    scores = dict(plain, **realigned, num_gaussians=int(published.num))
+    rows.append(scene.row("decimate_scaled", factor, scores, test, registration=registration))
     print(json.dumps({k: v for k, v in rows[-1].items() if not isinstance(v, dict)}), flush=True)
   return rows
 
@@ -564,7 +598,8 @@ def main(argv=None):
   parser.add_argument("--scenes", default=",".join(SCENES), help=f"comma-separated labels of {sorted(SCENES)}, "
                       "or scene=conceal_workdir[@recipe] (recipe: recommended unless given)")
   parser.add_argument("--attacks", default=",".join(CHEAP_ATTACKS),
-                      help=f"comma-separated groups of {CHEAP_ATTACKS + ('extraction',)}, or round trips of the "
+                      help=f"comma-separated groups of {CHEAP_ATTACKS + ('decimate_scaled', 'extraction')}, or round "
+                           "trips of the "
                            f"converter group by name ({', '.join(sorted({c[0] for c in CONVERSIONS}))})")
   parser.add_argument("--finetune-steps", default="30,100,300,1000", help="fine-tuning lengths (3000, 10000 too)")
   parser.add_argument("--extraction", action="store_true", help="also run model extraction (long)")
@@ -618,6 +653,12 @@ def main(argv=None):
         save(converter_rows(scene, [c for c in conversions if missing(c[0], c[1])]))
       else:
         print("skipping the round trips: splat-transform is not installed (make node_modules)")
+    todo = [f for f in SCALED_FACTORS if missing("decimate_scaled", f)]
+    if "decimate_scaled" in groups and todo:
+      if converter.available():
+        save(scaled_decimation_rows(scene, todo))
+      else:
+        print("skipping decimate_scaled: splat-transform is not installed (make node_modules)")
     for attack in ("finetune", "finetune_densify"):
       todo = [n for n in finetune_steps if missing(attack, n)]
       if attack in groups and todo:

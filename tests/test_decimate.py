@@ -38,7 +38,8 @@ def test_nearest_pairs_is_the_greedy_matching_closest_first():
 @pytest.mark.parametrize("size", [2, 3, 4])
 def test_moment_matched_keeps_the_groups_mass_and_first_two_moments(size):
   """Against float64 sums written out, for pairs and for groups of 3 and 4 padded with -1 (as the converter's
-  groups come): the merged mean and covariance are the mass-weighted mixture's (law of total variance), read back
+  groups come): the merged mean and covariance are the mass-weighted mixture's (law of total variance) plus the
+  converter's regulariser 1e-8 I, read back
   from the merged log-scales and quaternion; the opacity keeps the mass (opacity times the ellipsoid's approximate
   area) where it stays below 1; the weights are each member's share of the mass, 0 for padding."""
   g = _random_gaussians(40, seed=1)
@@ -60,7 +61,7 @@ def test_moment_matched_keeps_the_groups_mass_and_first_two_moments(size):
     w = np.array(mass) / np.sum(mass)
     mean = np.sum(w[:, None] * x.means[group[:size]], axis=0)
     expected = sum(w[m] * (cov[m] + np.outer(x.means[n] - mean, x.means[n] - mean))
-                   for m, n in enumerate(group[:size]))
+                   for m, n in enumerate(group[:size])) + 1e-8 * np.eye(3)
     np.testing.assert_allclose(merged["weights"][k][:size], w, rtol=1e-9)
     assert np.all(merged["weights"][k][size:] == 0)
     np.testing.assert_allclose(merged["means"][k], mean, atol=1e-12)

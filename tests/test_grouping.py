@@ -82,20 +82,48 @@ def test_regrouping_is_due_every_few_steps_at_checkpoints_and_after_a_resume():
     augment.Augmentation(merge_groups="random")
   with pytest.raises(ValueError, match="merge_keep"):
     augment.Augmentation(merge_keep=(0.4,))
+  scales = augment.Augmentation(merge_fraction=1.0, merge_groups="converter", merge_scales=(0.1, 1.0, 10.0))
+  assert scales.merge_levels == 6
+  draws = [augment.draw(np.random.default_rng(i), scales)["merge"] for i in range(300)]
+  assert set(np.unique(draws)) == {1.0, 2.0, 3.0, 4.0, 5.0, 6.0}
+  for bad in ((), (0.0,), (1.0, float("nan")), (float("inf"),)):
+    with pytest.raises(ValueError, match="merge_scales"):
+      augment.Augmentation(merge_scales=bad)
+
+
+def test_a_level_at_another_scale_is_the_scaled_copys_grouping_merged_in_the_scenes_own_frame():
+  """A level at scale s groups as the converter does the scene scaled by s, which differs from its grouping of the
+  scene itself where the splats' variances approach EPS_COV; merged, then scaled by s, it is the scaled copy's own
+  level at scale 1 (positions, sizes, opacities, colours)."""
+  g, factor, rows = scene(), 1e-3, np.arange(300)
+  copy = grouping.scaled(g, factor)
+  assert np.mean(grouping.converter_groups(copy, 0.5) == grouping.converter_groups(g, 0.5)) < 0.5
+  own, at_scale = grouping.converter_merges(g, rows, (0.5,), scales=(1.0, factor))
+  (of_copy,) = grouping.converter_merges(copy, rows, (0.5,))
+  np.testing.assert_array_equal(np.asarray(at_scale.members), np.asarray(of_copy.members))
+  assert not np.array_equal(np.asarray(own.members), np.asarray(at_scale.members))
+  merged = jax.tree.map(np.asarray, decimate.merge_levels(g, (at_scale,), jnp.float32(1.0)))
+  expected = jax.tree.map(np.asarray, decimate.merge_levels(copy, (of_copy,), jnp.float32(1.0)))
+  np.testing.assert_allclose(merged.means * factor, expected.means, rtol=1e-5, atol=1e-9)
+  np.testing.assert_allclose(merged.log_scales + np.log(factor), expected.log_scales, atol=1e-4)
+  for field in ("opacity_logits", "sh"):
+    np.testing.assert_allclose(getattr(merged, field), getattr(expected, field), rtol=1e-5, atol=1e-5)
 
 
 @pytest.mark.skipif(not converter.available(), reason="splat-transform not installed (make node_modules)")
-@pytest.mark.parametrize("keep", [0.5, 0.8])
-def test_merging_a_level_is_the_converters_decimation(tmp_path, keep):
-  """Every Gaussian the converter writes is one the merged scene keeps: same position, base colour and opacity."""
+@pytest.mark.parametrize("keep,factor", [(0.5, 1.0), (0.8, 1.0), (0.5, 1e-3)])
+def test_merging_a_level_is_the_converters_decimation(tmp_path, keep, factor):
+  """Every Gaussian the converter writes is one the merged scene keeps: same position, base colour and opacity;
+  for a level at another scale, of the converter's decimation of the scene scaled by it."""
   g = scene()
-  returned = converter.round_trip(g, decimate=keep, workdir=tmp_path)
-  merges = grouping.converter_merges(g, np.arange(g.num), (keep,))
+  returned = converter.round_trip(grouping.scaled(g, factor), decimate=keep, workdir=tmp_path)
+  merges = grouping.converter_merges(g, np.arange(g.num), (keep,), scales=(factor,))
   out = jax.tree.map(np.asarray, decimate.merge_levels(g, merges, jnp.float32(1.0)))
+  out = out.replace(means=out.means * factor)
   kept = alive(out)
   assert kept.sum() == returned.num
   distance, index = cKDTree(out.means[kept]).query(np.asarray(returned.means))
-  assert np.all(distance < 1e-5) and np.unique(index).size == returned.num
+  assert np.all(distance < 1e-5 * factor) and np.unique(index).size == returned.num
   np.testing.assert_allclose(np.asarray(returned.sh[:, 0]), out.sh[kept][index, 0], atol=1e-4)
   opacity = lambda x: 1 / (1 + np.exp(-np.asarray(x.opacity_logits, np.float64)))
   np.testing.assert_allclose(opacity(returned), opacity(out)[kept][index], atol=1e-5)

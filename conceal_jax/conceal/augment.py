@@ -78,9 +78,10 @@ class Augmentation:
   merge_groups: str = "nearest"  # 'nearest': merge_depth rounds of near pairs; 'converter': the converter's groups
   merge_keep: tuple = (0.5, 0.8)  # with 'converter': the fractions kept, one drawn per merging step
   regroup_every: int = 500  # with 'converter': the steps between groupings from the trained colours
+  merge_scales: tuple = (1.0,)  # with 'converter': the scales of the scene copies its groups are computed on
 
   def __post_init__(self):
-    for f in dataclasses.fields(self)[:-3]:
+    for f in dataclasses.fields(self)[:-4]:
       value, below = getattr(self, f.name), UPPER_BOUNDS.get(f.name, math.inf)
       if not 0 <= value < below:  # NaN fails too
         raise ValueError(f"conceal.attacks.{f.name} must be in [0, {below:g}), got {value}")
@@ -92,6 +93,14 @@ class Augmentation:
       raise ValueError(f"conceal.attacks.merge_groups must be one of {decimate.MERGE_GROUPS}, merge_keep fractions "
                        "in [0.5, 1) (one generation of the converter's decimation) and regroup_every >= 1, got "
                        f"{self.merge_groups!r}, {self.merge_keep}, {self.regroup_every}")
+    if not self.merge_scales or not all(0 < s < math.inf for s in self.merge_scales):
+      raise ValueError(f"conceal.attacks.merge_scales must be positive finite factors, got {self.merge_scales}")
+
+  @property
+  def merge_levels(self) -> int:
+    """With merge_groups 'converter', the levels a merging step draws one of: each fraction of merge_keep at each
+    scale of merge_scales (grouping.converter_merges)."""
+    return len(self.merge_keep) * len(self.merge_scales)
 
   @property
   def merge_rounds(self) -> int:
@@ -138,7 +147,7 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   U[-contrast_max, contrast_max]; whether the step quantizes (1 with probability quantize_fraction) and resets the
   opacities (1 with probability reset_fraction); with quantize_fraction, the point its grids round at ~ U[0, 1)
   (perturb.quantize_8bit); the depth of the film's merges (~ U[0, merge_depth] with probability merge_fraction, else 0:
-  decimate.merge_rounds; with merge_groups 'converter' the number of one of merge_keep's levels); the share of
+  decimate.merge_rounds; with merge_groups 'converter' the number of one of its merge_levels); the share of
   smallest Gaussians dropped ~ U[0, prune_small_max]. Later kinds are drawn after earlier ones, so a run without
   them sees the distortions it always did."""
   a = augmentation
@@ -153,7 +162,7 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   drawn["rounding"] = np.float32(rng.random() if a.quantize_fraction > 0 else 0.5)
   depth = rng.random() if a.merge_fraction > 0 and rng.random() < a.merge_fraction else None
   converter = a.merge_groups == "converter"  # then the number of a level (1-based), each equally likely
-  drawn["merge"] = np.float32(0.0 if depth is None else 1 + math.floor(depth * len(a.merge_keep)) if converter
+  drawn["merge"] = np.float32(0.0 if depth is None else 1 + math.floor(depth * a.merge_levels) if converter
                               else depth * a.merge_depth)
   drawn["prune_small"] = np.float32(rng.uniform(0.0, a.prune_small_max) if a.prune_small_max > 0 else 0.0)
   return drawn

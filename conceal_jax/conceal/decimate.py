@@ -32,6 +32,8 @@ MAX_MERGE_DEPTH = 2.0
 # How a merging check render groups the film: near pairs merge_depth rounds deep, or the converter's groups
 # (grouping.py), one level of conceal.attacks.merge_keep.
 MERGE_GROUPS = ("nearest", "converter")
+# The converter's covariance regulariser, added to every merged covariance (and to the variances its costs read).
+EPS_COV = 1e-8
 # A merged-away splat's opacity logit: sigmoid(-30) ~ 1e-13, nothing the renderer composites.
 DROPPED_LOGIT = -30.0
 
@@ -84,9 +86,10 @@ def nearest_pairs(means: np.ndarray, neighbours: int = NEIGHBOURS) -> np.ndarray
 
 def moment_matched(gaussians: Gaussians, groups: np.ndarray) -> dict[str, np.ndarray]:
   """What each group [P, M] of `gaussians` (rows; -1 pads a group of fewer than M) merges into (float64): the
-  mass-weighted mean, the covariance that keeps the group's second moment (law of total variance) as log_scales and
-  a unit quaternion, the opacity that keeps the group's mass (capped at 1), and `weights` [P, M], each member's
-  share of the mass (0 for padding). splat-transform's n-ary merge (mergeGroup) computes the same."""
+  mass-weighted mean, the covariance that keeps the group's second moment (law of total variance) plus EPS_COV as
+  log_scales and a unit quaternion, the opacity that keeps the group's mass (capped at 1), and `weights` [P, M],
+  each member's share of the mass (0 for padding). splat-transform's n-ary merge (mergeGroup) computes the same:
+  its regulariser makes a merge depend on the scene's scale where variances approach EPS_COV."""
   valid = groups >= 0
   rows = np.where(valid, groups, 0)
   mass = np.where(valid, masses(gaussians)[rows], 0.0)
@@ -98,6 +101,7 @@ def moment_matched(gaussians: Gaussians, groups: np.ndarray) -> dict[str, np.nda
   mean = np.einsum("pm,pmi->pi", weights, means)
   d = means - mean[:, None]
   covariance = np.einsum("pm,pmij->pij", weights, covariances + d[..., :, None] * d[..., None, :])
+  covariance = covariance + EPS_COV * np.eye(3)
   variances, axes = np.linalg.eigh(covariance)
   axes = axes * np.where(np.linalg.det(axes) < 0, -1.0, 1.0)[:, None, None]  # a rotation, not a reflection
   merged_scales = np.sqrt(np.maximum(variances, 1e-18))

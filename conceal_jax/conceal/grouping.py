@@ -25,7 +25,7 @@ NEIGHBOURS, CANDIDATES, COST_BUCKETS, GROUP_CAPS = 16, 4, 1024, (3, 4)
 MAX_GROUP = GROUP_CAPS[-1]
 # The training merges' capacities are multiples of this many groups.
 CAPACITY_STEP = 1024
-EPS_COV = 1e-8  # the converter's covariance regulariser
+EPS_COV = decimate.EPS_COV
 LOG_2PI = np.log(2.0 * np.pi)
 
 
@@ -145,18 +145,32 @@ def group_members(group: np.ndarray, rows: np.ndarray) -> np.ndarray:
   return members
 
 
-def converter_merges(gaussians: Gaussians, rows: np.ndarray, keeps, capacity: int = 0) -> tuple[decimate.Merges, ...]:
-  """One decimate.Merges per kept fraction of `keeps`: the converter's groups (converter_groups) of `gaussians`
-  that hold any of `rows` (the film), every level padded with members past the last Gaussian to the same number of
-  groups: `capacity`, or the next multiple of CAPACITY_STEP above the most any level has, where that is more (a
-  regrouped run keeps its capacity, so its step keeps its shapes)."""
-  edges = candidate_edges(gaussians)
-  levels = [group_members(converter_groups(gaussians, keep, edges), rows) for keep in keeps]
-  most = max(len(members) for members in levels)
+def scaled(gaussians: Gaussians, factor: float) -> Gaussians:
+  """`gaussians` scaled by `factor` about the origin (positions and sizes): the copy a scene's scale is tried on,
+  since the converter's costs are not scale-free (EPS_COV against the splats' variances)."""
+  return gaussians.replace(means=np.asarray(gaussians.means) * factor,
+                           log_scales=np.asarray(gaussians.log_scales) + np.log(factor))
+
+
+def converter_merges(gaussians: Gaussians, rows: np.ndarray, keeps, capacity: int = 0,
+                     scales=(1.0,)) -> tuple[decimate.Merges, ...]:
+  """One decimate.Merges per scale of `scales` and kept fraction of `keeps` (scale-major): the converter's groups
+  (converter_groups) of `gaussians` scaled by that factor (`scaled`: what it merges in a copy someone resized)
+  that hold any of `rows` (the film), merged in that copy as the converter merges them and scaled back to
+  `gaussians`' own frame; every level padded with members past the last Gaussian to the same number of groups:
+  `capacity`, or the next multiple of CAPACITY_STEP above the most any level has, where that is more (a regrouped
+  run keeps its capacity, so its step keeps its shapes)."""
+  levels = []
+  for factor in scales:
+    copy = gaussians if factor == 1.0 else scaled(gaussians, factor)
+    edges = candidate_edges(copy)
+    levels += [(factor, group_members(converter_groups(copy, keep, edges), rows)) for keep in keeps]
+  most = max(len(members) for _, members in levels)
   capacity = max(capacity, -(-most // CAPACITY_STEP) * CAPACITY_STEP)
   merges = []
-  for members in levels:
-    merged = decimate.moment_matched(gaussians, members)
+  for factor, members in levels:
+    merged = decimate.moment_matched(scaled(gaussians, factor), members)
+    merged.update(means=merged["means"] / factor, log_scales=merged["log_scales"] - np.log(factor))
     pad = capacity - len(members)
     merged = {name: np.concatenate([value, np.zeros((pad,) + value.shape[1:])]) for name, value in merged.items()}
     members = np.concatenate([members, -np.ones((pad, MAX_GROUP), np.int64)])
@@ -167,10 +181,12 @@ def converter_merges(gaussians: Gaussians, rows: np.ndarray, keeps, capacity: in
 def training_merges(student: Gaussians, offset: int, augmentation, capacity: int = 0) -> tuple[decimate.Merges, ...]:
   """What a run's merging check renders merge (conceal.attacks.merge_groups, augment.Augmentation
   `augmentation`) of the film, the rows of `student` from `offset` on: the converter's groups at each of merge_keep
-  (`converter_merges`, at least `capacity` groups), or merge_rounds rounds of near pairs (decimate.film_merges)."""
+  and merge_scales (`converter_merges`, at least `capacity` groups), or merge_rounds rounds of near pairs
+  (decimate.film_merges)."""
   student = jax.tree.map(np.asarray, student)
   if augmentation.merge_groups == "converter":
-    return converter_merges(student, np.arange(offset, student.num), augmentation.merge_keep, capacity)
+    return converter_merges(student, np.arange(offset, student.num), augmentation.merge_keep, capacity,
+                            augmentation.merge_scales)
   return decimate.film_merges(jax.tree.map(lambda x: x[offset:], student), offset, augmentation.merge_rounds)
 
 

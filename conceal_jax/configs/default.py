@@ -268,7 +268,8 @@ def conceal_attacks_section() -> ml_collections.ConfigDict:
   carrier film's neighbouring pairs merged as a converter's decimation does, ~ U[0, merge_depth] rounds deep: 1 is
   every pair once, 1.5 half the pairs of what that leaves again, as deep as a converter's 50% goes, and at most 2;
   with merge_groups 'converter' instead the groups splat-transform's decimation merges, to one of the fractions
-  merge_keep, reproduced from the student's geometry and colours every regroup_every steps (conceal/grouping.py);
+  merge_keep, reproduced from the student's geometry and colours every regroup_every steps (conceal/grouping.py), on
+  copies of it scaled by each of merge_scales (the converter groups a resized scene differently);
   with prune_small_max, the share ~ U[0, prune_small_max] of smallest Gaussians dropped, as a size pruning does), so
   that the hidden image
   survives them; identity_distorted: L_d^- reads the student's normal render through the
@@ -287,6 +288,7 @@ def conceal_attacks_section() -> ml_collections.ConfigDict:
   c.merge_groups = "nearest"
   c.merge_keep = (0.5, 0.8)
   c.regroup_every = 500
+  c.merge_scales = (1.0,)
   c.prune_small_max = 0.0
   c.identity_distorted = False
   return c
