@@ -3,6 +3,8 @@
   make profile-conceal                                    # bench-conceal's recommended row, widths 16 and 64
   make profile-conceal BENCH_ARGS="--widths=16 --repeats=9 --row=full"
   python -m experiments.profile_conceal --scene=demo --teacher=workdirs/demo/teacher/point_cloud.ply --widths=16
+  python -m experiments.profile_conceal --widths=16 --set=conceal.attacks.merge_groups=converter \
+      --set=conceal.attacks.merge_fraction=0.35 --name=conceal_step_profile_converter
 
 With the settings of a bench-conceal row, for each decoder width, the median of --repeats (each part jitted on its
 own): one view's terms (objective.view_terms) with their gradient, for the normal view and for the check view, its
@@ -10,12 +12,15 @@ two decoder reads in turn and as the step runs them (batched: decoder_pair.py); 
 forward+backward, one image); the guided combination of the two decoder gradients; the two optimiser updates; and
 the whole step with its two views on one device and split over two (core.parallel), taking turns, and where views
 render from the rows that reach them (conceal/subsets.py) the same from the whole student beside it, and where only
-the film's colours train the same with the gradient taken with respect to every parameter. Writes
-conceal_step_profile.json to --out. Run it on a quiet machine.
+the film's colours train the same with the gradient taken with respect to every parameter, and where the check
+renders are read through linear maps (conceal/linear_check.py) the same rendering them. The whole steps draw their
+distortions as a run does, one per step. --set overrides the row's config (dotted key=value). Writes
+<--name>.json (conceal_step_profile.json) to --out. Run it on a quiet machine.
 """
 from __future__ import annotations
 
 import argparse
+import ast
 import dataclasses
 import itertools
 import os
@@ -32,7 +37,7 @@ from conceal_jax.conceal import guidance, settings as settings_lib, views as vie
 from conceal_jax.configs import demo
 from conceal_jax.core import fileio, parallel
 from conceal_jax.splat import render as render_lib
-from experiments.bench_conceal import ROWS, run_config
+from experiments.bench_conceal import ROWS, run_config, set_dotted
 from experiments.profile_step import median_ms
 
 
@@ -47,9 +52,10 @@ def row_config(scene: str, row: str, width: int, teacher: pathlib.Path):
   return base
 
 
-def step_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats: int, rounds: int = 3) -> dict:
+def step_ms(run, settings, student_tx, decoder_tx, decoder, repeats: int, rounds: int = 3) -> dict:
   """Median ms of the whole jitted step (state donated) with its views on one device and, where there are two,
-  split over two, after one warm-up each; normal views drawn as the run draws them (decoys at its decoy share).
+  split over two, after one warm-up each; normal views and distortions drawn as the run draws them (decoys at its
+  decoy share); where the run reads check renders through linear maps, the same rendering them beside it.
   Where the run renders each view from the rows that reach it (subsets.py), the same with every view rendered
   from the whole student beside it (`_whole_renders`). They take turns, `rounds` times `repeats` steps."""
   meshes = {"conceal_step_1_device": None}
@@ -60,23 +66,28 @@ def step_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
     datas["_whole_renders"] = run.data.replace(rows=None, fixed=None)
   if run.data.colour_rows is not None:  # the time of a gradient with respect to every parameter (the whole trains)
     datas["_whole_gradient"] = run.data.replace(colour_rows=None, ties=None)
+  if run.data.check_weights is not None:
+    datas["_rendered_checks"] = run.data.replace(check_weights=None)
   rng = np.random.default_rng(0)
   num_views, num_decoys = run.data.images.shape[0], len(run.decoys)
   normal = [views_lib.draw_normal_view(rng, num_views, num_decoys, settings.decoy_fraction) for _ in range(repeats)]
+  a = settings.augmentation
+  drawn = [augment.draw(rng, a) if a.draws else None for _ in range(repeats)]
   runs = {}
   for (name, mesh), (suffix, data) in itertools.product(meshes.items(), datas.items()):
     tx = student_tx(data.colour_rows is not None)
     step = step_lib.make_step(settings, run.options, tx, decoder_tx, mesh)
     state = step_lib.create_state(*jax.tree.map(jnp.copy, (run.start, decoder)), tx, decoder_tx, data.colour_rows)
     state, placed = parallel.replicate(state, mesh), parallel.replicate(data, mesh)
-    state, _ = step(state, placed, normal[0], normal[-1], 0, distortion)
+    for i in range(repeats):  # every variant of the draws compiled
+      state, _ = step(state, placed, normal[i], normal[-1 - i], 0, drawn[i])
     runs[name + suffix] = [step, state, placed, []]
   for _ in range(rounds):
     for entry in runs.values():
       step, state, placed, times = entry
       for i in range(repeats):
         start = time.perf_counter()
-        state, stats = step(state, placed, normal[i], normal[-1 - i], 0, distortion)
+        state, stats = step(state, placed, normal[i], normal[-1 - i], 0, drawn[i])
         jax.block_until_ready(stats)
         times.append(time.perf_counter() - start)
       entry[1] = state
@@ -95,7 +106,8 @@ def part_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
     view = jax.tree.map(lambda x, i=index: x[i], views)
     for suffix, read in (("", objective.l1_of_decoded_pair), ("_batched", decoder_pair.batched_l1_of_decoded_pair)):
       def loss(g, d, whole, v=view, read=read):
-        terms = objective.view_terms(place(whole, g), d, d, v, s, run.options, run.data.merges, read_pair=read)
+        terms = objective.view_terms(place(whole, g), d, d, v, s, run.options, run.data.merges, read_pair=read,
+                                     check_weights=run.data.check_weights)
         return terms.student + terms.plus + terms.minus
 
       times[f"{name}_view_terms_fwd_bwd{suffix}"] = median_ms(jax.jit(jax.grad(loss, argnums=(0, 1))), trained,
@@ -105,7 +117,8 @@ def part_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
   times["decoder_fwd"] = median_ms(jax.jit(apply), decoder, image, repeats=repeats)
   times["decoder_fwd_bwd"] = median_ms(jax.jit(jax.grad(lambda d, x: jnp.sum(apply(d, x)))), decoder, image,
                                        repeats=repeats)
-  gradients = lambda g, d: step_lib.gradients(g, d, views, s, run.options, merges=run.data.merges, colour_rows=rows)
+  gradients = lambda g, d: step_lib.gradients(g, d, views, s, run.options, merges=run.data.merges, colour_rows=rows,
+                                              check_weights=run.data.check_weights)
   grads, _ = jax.jit(gradients)(run.start, decoder)
   guided = jax.jit(lambda p, m: guidance.guided_decoder_gradient(p, m, 1.0, 1.0, s.granularity))
   times["guidance"] = median_ms(guided, grads["plus"], grads["minus"], repeats=repeats)
@@ -116,9 +129,12 @@ def part_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
   return times
 
 
-def profile(scene: str, row: str, width: int, teacher: pathlib.Path, repeats: int) -> dict:
-  """One profile row: the parts and the whole step of `row` at decoder `width`."""
+def profile(scene: str, row: str, width: int, teacher: pathlib.Path, repeats: int, overrides=()) -> dict:
+  """One profile row: the parts and the whole step of `row` at decoder `width`, its config changed by
+  `overrides` (dotted key, value)."""
   config = row_config(scene, row, width, teacher)
+  for key, value in overrides:
+    set_dotted(config, key, value)
   plan = settings_lib.plan(config)
   s = plan.settings
   run = conceal_train.prepare(config, plan)
@@ -126,19 +142,19 @@ def profile(scene: str, row: str, width: int, teacher: pathlib.Path, repeats: in
                for camera in (run.keys[0][0], run.scene.train_cameras[0]))
   run.options = render_lib.grow_capacity(run.options, needed)
   decoder = conceal_train.initial_decoder(config, s)
-  # rows trained through distortions draw one each step; a fixed draw times the same work
+  # the parts of a row trained through distortions are timed at one fixed draw
   distortion = augment.draw(np.random.default_rng(0), s.augmentation) if s.augmentation.draws else None
   student_tx = lambda colours: settings_lib.student_optimizer(config, run.scene.scene_extent(), colours)
   decoder_tx = settings_lib.decoder_optimizer(config)
   times = part_ms(run, s, student_tx, decoder_tx, decoder, distortion, repeats)
-  times.update(step_ms(run, s, student_tx, decoder_tx, decoder, distortion, repeats))
+  times.update(step_ms(run, s, student_tx, decoder_tx, decoder, repeats))
   camera = run.scene.train_cameras[0]
   return dict(scene=scene, row=row, decoder_width=width, num_gaussians=int(run.start.num),
               num_carrier=int(run.start.num - run.teacher.num),
               pair_capacity=run.options.pair_capacity, tile_size=run.options.tile_size,
               rows_per_view=None if run.data.rows is None else int(run.data.rows.shape[1]),
               image_size=[camera.width, camera.height], hidden_size=s.hidden_size,
-              settings=dataclasses.asdict(s), repeats=repeats, median_ms=times)
+              settings=dataclasses.asdict(s), overrides=dict(overrides), repeats=repeats, median_ms=times)
 
 
 def main():
@@ -152,19 +168,29 @@ def main():
   parser.add_argument("--row", default="recommended", choices=sorted(ROWS),
                       help="a bench-conceal row's settings")
   parser.add_argument("--host_devices", type=int, default=min(2, os.cpu_count() or 1))
+  parser.add_argument("--set", action="append", default=[], help="dotted.key=value overriding the row's config")
+  parser.add_argument("--name", default="conceal_step_profile", help="the result file's stem")
   args = parser.parse_args()
+  overrides = [(key, literal(value)) for key, _, value in (item.partition("=") for item in args.set)]
   parallel.host_devices_flag(args.host_devices)  # before JAX's backend starts
   teacher = pathlib.Path(args.teacher or pathlib.Path(args.workdir) / args.scene / "teacher" / "point_cloud.ply")
   if not teacher.is_file():
     raise SystemExit(f"no teacher at {teacher}: run make bench-train first, or pass --teacher")
   rows = []
   for width in (int(w) for w in args.widths.split(",") if w):
-    rows.append(profile(args.scene, args.row, width, teacher, args.repeats))
+    rows.append(profile(args.scene, args.row, width, teacher, args.repeats, overrides))
     print(f"decoder width {width}:")
     for name, ms in rows[-1]["median_ms"].items():
       print(f"  {name:34s} {ms:8.1f} ms")
-  fileio.write_json(pathlib.Path(args.out) / "conceal_step_profile.json", dict(device=str(jax.devices()[0]),
-                                                                                rows=rows))
+  fileio.write_json(pathlib.Path(args.out) / f"{args.name}.json", dict(device=str(jax.devices()[0]), rows=rows))
+
+
+def literal(text: str):
+  """A --set value: a Python literal (number, tuple, bool), else the text itself."""
+  try:
+    return ast.literal_eval(text)
+  except (ValueError, SyntaxError):
+    return text
 
 
 if __name__ == "__main__":

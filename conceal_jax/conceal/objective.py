@@ -18,7 +18,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from conceal_jax.conceal import augment, perturb, reveal, subsets
+from conceal_jax.conceal import augment, linear_check, perturb, reveal, subsets
 from conceal_jax.conceal.settings import ConcealSettings
 from conceal_jax.gs import losses, metrics
 from conceal_jax.splat.camera import Camera
@@ -37,7 +37,8 @@ class View:
   L_d^-'s share on this render (the student's normal view with identity_on_student); teacher_small
   [S, S, 3] and teacher_minus_weight: a teacher render at the decoder size and its L_d^- share; rows: None, or
   int32 [M] the student rows its render reads (subsets.py: the same image), and fixed: whether its render is
-  fixed_rgb [H, W, 3] (the teacher's: no row that trains reaches it), not rendered.
+  fixed_rgb [H, W, 3] (the teacher's: no row that trains reaches it), not rendered; linear: None, or int32 the
+  state of the step's linear_check.CheckWeights its render is read through (-1: rendered).
   """
   camera: Camera
   target: jax.Array
@@ -53,6 +54,7 @@ class View:
   rows: jax.Array | None = None
   fixed: jax.Array | None = None
   fixed_rgb: jax.Array | None = None
+  linear: jax.Array | None = None
 
 
 @struct.dataclass
@@ -95,17 +97,17 @@ def l1_of_decoded_pair(decoders, images: jax.Array, targets: jax.Array, settings
 
 
 def view_terms(student, decoder_plus, decoder_minus, view: View, settings: ConcealSettings,
-               options: RenderOptions, merges=None, read_pair=l1_of_decoded_pair) -> Terms:
+               options: RenderOptions, merges=None, read_pair=l1_of_decoded_pair, check_weights=None) -> Terms:
   """The terms of one view: the student rendered through view.model (with `merges`, the film pairs a decimation
-  merges: perturb.perturb_gaussians) and its pixel loss; the render read by F
-  at the decoder size (through view.image), once: against I where the view carries L_d^+ (lambda+ L_d^+,
-  eq. 5, through the render, F as `decoder_plus`), else against itself as a constant (its L_d^- share, eq. 4,
-  F as `decoder_minus`); and the teacher render against itself (its L_d^- share). A view carries L_d^+ or
+  merges: perturb.perturb_gaussians; through `check_weights` where view.linear names a state) and its pixel loss;
+  the render read by F at the decoder size (through view.image), once: against I where the view carries L_d^+
+  (lambda+ L_d^+, eq. 5, through the render, F as `decoder_plus`), else against itself as a constant (its L_d^-
+  share, eq. 4, F as `decoder_minus`); and the teacher render against itself (its L_d^- share). A view carries L_d^+ or
   holds F to the identity on its own render, never both (views.step_views). `read_pair` computes the two reads
   (l1_of_decoded_pair, or decoder_pair.py's batch of two)."""
   s = settings
-  out = rendered(student, view, options,
-                 lambda g, rows: perturb.perturb_gaussians(g, view.model, s.augmentation, merges, rows))
+  perturbed = lambda g, rows: perturb.perturb_gaussians(g, view.model, s.augmentation, merges, rows)
+  out = rendered(student, view, options, perturbed, check_weights)
   seen = decoder_view(augment.distort(out.rgb, view.image, s.augmentation), s)
   reads_hidden = view.plus_weight > 0
   own_decoder = jax.tree.map(lambda p, m: jnp.where(reads_hidden, p, m), decoder_plus, decoder_minus)
@@ -119,10 +121,12 @@ def view_terms(student, decoder_plus, decoder_minus, view: View, settings: Conce
                overflowed=out.overflowed)
 
 
-def rendered(gaussians, view: View, options: RenderOptions, perturbed=subsets.rows_of) -> RenderOutput:
+def rendered(gaussians, view: View, options: RenderOptions, perturbed=subsets.rows_of,
+             check_weights: linear_check.CheckWeights | None = None) -> RenderOutput:
   """The view's render of `gaussians` (its rgb and pair counts), as `perturbed(gaussians, rows)` gives them (the
   rows [M] it reads, or None: all; default: as they are): of its rows alone where it has them (the same image:
-  subsets.py), and where it is fixed its fixed image, neither perturbed nor rendered (no pairs)."""
+  subsets.py); where it is fixed its fixed image, neither perturbed nor rendered (no pairs); where view.linear names
+  a state of `check_weights`, the same image through that linear map (linear_check.linear_render)."""
   if view.rows is None:
     return render(perturbed(gaussians, None), view.camera, options)
 
@@ -130,8 +134,14 @@ def rendered(gaussians, view: View, options: RenderOptions, perturbed=subsets.ro
     out = render(perturbed(gaussians, view.rows), view.camera, options)
     return out.replace(radii=jnp.zeros((), jnp.int32))  # the subset's, not the student's
 
-  held = lambda: jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(draw)).replace(rgb=view.fixed_rgb)
-  return jax.lax.cond(view.fixed, held, draw)
+  like = jax.eval_shape(draw)
+  held = lambda: jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), like).replace(rgb=view.fixed_rgb)
+  if check_weights is None or view.linear is None:
+    return jax.lax.cond(view.fixed, held, draw)
+  state = jnp.maximum(view.linear, 0)
+  through = lambda: linear_check.linear_render(perturbed(gaussians, view.rows), check_weights.at(state),
+                                               check_weights.num_pairs[state], view.camera, options, like)
+  return jax.lax.switch(jnp.where(view.fixed, 1, jnp.where(view.linear >= 0, 2, 0)), (draw, held, through))
 
 
 def l1_of_decoded(decoder, image: jax.Array, target: jax.Array, settings: ConcealSettings) -> jax.Array:

@@ -20,7 +20,8 @@ import ml_collections
 import numpy as np
 
 from conceal_jax.conceal import augment, hidden as hidden_lib, key as key_lib, reveal, scoring, settings as settings_lib
-from conceal_jax.conceal import align, carrier, grouping, message as message_lib, near, unet, views as views_lib
+from conceal_jax.conceal import align, carrier, grouping, linear_check, message as message_lib, near, unet
+from conceal_jax.conceal import views as views_lib
 from conceal_jax.conceal.step import create_state, make_step
 from conceal_jax.core import fileio, loop, parallel
 from conceal_jax.data import ply
@@ -104,7 +105,7 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
       merges = grouping.training_merges(start, teacher.num, s.augmentation)
   # with only the film's colours trained, each view renders the rows that reach it (subsets.py); not where
   # parameter noise moves every Gaussian's geometry
-  reach = (dict(student=start)
+  reach = (dict(student=start, check_states=linear_check.states(s.augmentation))
            if plan.film is not None and s.augmentation.param_noise_max == 0 else {})
   data = views_lib.build_data(scene.train_images, teacher, options, list(scene.train_cameras) + decoys,
                               [camera for camera, _ in keys], hiddens, s.hidden_size, s.reading.clip, key_images,
@@ -185,9 +186,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
 
   def step(state, iteration):
     nonlocal data
-    if regroup is not None and regroup.due(iteration):  # the converter's groups of the film as it is now
-      merges = regroup(jax.device_get(state.student), iteration, data.merges[0].members.shape[0])
-      data = data.replace(merges=parallel.replicate(merges, mesh))
+    if regroup is not None and regroup.due(iteration):
+      data = regrouped(run, data, jax.device_get(state.student), iteration, regroup, mesh)
     rng = np.random.default_rng([config.seed, iteration])
     views = [views_lib.draw_normal_view(rng, num_views, len(run.decoys), s.decoy_fraction) for _ in range(2)]
     distortion = augment.draw(rng, s.augmentation) if s.augmentation.draws else None
@@ -219,6 +219,14 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
     scored = dict(scored, message=message_lib.read_message(np.asarray(revealed), run.message))
     fileio.write_json(os.path.join(workdir, MESSAGE_FILE), scored["message"])
   return dict(summary, metrics=scored)
+
+
+def regrouped(run: Run, data: views_lib.ConcealData, student, iteration: int, regroup: grouping.Regrouping, mesh):
+  """`data` with the converter's groups of the film of `student` (the state before step `iteration`) and the check
+  renders' linear maps through them (views.regrouped), on `mesh`."""
+  merges = regroup(student, iteration, data.merges[0].members.shape[0])
+  states = linear_check.states(run.plan.settings.augmentation)
+  return views_lib.regrouped(data, student, merges, run.options, states, mesh)
 
 
 def score_student(config: ml_collections.ConfigDict, workdir: str, marked: Marking | Run,

@@ -13,10 +13,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from conceal_jax.conceal import key as key_lib, reveal, subsets
+from conceal_jax.conceal import key as key_lib, linear_check, reveal, subsets
 from conceal_jax.conceal.key import Key
 from conceal_jax.conceal.objective import View
 from conceal_jax.conceal.settings import ConcealSettings
+from conceal_jax.core import parallel
 from conceal_jax.gs import evaluate
 from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat.camera import Camera
@@ -40,7 +41,8 @@ class ConcealData:
   int32 [S, stack] rows of colour_rows in each of the film's stacks, each training as one (carrier.tied_rows); rows:
   None (every render reads the whole student) or int32 [V + D + K, M] the student rows the normal views' then the
   keys' renders read (subsets.view_rows), with fixed [V + D] bool: the normal views rendered by no row that trains,
-  whose render is the teacher's."""
+  whose render is the teacher's; check_weights: None or the keys' renders as linear maps of the colours
+  (linear_check.CheckWeights), which the check views that draw no 8-bit grid are read through."""
   images: jax.Array
   teacher: jax.Array
   teacher_small: jax.Array
@@ -51,16 +53,18 @@ class ConcealData:
   ties: Any = None
   rows: Any = None
   fixed: Any = None
+  check_weights: Any = None
 
 
 def build_data(train_images, teacher, options: RenderOptions, normal_cameras: list[Camera], key_cameras, hiddens,
                size: int, clip: bool = False, key_images=None, colour_rows=None, merges=None,
-               ties=None, student=None) -> ConcealData:
+               ties=None, student=None, check_states: int = 0) -> ConcealData:
   """The device-resident inputs of the concealment step. `normal_cameras`: the training cameras then the
   decoys; `key_cameras` and `hiddens` [S, S, 3]: one of each per key; `key_images` [H, W, 3] per key: the
   released variant's check-view targets (None: the teacher's renders there); `colour_rows`, `merges`, `ties`:
   ConcealData's. The teacher renders at the decoder size are clipped to [0, 1] first with `clip` (reveal.Reading).
-  With `student` (where only colour_rows train), ConcealData's rows and fixed: every render reads colour_rows."""
+  With `student` (where only colour_rows train), ConcealData's rows and fixed: every render reads colour_rows; and
+  with `check_states` (linear_check.states, where linear_check.applies) its check_weights."""
   teacher_renders = evaluate.render_images(teacher, normal_cameras, options)
   key_stack = camera_lib.stack(list(key_cameras))
   teacher_keys = render_batch(teacher, key_stack, options).rgb
@@ -72,10 +76,26 @@ def build_data(train_images, teacher, options: RenderOptions, normal_cameras: li
     always = np.isin(np.arange(student.num), np.asarray(colour_rows))  # what trains is read by every render
     rows = jnp.asarray(subsets.view_rows(student, list(normal_cameras) + list(key_cameras), options, always,
                                          np.concatenate([fixed, np.zeros(len(key_cameras), bool)])))
-  return ConcealData(images=jnp.asarray(np.stack(train_images)), teacher=teacher_renders,
+  data = ConcealData(images=jnp.asarray(np.stack(train_images)), teacher=teacher_renders,
                      teacher_small=reveal.resize_for_decoder(teacher_renders, size, clip),
                      cameras=camera_lib.stack(list(normal_cameras)), keys=keys, colour_rows=colour_rows, merges=merges,
                      ties=ties, rows=rows, fixed=None if fixed is None else jnp.asarray(fixed))
+  return regrouped(data, student, merges, options, check_states) if student is not None and check_states else data
+
+
+def regrouped(data: ConcealData, student, merges, options: RenderOptions, check_states: int,
+              mesh=None) -> ConcealData:
+  """`data` with the film's merges `merges` and its check_weights read anew from `student` in `check_states` states
+  (none: kept None), at least as long as the ones it held (a step keeps its shapes while they suffice); both
+  replicated over `mesh` (parallel.replicate)."""
+  if not check_states:
+    return data.replace(merges=parallel.replicate(merges, mesh))
+  num_keys = data.keys.hidden.shape[0]
+  cameras = [data.keys.at(k).camera for k in range(num_keys)]
+  held = 0 if data.check_weights is None else int(data.check_weights.weights.weights.shape[1])
+  weights = linear_check.check_weights(student, cameras, np.asarray(data.rows)[data.teacher.shape[0]:], merges,
+                                       options, check_states, held)
+  return data.replace(merges=parallel.replicate(merges, mesh), check_weights=parallel.replicate(weights, mesh))
 
 
 def identity_weights(settings: ConcealSettings) -> dict:
@@ -110,8 +130,19 @@ def step_views(data: ConcealData, view, normal_view, key_number, distortion, set
                photometric_weight=f32(0.0), model=distortion, image=distortion, hidden=key.hidden,
                plus_weight=f32(s.weight_plus), own_minus_weight=f32(0.0), teacher_small=key.teacher_check,
                teacher_minus_weight=f32(w["teacher_check"]), rows=rows(num_normal + key_number),
-               fixed=None if data.fixed is None else jnp.bool_(False), fixed_rgb=key.check_image)
+               fixed=None if data.fixed is None else jnp.bool_(False), fixed_rgb=key.check_image,
+               linear=None if data.check_weights is None else check_state(data, key_number, distortion))
+  if data.check_weights is not None:
+    normal = normal.replace(linear=jnp.int32(-1))
   return jax.tree.map(lambda a, b: jnp.stack([a, b]), normal, check)
+
+
+def check_state(data: ConcealData, key_number, distortion: dict) -> jax.Array:
+  """int32 the state of data.check_weights the check render of key `key_number` through `distortion` is read
+  through: the key's merged level distortion["merge"] (0: none), or -1 where it draws 8-bit grids (rendered)."""
+  per_key = data.check_weights.num_pairs.shape[0] // data.keys.hidden.shape[0]
+  state = key_number * per_key + jnp.asarray(distortion["merge"]).astype(jnp.int32)
+  return jnp.where(jnp.asarray(distortion["quantize"]) > 0, -1, state).astype(jnp.int32)
 
 
 def draw_normal_view(rng: np.random.Generator, num_views: int, num_decoys: int, decoy_fraction: float) -> int:

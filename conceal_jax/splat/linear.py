@@ -78,6 +78,18 @@ def _segment_weights(gaussians: Gaussians, camera: Camera, options: RenderOption
   return weights, s.splats, s.tiles, s.count
 
 
+def padded(weights: ColourWeights, length: int) -> ColourWeights:
+  """`weights` with zero weights appended to `length` entries (on the last pixel, so pixels stay ascending, and
+  row 0): the same image, in a shape several views' weights share."""
+  pad = length - int(weights.weights.size)
+  if pad < 0:
+    raise ValueError(f"cannot pad {weights.weights.size} weights to {length}")
+  last = weights.transmittance.size - 1
+  extend = lambda x, value: jnp.concatenate([x, jnp.full((pad,), value, x.dtype)])
+  return ColourWeights(pixels=extend(weights.pixels, last), rows=extend(weights.rows, 0),
+                       weights=extend(weights.weights, 0), transmittance=weights.transmittance)
+
+
 def view_colours(gaussians: Gaussians, camera: Camera, degree: int) -> jax.Array:
   """[N, 3] each Gaussian's colour seen from `camera` (SH up to `degree`, clamped at 0 as the renderer does)."""
   return sh_lib.sh_to_rgb(gaussians.sh, gaussians.means, camera_center(camera), degree)
