@@ -138,6 +138,9 @@ RECIPE_NOTES = {
                                   "scaled by 0.1, 0.25, 0.6, 1 and 2.5 (conceal.attacks.merge_scales), regrouped "
                                   "every 1000 steps: a decimation of the scene at another size "
                                   "(workdirs/survive_runs/lego_converter_mf35_rot5_scales)",
+    "converter_mf35_rot5_scales_wm25": "converter_mf35_rot5_scales with L_d^- weighted 2.5 rather than the watched "
+                                       "key's 1.5 (conceal.weight_minus): the near-key reading at 2-degree turns "
+                                       "(workdirs/survive_runs/lego_converter_mf35_rot5_scales_wm25)",
     "nearest_3k": "lego_conceal.py:recommended (merges of near pairs) for 3000 steps beside converter_3k "
                   "(workdirs/survive_runs/lego_nearest_3k, 2026-11-28)",
     "film_deep": "film_long trained through merges up to 1.5 rounds deep (recipes.DEEP_MERGE_DEPTH; demo.py:film_deep)",
