@@ -77,9 +77,9 @@ def build_data(train_images, teacher, options: RenderOptions, normal_cameras: li
     rows = jnp.asarray(subsets.view_rows(student, list(normal_cameras) + list(key_cameras), options, always,
                                          np.concatenate([fixed, np.zeros(len(key_cameras), bool)])))
   data = ConcealData(images=jnp.asarray(np.stack(train_images)), teacher=teacher_renders,
-                     teacher_small=reveal.resize_for_decoder(teacher_renders, size, clip),
-                     cameras=camera_lib.stack(list(normal_cameras)), keys=keys, colour_rows=colour_rows, merges=merges,
-                     ties=ties, rows=rows, fixed=None if fixed is None else jnp.asarray(fixed))
+                   teacher_small=reveal.resize_for_decoder(teacher_renders, size, clip),
+                   cameras=camera_lib.stack(list(normal_cameras)), keys=keys, colour_rows=colour_rows, merges=merges,
+                   ties=ties, rows=rows, fixed=None if fixed is None else jnp.asarray(fixed))
   return regrouped(data, student, merges, options, check_states) if student is not None and check_states else data
 
 
