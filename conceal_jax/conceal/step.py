@@ -50,8 +50,8 @@ def gradients(student, decoder, views: objective.View, settings: ConcealSettings
   student is then a constant, and nothing else is differentiated); None without `train_student` (the renders
   are not differentiated). 'plus' and 'minus' are the decoder's gradients of lambda+ L_d^+ and of lambda- L_d^-.
   `merges`, `check_weights`: the film pairs a decimation merges, the check renders' linear maps (views.ConcealData).
-  A view's two decoder reads run as one batch
-  (decoder_pair.py: exact here, where both decoder arguments are `decoder`)."""
+  A view's two decoder reads run as one batch (decoder_pair.py: exact here, where both decoder arguments are
+  `decoder`)."""
   argnums = (0, 1, 2) if train_student else (1, 2)
 
   def per_view(shared, view):
