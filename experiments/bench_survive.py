@@ -289,6 +289,15 @@ def cached_ply(path: pathlib.Path, make):
   return jax.tree.map(np.asarray, ply.load_ply(str(path)))
 
 
+def realigned_row(scene: Scene, attack: str, level, suspect, applied: sim.Similarity, plain: dict, **extra) -> dict:
+  """The row of `suspect` (the student moved by `applied`, then perhaps converted) revealed after re-alignment:
+  `plain` (its scores_of) with the re-aligned hidden_*, verify's decision and the registration (`aligned`)."""
+  realigned = aligned(scene, suspect, applied)
+  registration, test = realigned.pop("registration"), realigned.pop("test")
+  realigned.pop("decided")
+  return scene.row(attack, level, dict(plain, **realigned), test, **extra, registration=registration)
+
+
 def transform_rows(scene: Scene, todo) -> list[dict]:
   rows = []
   for attack, level in todo:
@@ -297,11 +306,7 @@ def transform_rows(scene: Scene, todo) -> list[dict]:
     plain = scores_of(scene, moved, applied)
     unaligned = {name: plain.pop(name) for name in ("hidden_psnr", "hidden_ssim", "hidden_z")}
     unaligned["decided"] = ownership.decide(unaligned["hidden_ssim"], scene.calibration)
-    realigned = aligned(scene, moved, applied)
-    registration, test = realigned.pop("registration"), realigned.pop("test")
-    realigned.pop("decided")
-    rows.append(scene.row(attack, level, dict(plain, **realigned), test, unaligned=unaligned,
-                          registration=registration))
+    rows.append(realigned_row(scene, attack, level, moved, applied, plain, unaligned=unaligned))
     print(json.dumps({k: v for k, v in rows[-1].items() if not isinstance(v, dict)}), flush=True)
   return rows
 
@@ -351,11 +356,8 @@ def scaled_decimation_rows(scene: Scene, factors) -> list[dict]:
       continue
     plain = scores_of(scene, robustness.pad_like(published, max(scene.student.num, published.num),
                                                  scene.student.sh_degree), applied)
-    realigned = aligned(scene, published, applied)
-    registration, test = realigned.pop("registration"), realigned.pop("test")
-    realigned.pop("decided")
-    scores = dict(plain, **realigned, num_gaussians=int(published.num))
-    rows.append(scene.row("decimate_scaled", factor, scores, test, registration=registration))
+    plain["num_gaussians"] = int(published.num)
+    rows.append(realigned_row(scene, "decimate_scaled", factor, published, applied, plain))
     print(json.dumps({k: v for k, v in rows[-1].items() if not isinstance(v, dict)}), flush=True)
   return rows
 

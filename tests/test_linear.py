@@ -32,6 +32,9 @@ def test_the_linear_image_is_the_render_on_an_image_of_partial_tiles():
   other = g.replace(sh=g.sh * -0.7 + 0.1)
   image = linear.linear_image(weights, linear.view_colours(other, cam, 1), jnp.asarray(OPTIONS.background))
   np.testing.assert_allclose(image, render(other, cam, OPTIONS).rgb, atol=2e-6, rtol=0)
+  np.testing.assert_allclose(linear.render_through(weights, other, cam, OPTIONS), render(other, cam, OPTIONS).rgb,
+                             atol=2e-6, rtol=0)
+  assert int(weights.num_pairs) == int(render(g, cam, OPTIONS).num_pairs) > 0
 
 
 def test_float64_weights_give_the_reference_image_where_pixels_stop(x64):

@@ -11,6 +11,7 @@ import numpy as np
 
 from conceal_jax.conceal import augment, grouping, linear_check, objective, perturb, subsets, train as conceal_train
 from conceal_jax.conceal import settings as settings_lib, step, views as views_lib
+from conceal_jax.splat import linear
 from tests.test_conceal import tiny, tiny_config  # noqa: F401  (the module-scoped scene fixture)
 from tests.test_subsets import OPTIONS, scene, view  # noqa: F401  (the module-scoped scene fixture)
 
@@ -33,7 +34,7 @@ def test_the_check_render_through_its_map_is_the_render_in_every_state(scene):
   rows = subsets.view_rows(student, cameras, OPTIONS, film, np.zeros(2, bool))
   merges = grouping.training_merges(jax.tree.map(np.asarray, student), offset, ATTACKS)
   check = linear_check.check_weights(student, cameras, rows, merges, OPTIONS, linear_check.states(ATTACKS))
-  assert check.weights.weights.shape == (6, linear_check.LENGTH_STEP) and check.num_pairs.shape == (6,)
+  assert check.weights.shape == (6, linear_check.LENGTH_STEP) and check.num_pairs.shape == (6,)
   dc = student.sh[offset:, 0] * 0.5 + 0.1  # colours other than those the maps were read with
   weights = jax.random.uniform(jax.random.key(1), (32, 32, 3))
 
@@ -65,7 +66,7 @@ def test_the_check_render_through_its_map_is_the_render_in_every_state(scene):
 def test_a_check_view_reads_its_keys_merged_level_unless_it_draws_8_bit_grids():
   data = views_lib.ConcealData(images=None, teacher=None, teacher_small=None, cameras=None,
                                keys=type("Keys", (), {"hidden": jnp.zeros((2, 8, 8, 3))})(),
-                               check_weights=linear_check.CheckWeights(weights=None, num_pairs=jnp.zeros(6, jnp.int32)))
+                               check_weights=linear.ColourWeights(None, None, None, None, jnp.zeros(6, jnp.int32)))
   state = lambda key, merge, quantize: int(views_lib.check_state(data, key, dict(merge=np.float32(merge),
                                                                                  quantize=np.float32(quantize))))
   assert [state(0, 0, 0), state(0, 2, 0), state(1, 0, 0), state(1, 2, 0)] == [0, 2, 3, 5]

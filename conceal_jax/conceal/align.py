@@ -27,7 +27,7 @@ import numpy as np
 from conceal_jax.gs import register as register_lib, similarity as similarity_lib
 from conceal_jax.splat.camera import Camera, look_at
 from conceal_jax.splat.gaussians import Gaussians
-from conceal_jax.splat.render import RenderOptions, render
+from conceal_jax.splat.render import RenderOptions, render, sh_degree
 
 # The tone map's bounds: a gain in [1 / MAX_TONE_GAIN, MAX_TONE_GAIN] and an offset within +-MAX_TONE_OFFSET per
 # channel, beyond any brightness or contrast change that leaves a scene worth sharing.
@@ -155,7 +155,7 @@ def key_options(owner: Gaussians, cameras: Sequence[Camera], options: RenderOpti
   `options` (within KEY_SH_TOLERANCE; `options` itself where none lower does): where the marked scene shows no
   view-dependent colour at its keys (the carrier film's), higher bands in a suspect can only be what a converter
   or an editor added."""
-  top = owner.sh_degree if options.sh_degree is None else min(options.sh_degree, owner.sh_degree)
+  top = sh_degree(owner, options)
   full = [np.asarray(render(owner, camera, options).rgb) for camera in cameras]
   for degree in range(top):
     lower = dataclasses.replace(options, sh_degree=degree)

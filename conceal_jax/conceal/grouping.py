@@ -25,7 +25,6 @@ NEIGHBOURS, CANDIDATES, COST_BUCKETS, GROUP_CAPS = 16, 4, 1024, (3, 4)
 MAX_GROUP = GROUP_CAPS[-1]
 # The training merges' capacities are multiples of this many groups.
 CAPACITY_STEP = 1024
-EPS_COV = decimate.EPS_COV
 LOG_2PI = np.log(2.0 * np.pi)
 
 
@@ -53,7 +52,7 @@ def masses(g: Gaussians) -> np.ndarray:
 def edge_costs(g: Gaussians, first: np.ndarray, second: np.ndarray) -> np.ndarray:
   """[E] float32 the converter's cost of merging each pair (first[e], second[e]) of `g`."""
   pos = np.asarray(g.means, np.float64)
-  var = np.maximum(np.exp(np.asarray(g.log_scales, np.float64)), 1e-12) ** 2 + EPS_COV
+  var = np.maximum(np.exp(np.asarray(g.log_scales, np.float64)), 1e-12) ** 2 + decimate.EPS_COV
   rot = np.asarray(quaternion_to_rotation(jnp.asarray(g.quats)), np.float64)  # float32, as the converter's
   sigma = (rot * var[:, None, :]) @ rot.transpose(0, 2, 1)
   logdet = np.log(var).sum(axis=1)
@@ -64,7 +63,7 @@ def edge_costs(g: Gaussians, first: np.ndarray, second: np.ndarray) -> np.ndarra
   d1, d2 = pos[first] - mean, pos[second] - mean
   outer = lambda d: d[:, :, None] * d[:, None, :]
   merged = (p[:, :, None] * (sigma[first] + outer(d1)) + (1 - p[:, :, None]) * (sigma[second] + outer(d2))
-            + EPS_COV * np.eye(3))
+            + decimate.EPS_COV * np.eye(3))
   neg_log_q = 0.5 * (3 * LOG_2PI + np.log(np.maximum(np.linalg.det(merged), 1e-30)) + 3)
   z = mulberry32_normal(0)
 
@@ -147,7 +146,7 @@ def group_members(group: np.ndarray, rows: np.ndarray) -> np.ndarray:
 
 def scaled(gaussians: Gaussians, factor: float) -> Gaussians:
   """`gaussians` scaled by `factor` about the origin (positions and sizes): the copy a scene's scale is tried on,
-  since the converter's costs are not scale-free (EPS_COV against the splats' variances)."""
+  since the converter's costs are not scale-free (decimate.EPS_COV against the splats' variances)."""
   return gaussians.replace(means=np.asarray(gaussians.means) * factor,
                            log_scales=np.asarray(gaussians.log_scales) + np.log(factor))
 
@@ -162,14 +161,14 @@ def converter_merges(gaussians: Gaussians, rows: np.ndarray, keeps, capacity: in
   run keeps its capacity, so its step keeps its shapes)."""
   levels = []
   for factor in scales:
-    copy = gaussians if factor == 1.0 else scaled(gaussians, factor)
+    copy = scaled(gaussians, factor)
     edges = candidate_edges(copy)
-    levels += [(factor, group_members(converter_groups(copy, keep, edges), rows)) for keep in keeps]
-  most = max(len(members) for _, members in levels)
+    levels += [(factor, copy, group_members(converter_groups(copy, keep, edges), rows)) for keep in keeps]
+  most = max(len(members) for _, _, members in levels)
   capacity = max(capacity, -(-most // CAPACITY_STEP) * CAPACITY_STEP)
   merges = []
-  for factor, members in levels:
-    merged = decimate.moment_matched(scaled(gaussians, factor), members)
+  for factor, copy, members in levels:
+    merged = decimate.moment_matched(copy, members)
     merged.update(means=merged["means"] / factor, log_scales=merged["log_scales"] - np.log(factor))
     pad = capacity - len(members)
     merged = {name: np.concatenate([value, np.zeros((pad,) + value.shape[1:])]) for name, value in merged.items()}

@@ -18,9 +18,10 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from conceal_jax.conceal import augment, linear_check, perturb, reveal, subsets
+from conceal_jax.conceal import augment, perturb, reveal, subsets
 from conceal_jax.conceal.settings import ConcealSettings
 from conceal_jax.gs import losses, metrics
+from conceal_jax.splat import linear
 from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.render import RenderOptions, RenderOutput, render
 
@@ -38,7 +39,7 @@ class View:
   [S, S, 3] and teacher_minus_weight: a teacher render at the decoder size and its L_d^- share; rows: None, or
   int32 [M] the student rows its render reads (subsets.py: the same image), and fixed: whether its render is
   fixed_rgb [H, W, 3] (the teacher's: no row that trains reaches it), not rendered; linear: None, or int32 the
-  state of the step's linear_check.CheckWeights its render is read through (-1: rendered).
+  state of the step's check weights (linear_check.check_weights) its render is read through (-1: rendered).
   """
   camera: Camera
   target: jax.Array
@@ -122,11 +123,12 @@ def view_terms(student, decoder_plus, decoder_minus, view: View, settings: Conce
 
 
 def rendered(gaussians, view: View, options: RenderOptions, perturbed=subsets.rows_of,
-             check_weights: linear_check.CheckWeights | None = None) -> RenderOutput:
+             check_weights: linear.ColourWeights | None = None) -> RenderOutput:
   """The view's render of `gaussians` (its rgb and pair counts), as `perturbed(gaussians, rows)` gives them (the
   rows [M] it reads, or None: all; default: as they are): of its rows alone where it has them (the same image:
   subsets.py); where it is fixed its fixed image, neither perturbed nor rendered (no pairs); where view.linear names
-  a state of `check_weights`, the same image through that linear map (linear_check.linear_render)."""
+  a state of `check_weights` ([L] stacked, linear_check.check_weights), the same image through that linear map
+  (linear.render_through), with the pairs its render would need."""
   if view.rows is None:
     return render(perturbed(gaussians, None), view.camera, options)
 
@@ -134,13 +136,16 @@ def rendered(gaussians, view: View, options: RenderOptions, perturbed=subsets.ro
     out = render(perturbed(gaussians, view.rows), view.camera, options)
     return out.replace(radii=jnp.zeros((), jnp.int32))  # the subset's, not the student's
 
-  like = jax.eval_shape(draw)
-  held = lambda: jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), like).replace(rgb=view.fixed_rgb)
+  blank = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(draw))
+  held = lambda: blank.replace(rgb=view.fixed_rgb)
   if check_weights is None or view.linear is None:
     return jax.lax.cond(view.fixed, held, draw)
-  state = jnp.maximum(view.linear, 0)
-  through = lambda: linear_check.linear_render(perturbed(gaussians, view.rows), check_weights.at(state),
-                                               check_weights.num_pairs[state], view.camera, options, like)
+
+  def through():
+    weights = jax.tree.map(lambda x: x[jnp.maximum(view.linear, 0)], check_weights)
+    rgb = linear.render_through(weights, perturbed(gaussians, view.rows), view.camera, options)
+    return blank.replace(rgb=rgb.astype(blank.rgb.dtype), num_pairs=weights.num_pairs.astype(blank.num_pairs.dtype))
+
   return jax.lax.switch(jnp.where(view.fixed, 1, jnp.where(view.linear >= 0, 2, 0)), (draw, held, through))
 
 

@@ -42,7 +42,8 @@ class ConcealData:
   None (every render reads the whole student) or int32 [V + D + K, M] the student rows the normal views' then the
   keys' renders read (subsets.view_rows), with fixed [V + D] bool: the normal views rendered by no row that trains,
   whose render is the teacher's; check_weights: None or the keys' renders as linear maps of the colours
-  (linear_check.CheckWeights), which the check views that draw no 8-bit grid are read through."""
+  (linear_check.check_weights: linear.ColourWeights [K * L]), which the check views that draw no 8-bit grid are
+  read through."""
   images: jax.Array
   teacher: jax.Array
   teacher_small: jax.Array
@@ -92,7 +93,7 @@ def regrouped(data: ConcealData, student, merges, options: RenderOptions, check_
     return data.replace(merges=parallel.replicate(merges, mesh))
   num_keys = data.keys.hidden.shape[0]
   cameras = [data.keys.at(k).camera for k in range(num_keys)]
-  held = 0 if data.check_weights is None else int(data.check_weights.weights.weights.shape[1])
+  held = 0 if data.check_weights is None else int(data.check_weights.weights.shape[1])
   weights = linear_check.check_weights(student, cameras, np.asarray(data.rows)[data.teacher.shape[0]:], merges,
                                        options, check_states, held)
   return data.replace(merges=parallel.replicate(merges, mesh), check_weights=parallel.replicate(weights, mesh))
@@ -125,15 +126,14 @@ def step_views(data: ConcealData, view, normal_view, key_number, distortion, set
                 model=NO_DISTORTION, image=distortion if s.identity_distorted else NO_DISTORTION, hidden=key.hidden,
                 plus_weight=f32(0.0), own_minus_weight=f32(w["student"]), teacher_small=data.teacher_small[normal_view],
                 teacher_minus_weight=f32(w["teacher_normal"]), rows=rows(view),
-                fixed=None if data.fixed is None else data.fixed[view], fixed_rgb=data.teacher[view])
+                fixed=None if data.fixed is None else data.fixed[view], fixed_rgb=data.teacher[view],
+                linear=None if data.check_weights is None else jnp.int32(-1))
   check = View(camera=key.camera, target=key.check_image, l1_weight=f32(s.weight_check if released else 0.0),
                photometric_weight=f32(0.0), model=distortion, image=distortion, hidden=key.hidden,
                plus_weight=f32(s.weight_plus), own_minus_weight=f32(0.0), teacher_small=key.teacher_check,
                teacher_minus_weight=f32(w["teacher_check"]), rows=rows(num_normal + key_number),
                fixed=None if data.fixed is None else jnp.bool_(False), fixed_rgb=key.check_image,
                linear=None if data.check_weights is None else check_state(data, key_number, distortion))
-  if data.check_weights is not None:
-    normal = normal.replace(linear=jnp.int32(-1))
   return jax.tree.map(lambda a, b: jnp.stack([a, b]), normal, check)
 
 

@@ -22,17 +22,19 @@ from conceal_jax.splat import binning, composite
 from conceal_jax.splat import sh as sh_lib
 from conceal_jax.splat.camera import Camera, camera_center
 from conceal_jax.splat.gaussians import Gaussians
-from conceal_jax.splat.render import RenderOptions, render, tile_layout, untile_image
+from conceal_jax.splat.render import RenderOptions, render, sh_degree, tile_layout, untile_image
 
 
 @struct.dataclass
 class ColourWeights:
   """One view's image as a map of colours: pixels [K] int32 flat pixel index y * width + x, ascending; rows [K]
-  int32 the Gaussian of each weight; weights [K] alpha_i T_i, all nonzero; transmittance [H, W] the final T."""
+  int32 the Gaussian of each weight; weights [K] alpha_i T_i, nonzero but for `padded`'s; transmittance [H, W] the
+  final T; num_pairs: int32, the splat-tile pairs the view's render composites."""
   pixels: jax.Array
   rows: jax.Array
   weights: jax.Array
   transmittance: jax.Array
+  num_pairs: jax.Array
 
 
 def colour_weights(gaussians: Gaussians, camera: Camera, options: RenderOptions = RenderOptions()) -> ColourWeights:
@@ -42,7 +44,7 @@ def colour_weights(gaussians: Gaussians, camera: Camera, options: RenderOptions 
   out = render(gaussians, camera, options)  # grows the pair capacity to what the view needs
   if gaussians.num == 0:
     nothing = jnp.zeros((0,), jnp.int32)
-    return ColourWeights(nothing, nothing, jnp.zeros((0,), out.alpha.dtype), 1.0 - out.alpha)
+    return ColourWeights(nothing, nothing, jnp.zeros((0,), out.alpha.dtype), 1.0 - out.alpha, out.num_pairs)
   options = dataclasses.replace(options, pair_capacity=out.pair_capacity)
   weights, splats, tiles, count = _segment_weights(gaussians, camera, options)
   weights, splats, tiles = (np.asarray(x)[:int(count)] for x in (weights, splats, tiles))
@@ -54,7 +56,7 @@ def colour_weights(gaussians: Gaussians, camera: Camera, options: RenderOptions 
   pick = lambda a: jnp.asarray(a[inside][order])
   return ColourWeights(pixels=jnp.asarray(flat[order].astype(np.int32)),
                        rows=pick(splats[seg, lane].astype(np.int32)), weights=pick(weights[seg, pixel, lane]),
-                       transmittance=1.0 - out.alpha)
+                       transmittance=1.0 - out.alpha, num_pairs=out.num_pairs)
 
 
 def image_pixels(camera: Camera, tile_size: int) -> np.ndarray:
@@ -86,8 +88,8 @@ def padded(weights: ColourWeights, length: int) -> ColourWeights:
     raise ValueError(f"cannot pad {weights.weights.size} weights to {length}")
   last = weights.transmittance.size - 1
   extend = lambda x, value: jnp.concatenate([x, jnp.full((pad,), value, x.dtype)])
-  return ColourWeights(pixels=extend(weights.pixels, last), rows=extend(weights.rows, 0),
-                       weights=extend(weights.weights, 0), transmittance=weights.transmittance)
+  return weights.replace(pixels=extend(weights.pixels, last), rows=extend(weights.rows, 0),
+                         weights=extend(weights.weights, 0))
 
 
 def view_colours(gaussians: Gaussians, camera: Camera, degree: int) -> jax.Array:
@@ -101,3 +103,11 @@ def linear_image(weights: ColourWeights, colours: jax.Array, background: jax.Arr
   per_pixel = weights.weights[:, None] * colours[weights.rows]
   image = jax.ops.segment_sum(per_pixel, weights.pixels, num_segments=height * width, indices_are_sorted=True)
   return image.reshape(height, width, -1) + weights.transmittance[..., None] * background
+
+
+def render_through(weights: ColourWeights, gaussians: Gaussians, camera: Camera,
+                   options: RenderOptions = RenderOptions()) -> jax.Array:
+  """[H, W, 3] the render of `gaussians` (the ones `weights` was read from, any colours) from `camera` with
+  `options`, through `weights`: their view colours (`view_colours`, the render's SH degree) as `linear_image`."""
+  colours = view_colours(gaussians, camera, sh_degree(gaussians, options))
+  return linear_image(weights, colours, jnp.asarray(options.background, gaussians.means.dtype))

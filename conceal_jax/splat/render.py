@@ -190,10 +190,16 @@ def _concrete_max(x: jax.Array) -> int | None:
     return None
 
 
+def sh_degree(gaussians: Gaussians, options: RenderOptions) -> int:
+  """The SH degree a render of `gaussians` evaluates: options.sh_degree, at most the scene's (all of the scene's
+  bands where it is None)."""
+  return gaussians.sh_degree if options.sh_degree is None else min(options.sh_degree, gaussians.sh_degree)
+
+
 @functools.partial(jax.jit, static_argnames=("options",))
 def _render(gaussians: Gaussians, camera: Camera, options: RenderOptions,
             means2d_offset: jax.Array | None = None) -> RenderOutput:
-  degree = gaussians.sh_degree if options.sh_degree is None else min(options.sh_degree, gaussians.sh_degree)
+  degree = sh_degree(gaussians, options)
   dtype = gaussians.means.dtype
   background = jnp.asarray(options.background, dtype)
   capacity = options.pair_capacity
