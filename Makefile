@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 WORKDIR ?= workdirs/demo
 JOBS ?= 2
 
-.PHONY: venv demo own-scene chromium test test-slow bench-render bench-train bench-start bench-full profile-train bench-conceal profile-conceal \
+.PHONY: venv demo own-scene chromium test test-jobs test-slow bench-render bench-train bench-start bench-full profile-train bench-conceal profile-conceal \
         bench-baselines bench-robust bench-survive converter-decimation bench-falloff survive-runs bench-ownership \
         reproduce clean
 
@@ -75,6 +75,9 @@ chromium:
 
 test: $(STAMP)
 	$(PY) -m pytest -n $(JOBS) -q
+
+test-jobs: $(STAMP)
+	$(PY) -m pytest -n $(JOBS) -q -m job
 
 test-slow: $(STAMP)
 	$(PY) -m pytest -q -p no:xdist -m slow

@@ -205,6 +205,7 @@ def lsb_run(tiny, tmp_path_factory):
   return workdir, stopped, main_lib.run(config, str(workdir))
 
 
+@pytest.mark.job
 def test_lsb_job_trains_on_containers_scores_and_resumes(lsb_run):
   workdir, stopped, result = lsb_run
   assert stopped == dict(stopped_at=3)
@@ -218,6 +219,7 @@ def test_lsb_job_trains_on_containers_scores_and_resumes(lsb_run):
   assert metrics["hidden"]["psnr"] < check["psnr"] - 10
 
 
+@pytest.mark.job
 def test_bench_rows_feed_the_reproduction(lsb_run, deepstega_run, tiny, tmp_path, capsys, monkeypatch):
   """bench-baselines reads finished runs into baseline_bench.json (keeping another method's rows), and
   make reproduce puts them beside the paper's numbers (the tiny runs' length standing for the recipes'); a row
@@ -299,6 +301,7 @@ def deepstega_run(tiny, tmp_path_factory):
   return config, workdir, main_lib.run(config, str(workdir))
 
 
+@pytest.mark.job
 def test_deepstega_job_trains_saves_and_reuses_its_networks(deepstega_run):
   config, tmp_path, result = deepstega_run
   saved, _ = _check_outputs(tmp_path, result, "DeepStega")

@@ -59,6 +59,7 @@ def bench(folder, monkeypatch, *arguments):
   return json.loads((folder / "out" / "survive_bench.json").read_text())["rows"]
 
 
+@pytest.mark.job
 def test_transforms_and_round_trips_are_revealed_after_re_alignment(run, monkeypatch):
   # the decimations alone of the round trips: each format's round trip is tests/test_converter.py's
   rows = bench(run, monkeypatch, "--attacks=none,transforms,decimate")

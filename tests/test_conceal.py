@@ -178,6 +178,7 @@ def test_normal_views_draw_decoys_at_their_rate():
   assert all(views_lib.draw_normal_view(rng, 10, 0, 0.3) < 10 for _ in range(100))
 
 
+@pytest.mark.job
 def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
   config = tiny_config(tiny, eval_every=20)
   straight = conceal_train.train_and_evaluate(config, str(tmp_path / "a"))
@@ -232,6 +233,7 @@ def finished_copy(tiny, joint_run, run):
   return run
 
 
+@pytest.mark.job
 def test_rescore_reproduces_a_finished_runs_metrics_and_keeps_the_old_file(tiny, joint_run, tmp_path):
   """experiments/rescore.py: a finished run scored again from its saved files gives the figures its own scoring
   wrote, and keeps the metrics.json it replaces."""
@@ -246,6 +248,7 @@ def test_rescore_reproduces_a_finished_runs_metrics_and_keeps_the_old_file(tiny,
   assert json.loads((run / rescore.PREVIOUS_FILE).read_text())["hidden"] == dict(psnr=1.0, ssim=0.0)
 
 
+@pytest.mark.job
 def test_rescore_refuses_an_unfinished_run_before_writing(tiny, joint_run, tmp_path):
   finished = finished_copy(tiny, joint_run, tmp_path / "finished")
   unfinished = finished_copy(tiny, joint_run, tmp_path / "unfinished")
@@ -287,6 +290,7 @@ def test_bench_row_continues_only_the_run_it_extends(tiny, tmp_path):
   assert not bench_conceal.continue_from(source, row, polish)  # its own checkpoints are kept
 
 
+@pytest.mark.job
 def test_bench_reads_a_finished_run_and_keeps_its_images_beside_the_json(tiny, joint_run, tmp_path):
   bench, out = tmp_path / "bench", tmp_path / "results"
   run = bench / "lego" / "conceal_full_w16"

@@ -123,6 +123,7 @@ def test_reveal_reads_the_message_a_key_records(tmp_path):
   assert not read["message_exact"] and 0.25 < read["raw_bit_accuracy"] < 0.75 and read["log10_p_binomial"] > -3
 
 
+@pytest.mark.job
 def test_a_message_mode_concealment_hides_the_message_image_and_records_the_message(tmp_path):
   """A few steps of conceal with mark.message_bits: hidden.png is the message's image, key.json records the
   message, message.json and the metrics read it back, and reveal reads the same from the student."""

@@ -79,6 +79,7 @@ def write_scene(tmp_path, uses_decoder: bool):
   return config
 
 
+@pytest.mark.job
 def test_verify_decides_at_alpha_with_the_evidence(tmp_path):
   """The key's own view as the hidden image (no decoder): owned with a tiny p-value; another picture is not;
   the images are kept and a calibration file adds its threshold's decision."""

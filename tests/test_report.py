@@ -94,6 +94,7 @@ def test_a_line_chart_draws_its_finite_points():
   assert page.line_chart([1, 2], [float("inf"), float("nan")], "none") == ""
 
 
+@pytest.mark.job
 def test_the_conceal_report_embeds_the_run_and_says_when_there_is_no_viewer(concealed, tmp_path, monkeypatch):
   folder = tmp_path / "run"
   fileio.write_bytes(folder / run_report.VIEWER_FILE, b"a viewer of an earlier run")
@@ -114,6 +115,7 @@ def test_the_conceal_report_embeds_the_run_and_says_when_there_is_no_viewer(conc
     assert f">{figure}<" in page_text or figure in page_text, figure
 
 
+@pytest.mark.job
 @needs_converter
 def test_the_report_links_the_viewer_page_splat_transform_writes(concealed, tmp_path):
   for name in os.listdir(concealed):
@@ -145,6 +147,7 @@ def verified(concealed, tmp_path_factory):
   return folder / "out", summary.after_job(config, str(folder / "out"), result)
 
 
+@pytest.mark.job
 def test_the_verify_report_leads_with_the_decision_and_holds_the_concealment(concealed, verified):
   folder, text = verified
   evidence = json.loads((folder / "verify.json").read_text())
@@ -173,6 +176,7 @@ def test_the_chromium_check_sees_errors_and_images_that_do_not_show(tmp_path):
   assert "an error" in opened["errors"] and any("example.com" in error for error in opened["errors"])
 
 
+@pytest.mark.job
 @needs_chromium
 def test_the_reports_open_in_chromium_without_errors_and_show_their_images(concealed, verified, tmp_path):
   for name in os.listdir(concealed):
@@ -199,6 +203,7 @@ def test_the_train_and_reveal_summaries_name_their_files_and_figures(tmp_path):
   assert summary.reveal_lines("w", dict(ply="s.ply"))[0] == "revealed from s.ply"
 
 
+@pytest.mark.job
 def test_the_command_line_ends_with_the_summary_and_no_backend_probing(concealed, tmp_path):
   """No line of XLA looking for accelerators it does not find ('Unable to initialize backend'), and the job's
   summary last."""

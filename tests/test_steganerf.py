@@ -191,6 +191,7 @@ def _check_run(workdir, result, tiny, protocol):
   return saved, metrics
 
 
+@pytest.mark.job
 def test_all_views_run_freezes_geometry_scores_and_resumes_exactly(all_views_runs, tiny):
   straight, first, resumed, again, stopped = all_views_runs
   assert stopped == dict(stopped_at=3)
@@ -202,12 +203,14 @@ def test_all_views_run_freezes_geometry_scores_and_resumes_exactly(all_views_run
     assert (straight / name).read_bytes() == (resumed / name).read_bytes(), name
 
 
+@pytest.mark.job
 def test_check_view_run_freezes_geometry_and_scores(check_view_run, tiny):
   workdir, result = check_view_run
   saved, _ = _check_run(workdir, result, tiny, "check_view")
   assert saved["steganerf"]["settings"]["mask_at"] == "gradient" and saved["resumed_from"] == 0
 
 
+@pytest.mark.job
 def test_bench_rows_of_both_protocols_feed_the_reproduction(all_views_runs, check_view_run, tiny, tmp_path,
                                                             monkeypatch):
   monkeypatch.setattr(reproduce, "RECIPE_STEPS", 6)  # the tiny runs' length stands for the recipes'

@@ -42,6 +42,7 @@ def tiny_config(scene_path, iterations=8):
   return config
 
 
+@pytest.mark.job
 def test_train_writes_scene_metrics_and_resumes_exactly(tiny_scene, tmp_path):
   config = tiny_config(tiny_scene)
   config.train.snapshots = (4,)
@@ -80,6 +81,7 @@ def test_train_writes_scene_metrics_and_resumes_exactly(tiny_scene, tmp_path):
   assert summary["traces"] == dict(train_step=len(summary["compiled_step_variants"]))
 
 
+@pytest.mark.job
 def test_train_on_a_given_scene(tiny_scene, tmp_path):
   """scene= replaces the scene of config.data (a baseline's containers): its training views are fitted and
   its test split is scored."""
