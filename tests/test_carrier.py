@@ -75,6 +75,13 @@ def test_the_film_lies_on_the_key_grid_facing_it():
                        spread=0.15)
   np.testing.assert_allclose(np.exp(np.asarray(tight.log_scales, np.float64)),
                              np.exp(np.asarray(layer.log_scales, np.float64)) * 0.15 / carrier.SPREAD, rtol=1e-5)
+  # the thin axis: `thickness` times the in-plane sigma
+  np.testing.assert_allclose(np.exp(np.asarray(layer.log_scales[:, 2], np.float64)), sigma * carrier.THICKNESS,
+                             rtol=1e-5)
+  thick = carrier.film(camera, distance=1.7, spacing=4.0, opacity=0.3, color=(0.2, 0.5, 0.9), sh_degree=2,
+                       thickness=0.5)
+  np.testing.assert_allclose(np.exp(np.asarray(thick.log_scales, np.float64)), np.stack([sigma, sigma, 0.5 * sigma], 1),
+                             rtol=1e-5)
 
 
 def test_contributing_is_what_the_renderer_lets_through():
@@ -217,8 +224,9 @@ def test_a_film_needs_an_unseen_key(tiny, tmp_path):
     conceal_train.train_and_evaluate(tiny_config(tiny, **{"carrier.film": True}), str(tmp_path))
   with pytest.raises(ValueError, match="conceal.carrier.dc_bound bounds the carrier film's colours"):
     conceal_train.train_and_evaluate(tiny_config(tiny, **{"carrier.dc_bound": 3.0}), str(tmp_path))
-  for bad in ({"carrier.opacity": 1.0}, {"carrier.spread": 0.0}, {"carrier.spacing": -1.0}):
-    with pytest.raises(ValueError, match="conceal.carrier.distance and spread must be positive, spacing not"):
+  for bad in ({"carrier.opacity": 1.0}, {"carrier.spread": 0.0}, {"carrier.spacing": -1.0},
+              {"carrier.thickness": 0.0}):
+    with pytest.raises(ValueError, match="conceal.carrier.distance, spread and thickness must be positive, spacing"):
       conceal_train.train_and_evaluate(tiny_config(tiny, key_kind="unseen", **{"carrier.film": True, **bad}),
                                        str(tmp_path))
 

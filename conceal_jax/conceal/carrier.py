@@ -22,7 +22,8 @@ from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.gaussians import Gaussians, concatenate, opacity_logit
 from conceal_jax.splat.render import RenderOptions, render
 
-# The film's thickness along the key's axis, as a fraction of its in-plane spread: a flat splat.
+# The film's thickness along the key's axis, as a fraction of its in-plane sigma (conceal.carrier.thickness's
+# default): a flat splat.
 THICKNESS = 0.01
 # Film splats overlap their neighbours: in-plane sigma as a fraction of the grid spacing (conceal.carrier.spread's
 # default).
@@ -47,15 +48,17 @@ def layer_offsets(layers: int) -> np.ndarray:
 
 
 def film(camera: Camera, distance: float, spacing: float, opacity: float, color: Sequence[float],
-         sh_degree: int, layers: int = 1, stack: int = 1, spread: float = SPREAD) -> Gaussians:
+         sh_degree: int, layers: int = 1, stack: int = 1, spread: float = SPREAD,
+         thickness: float = THICKNESS) -> Gaussians:
   """[F] flat Gaussians `distance` in front of `camera` (each STAGGER-deeper than the last), `layers` grids of one
   position every `spacing` pixels of its image, each grid shifted within a cell (`layer_offsets`), `stack`
   consecutive splats at each position (F ~ stack * layers * W * H / spacing^2), facing it, each of `opacity` and
   `color` (RGB in [0, 1], raised to MIN_START_RGB) seen from any direction (SH of `sh_degree`, bands above DC zero),
-  of in-plane sigma `spread` grid spacings. Many layers of faint splats make a film as opaque as one layer of dense
-  ones, out of splats each below an opacity ceiling (3D-GS's opacity reset). A stack of splats small against their
-  neighbours' distance (`spread`) is the cheapest merge a decimating converter finds (the same place, and with tied
-  colours, `tied_rows`, the same colour), so decimation down to 1/stack of the film merges stacks."""
+  of in-plane sigma `spread` grid spacings and `thickness` times that along the key's axis. Many layers of faint
+  splats make a film as opaque as one layer of dense ones, out of splats each below an opacity ceiling (3D-GS's
+  opacity reset). A stack of splats small against their neighbours' distance (`spread`) is the cheapest merge a
+  decimating converter finds (the same place, and with tied colours, `tied_rows`, the same colour), so decimation
+  down to 1/stack of the film merges stacks."""
   grids = [np.meshgrid(np.arange(du * spacing, camera.width, spacing), np.arange(dv * spacing, camera.height, spacing))
            for du, dv in layer_offsets(layers)]
   u, v = (np.repeat(np.concatenate([grid[axis].ravel() for grid in grids]), stack) for axis in (0, 1))
@@ -71,7 +74,7 @@ def film(camera: Camera, distance: float, spacing: float, opacity: float, color:
   sh[:, 0] = sh_lib.rgb_to_sh_dc(np.maximum(np.asarray(color, np.float64), MIN_START_RGB))
   logit = opacity_logit(opacity)
   as_f32 = lambda x: jnp.asarray(x, jnp.float32)
-  log_scales = np.tile(np.log([sigma, sigma, sigma * THICKNESS]), (count, 1))
+  log_scales = np.tile(np.log([sigma, sigma, sigma * thickness]), (count, 1))
   return Gaussians(means=as_f32(means), log_scales=as_f32(log_scales),
                    quats=as_f32(np.tile(similarity.matrix_to_quaternion(rotation), (count, 1))),
                    opacity_logits=as_f32(np.full(count, logit)), sh=as_f32(sh))
@@ -105,11 +108,13 @@ def key_spacing(spacing: float, key: Camera, hidden_size: int) -> float:
 
 
 def unseen_film(teacher: Gaussians, key: Camera, cameras: Sequence[Camera], options: RenderOptions, distance: float,
-                spacing: float, opacity: float, layers: int = 1, stack: int = 1, spread: float = SPREAD) -> Gaussians:
+                spacing: float, opacity: float, layers: int = 1, stack: int = 1, spread: float = SPREAD,
+                thickness: float = THICKNESS) -> Gaussians:
   """The film before `key` (film's arguments; the background's colour) less every stack with a splat a pixel of
   `cameras` (the scene's training and test views) depends on, or that the key does not see. Dropping a splat can
   only uncover splats behind it, so the test repeats until nothing seen is left. ValueError if nothing is left."""
-  carrier = film(key, distance, spacing, opacity, options.background, teacher.sh_degree, layers, stack, spread)
+  carrier = film(key, distance, spacing, opacity, options.background, teacher.sh_degree, layers, stack, spread,
+                 thickness)
   while carrier.num:
     keep = ~contributing(teacher, carrier, cameras, options)
     keep &= contributing(teacher, carrier, [key], options)

@@ -128,15 +128,16 @@ class RunPlan:
 
 @dataclasses.dataclass(frozen=True)
 class Film:
-  """conceal.carrier with film on: the carrier film's distance from the key (in median camera distances from the
-  orbit target, key.camera_distance), grid spacing (pixels of the key's image; 0: carrier.key_spacing's), opacity,
-  in-plane sigma in grid spacings, number of grids and splats stacked at each grid position (carrier.film)."""
+  """conceal.carrier with film on: the film's distance from the key (median camera distances from the orbit target),
+  grid spacing (key pixels; 0: carrier.key_spacing's), opacity, in-plane sigma (grid spacings), grids, splats per
+  grid position, thickness along the key's axis (fraction of the in-plane sigma) (carrier.film)."""
   distance: float
   spacing: float
   opacity: float
   spread: float
-  layers: int = 1
-  stack: int = 1
+  layers: int
+  stack: int
+  thickness: float
 
 
 def key_offset(config: ml_collections.ConfigDict) -> float:
@@ -147,19 +148,18 @@ def key_offset(config: ml_collections.ConfigDict) -> float:
 
 
 def film_plan(config: ml_collections.ConfigDict) -> Film | None:
-  """conceal.carrier checked: None with film off; a film needs mark.key_kind 'unseen' (it fills what only such
-  a key sees)."""
+  """conceal.carrier checked: None with film off; a film needs mark.key_kind 'unseen' (it fills what it sees)."""
   c = config.conceal.carrier
   if not c.film:
     return None
   if config.mark.key_kind != "unseen":
     raise ValueError(f"conceal.carrier.film needs mark.key_kind='unseen', got {config.mark.key_kind!r}")
-  if not (c.distance > 0 and c.spacing >= 0 and c.spread > 0 and 0 < c.opacity < 1 and min(c.layers, c.stack) >= 1):
-    raise ValueError("conceal.carrier.distance and spread must be positive, spacing not negative, opacity in (0, 1), "
-                     f"layers and stack at least 1, got {c.distance}, {c.spacing}, {c.spread}, {c.opacity}, "
-                     f"{c.layers}, {c.stack}")
+  if not (min(c.distance, c.spread, c.thickness) > 0 <= c.spacing and 0 < c.opacity < 1 <= min(c.layers, c.stack)):
+    raise ValueError("conceal.carrier.distance, spread and thickness must be positive, spacing not negative, opacity "
+                     f"in (0, 1), layers and stack at least 1, got {c.distance}, {c.spread}, {c.thickness}, "
+                     f"{c.spacing}, {c.opacity}, {c.layers}, {c.stack}")
   return Film(distance=float(c.distance), spacing=float(c.spacing), opacity=float(c.opacity), spread=float(c.spread),
-              layers=int(c.layers), stack=int(c.stack))
+              layers=int(c.layers), stack=int(c.stack), thickness=float(c.thickness))
 
 
 def step_settings(config: ml_collections.ConfigDict) -> ConcealSettings:

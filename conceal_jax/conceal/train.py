@@ -98,7 +98,8 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
     film = carrier.unseen_film(teacher, keys[0][0], list(scene.train_cameras) + list(scene.test_cameras), options,
                                plan.film.distance * key_lib.camera_distance(scene.train_cameras),
                                carrier.key_spacing(plan.film.spacing, keys[0][0], s.hidden_size),
-                               plan.film.opacity, plan.film.layers, plan.film.stack, plan.film.spread)
+                               plan.film.opacity, plan.film.layers, plan.film.stack, plan.film.spread,
+                               plan.film.thickness)
     start, colour_rows = concatenate([teacher, film]), carrier.colour_rows(teacher.num, film.num)
     ties = carrier.tied_rows(film.num, plan.film.stack) if plan.film.stack > 1 else None
     if s.augmentation.merge_fraction > 0:

@@ -307,7 +307,9 @@ def conceal_carrier_section() -> ml_collections.ConfigDict:
   decimation down to 1/stack of the film merges stacks, provided the splats are small against the distance between
   neighbouring positions (spread: in-plane sigma in grid spacings; splat-transform's merge cost can favour an
   overlapping neighbour over an identical stack partner). A merged stack renders a little larger than its splats
-  (the renderer's 1/255 alpha cut): attacks.merge_fraction trains through it."""
+  (the renderer's 1/255 alpha cut): attacks.merge_fraction trains through it. thickness: each splat's sigma along
+  the key's axis as a fraction of its in-plane sigma (a thin film's variance there can fall below the converter's
+  covariance regulariser, which makes the converter group a resized copy of the scene differently)."""
   c = ml_collections.ConfigDict()
   c.film = False
   c.distance = 0.1
@@ -317,6 +319,7 @@ def conceal_carrier_section() -> ml_collections.ConfigDict:
   c.dc_bound = 0.0
   c.stack = 1
   c.spread = 0.6
+  c.thickness = 0.01
   return c
 
 
