@@ -148,11 +148,13 @@ bench-falloff: $(STAMP)
 
 # the survival designs' runs that bench-survive scores: demo.py's variants in the demo teacher of `make demo`
 # (trained first if missing), the recommended recipe in it (conceal.py, DEMO_RECOMMENDED_STEPS), and
-# lego_conceal.py:recommended in bench-train's lego teacher when present (LEGO_FILM_STEPS)
+# lego_conceal.py:recommended in bench-train's lego teacher when present (LEGO_FILM_STEPS); the recommended runs'
+# folders are named for the recipe's design (bench_survive.SCENES), so a workdir never holds two designs
 SURVIVE_RUNS := workdirs/survive_runs
 LEGO_TEACHER := workdirs/bench/lego/teacher/point_cloud.ply
 LEGO_FILM_STEPS ?= 10000
 DEMO_RECOMMENDED_STEPS ?= 6000
+LEGO_RECOMMENDED := lego_converter_mf35_rot5_scales_wm25
 SURVIVE_VARIANTS := film film_pub film_web film_watch film_long film_deep film_stack film_faint film_reset film_far drift pruned orbit
 $(WORKDIR)/teacher/point_cloud.ply: | $(STAMP)
 	$(MAIN) --workdir=$(WORKDIR)/teacher
@@ -160,13 +162,14 @@ survive-runs: $(STAMP) | $(WORKDIR)/teacher/point_cloud.ply
 	for variant in $(SURVIVE_VARIANTS); do test -f $(SURVIVE_RUNS)/demo_$$variant/metrics.json || \
 	  $(PY) -m conceal_jax.main --config=conceal_jax/configs/demo.py:$$variant --workdir=$(SURVIVE_RUNS)/demo_$$variant \
 	  --config.mode=conceal --config.mark.teacher=$(WORKDIR)/teacher/point_cloud.ply || exit 1; done
-	test -f $(SURVIVE_RUNS)/demo_recommended/metrics.json || $(PY) -m conceal_jax.main \
-	  --config=conceal_jax/configs/conceal.py --workdir=$(SURVIVE_RUNS)/demo_recommended \
+	test -f $(SURVIVE_RUNS)/demo_converter_wm25/metrics.json || $(PY) -m conceal_jax.main \
+	  --config=conceal_jax/configs/conceal.py --workdir=$(SURVIVE_RUNS)/demo_converter_wm25 \
 	  --config.data.path=demo --config.data.background=white --config.conceal.iterations=$(DEMO_RECOMMENDED_STEPS) \
 	  --config.conceal.checkpoint_every=200 --config.conceal.eval_every=100 \
 	  --config.mark.teacher=$(WORKDIR)/teacher/point_cloud.ply
-	test -f $(SURVIVE_RUNS)/lego_film/metrics.json || if [ -f $(LEGO_TEACHER) ]; then \
-	  $(PY) -m conceal_jax.main --config=conceal_jax/configs/lego_conceal.py:recommended --workdir=$(SURVIVE_RUNS)/lego_film \
+	test -f $(SURVIVE_RUNS)/$(LEGO_RECOMMENDED)/metrics.json || if [ -f $(LEGO_TEACHER) ]; then \
+	  $(PY) -m conceal_jax.main --config=conceal_jax/configs/lego_conceal.py:recommended \
+	  --workdir=$(SURVIVE_RUNS)/$(LEGO_RECOMMENDED) \
 	  --config.mark.teacher=$(LEGO_TEACHER) --config.conceal.iterations=$(LEGO_FILM_STEPS); \
 	  else echo "no lego teacher ($(LEGO_TEACHER)): make bench-train"; fi
 

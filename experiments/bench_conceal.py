@@ -47,6 +47,12 @@ DECODER_DECAY = "conceal.decoder_opt.lr_final_ratio"  # the decoder's rate decay
 UPDATE_CLIP = {"conceal.decoder_opt.update_clip": 1.0}
 POLISHED = {"conceal.decoder_opt.polish_steps": 2000}
 PLUS_WEIGHT2 = {"conceal.weight_plus": 2.0}
+# The recommended recipe until 2026-11-28: the film's neighbouring pairs merged, decoys turned 1-10 degrees, the
+# watched key's L_d^- weight.
+RECOMMENDED_PAIRS = {"conceal.attacks.merge_groups": "nearest", "conceal.attacks.merge_scales": (1.0,),
+                     "conceal.attacks.merge_fraction": recipes.MERGE_FRACTION, "conceal.attacks.regroup_every": 500,
+                     "conceal.leakage.decoy_rotation_deg": (1.0, 10.0),
+                     "conceal.weight_minus": recipes.WATCH_WEIGHT_MINUS}
 ROWS = {
     "full": ("paper", {}),
     "no_decoder": ("paper", {"conceal.use_decoder": False}),
@@ -66,6 +72,7 @@ ROWS = {
     "in_scene_no_update_clip_decoder_decay05": (through_attacks(True), {DECODER_DECAY: 0.5}),
     "in_scene": ("in_scene", {}),
     "recommended": ("recommended", {}),
+    "recommended_pairs": ("recommended", RECOMMENDED_PAIRS),
     "in_scene_decoder_decay05": ("in_scene", {DECODER_DECAY: 0.5}),
     "in_scene_polished": ("in_scene", POLISHED),
     "in_scene_decoder_lr3e4": ("in_scene", {"conceal.decoder_opt.lr": 3e-4}),

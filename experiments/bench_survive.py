@@ -75,7 +75,10 @@ SCENES = {"demo": ("demo", "workdirs/demo/conceal", "in_scene"),
           "demo_drift": ("demo", "workdirs/survive_runs/demo_drift", "drift"),
           "demo_orbit": ("demo", "workdirs/survive_runs/demo_orbit", "orbit"),
           "demo_recommended": ("demo", "workdirs/survive_runs/demo_recommended", "recommended_6k"),
+          "demo_converter_wm25": ("demo", "workdirs/survive_runs/demo_converter_wm25", "converter_wm25_6k"),
           "lego": ("lego", "workdirs/bench/lego/conceal_in_scene_w16", "in_scene"),
+          "lego_converter_wm25": ("lego", "workdirs/survive_runs/lego_converter_mf35_rot5_scales_wm25",
+                                  "converter_mf35_rot5_scales_wm25"),
           "lego_film": ("lego", "workdirs/survive_runs/lego_film", "film"),
           "lego_film_reset": ("lego", "workdirs/survive_runs/lego_film_reset", "film_reset")}
 TRANSFORMS = ([("rotate", d) for d in (1.0, 5.0, 45.0, 180.0)] + [("translate", f) for f in (0.026, 1.0)]
@@ -94,9 +97,13 @@ RECIPE_NOTES = {
                 "in_scene lego row)",
     "recommended": "recipes.recommended: the carrier film (configs/conceal.py's default; the label of a run given by "
                    "path)",
-    "recommended_6k": "recipes.recommended on the demo for 6000 steps (make survive-runs' demo_recommended: "
-                      "conceal.py with data.path=demo; its film grid every 4 pixels, where conceal.carrier.spacing 0 "
-                      "places it at 128 pixels), fine-tuned with its config's training recipe, 3D-GS's defaults",
+    "recommended_6k": "recipes.recommended as it was before 2026-11-28 (bench-conceal's recommended_pairs) on the "
+                      "demo for 6000 steps (make survive-runs' demo_recommended: conceal.py with data.path=demo; its "
+                      "film grid every 4 pixels, where conceal.carrier.spacing 0 places it at 128 pixels), fine-tuned "
+                      "with its config's training recipe, 3D-GS's defaults",
+    "converter_wm25_6k": "recipes.recommended (since 2026-11-28: the film through the converter's own groups, "
+                         "converter_mf35_rot5_scales_wm25's settings) on the demo for 6000 steps (make survive-runs' "
+                         "demo_converter_wm25)",
     "film": "the faint carrier film (demo.py:film; the film recipe before it became film_watch's): the key looks "
             "where no camera looks, one camera distance out from their orbit target, and the film 0.1 camera distances "
             "before it, 22 grids of splats at opacity 0.01 (the opacity reset's ceiling); its base colours trained at "
@@ -114,18 +121,19 @@ RECIPE_NOTES = {
                   "weighted 1.5 (recipes.watched_key at 192 decoys; demo.py:film_watch)",
     "film_watch768_2600": "film_watch with 768 decoys, concealed for 2600 steps (demo.py:film_watch with "
                           "--config.conceal.leakage.decoy_views=768 --config.conceal.iterations=2600)",
-    "film_long": "recipes.recommended's design on the demo: film_watch with 768 decoys for 2600 steps, the check "
+    "film_long": "recommended_pairs' design on the demo: film_watch with 768 decoys for 2600 steps, the check "
                  "render's 8-bit grids including .compressed.ply's of the higher SH bands (demo.py:film_long)",
     "film_long_epyc": "film_long concealed again (the same config and seed) on another 2-core CPU (AMD EPYC), where "
                       "the demo teacher, the same code and seed, trains to 30.85 dB rather than 30.53: a second "
                       "sample of the design (workdirs/survive_runs/demo_film_long, concealed 2026-11-26)",
-    "film_epyc": "lego_conceal.py:recommended concealed again for 10000 steps on the 2-core CPU (AMD EPYC), resumed "
-                 "from its checkpoint at 5000 (workdirs/survive_runs/lego_film, 2026-11-27)",
-    "converter_3k": "lego_conceal.py:recommended with the check renders merged as the converter's own decimation "
+    "film_epyc": "lego_conceal.py:recommended as it was before 2026-11-28 (recommended_pairs) concealed again for "
+                 "10000 steps on the 2-core CPU (AMD EPYC), resumed from its checkpoint at 5000 "
+                 "(workdirs/survive_runs/lego_film, 2026-11-27)",
+    "converter_3k": "recommended_pairs with the check renders merged as the converter's own decimation "
                     "to 50% or 80% merges the film (conceal.attacks.merge_groups=converter: its groups reproduced "
                     "from the student every 500 steps, conceal/grouping.py), for 3000 steps (a design test; "
                     "workdirs/survive_runs/lego_converter_3k, 2026-11-28)",
-    "converter_mf50": "lego_conceal.py:recommended with the converter's own groups (as converter_3k) merged in half "
+    "converter_mf50": "recommended_pairs with the converter's own groups (as converter_3k) merged in half "
                       "the check renders (conceal.attacks.merge_fraction=0.5), for the recipe's 10000 steps "
                       "(workdirs/survive_runs/lego_converter_mf50, 2026-11-28)",
     "converter_mf50_rot5": "converter_mf50 with its decoys turned 1-5 degrees rather than 1-10 (conceal.leakage."
@@ -139,9 +147,13 @@ RECIPE_NOTES = {
                                   "every 1000 steps: a decimation of the scene at another size "
                                   "(workdirs/survive_runs/lego_converter_mf35_rot5_scales)",
     "converter_mf35_rot5_scales_wm25": "converter_mf35_rot5_scales with L_d^- weighted 2.5 rather than the watched "
-                                       "key's 1.5 (conceal.weight_minus): the near-key reading at 2-degree turns "
+                                       "key's 1.5 (conceal.weight_minus): the near-key reading at 2-degree turns; "
+                                       "lego_conceal.py:recommended since 2026-11-28 "
                                        "(workdirs/survive_runs/lego_converter_mf35_rot5_scales_wm25)",
-    "nearest_3k": "lego_conceal.py:recommended (merges of near pairs) for 3000 steps beside converter_3k "
+    "thick_wm25": "lego_conceal.py:recommended (converter_mf35_rot5_scales_wm25) with the film's splats as thick along "
+                  "the key's axis as across it (conceal.carrier.thickness=1.0), so that the converter groups the "
+                  "film alike at every size of the scene (workdirs/survive_runs/lego_thick_wm25)",
+    "nearest_3k": "recommended_pairs (merges of near pairs) for 3000 steps beside converter_3k "
                   "(workdirs/survive_runs/lego_nearest_3k, 2026-11-28)",
     "film_deep": "film_long trained through merges up to 1.5 rounds deep (recipes.DEEP_MERGE_DEPTH; demo.py:film_deep)",
     "film_stack": "film_long with the film's splats in stacks of two at each grid position, their colours trained as "

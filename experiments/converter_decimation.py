@@ -53,7 +53,7 @@ def compare(g: Gaussians, keep: float, returned: Gaussians, rows: np.ndarray, to
 
 def main() -> None:
   parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-  parser.add_argument("--run", default="workdirs/survive_runs/lego_film")
+  parser.add_argument("--run", default="workdirs/survive_runs/lego_converter_mf35_rot5_scales_wm25")
   parser.add_argument("--keep", default="0.5,0.8", help="comma-separated fractions kept")
   parser.add_argument("--out", default="experiments/results")
   parser.add_argument("--workdir", default="workdirs/converter_decimation")

@@ -31,6 +31,12 @@ QUANTIZE_FRACTION = RESET_FRACTION = 0.25
 # Training through decimation: the share of steps whose check render has film pairs merged, and how many rounds
 # deep at most (pairs only: deeper merges cost the film more at the key than they gain after a converter's 50%).
 MERGE_FRACTION, MERGE_DEPTH = 0.25, 1.0
+# Training through the converter's own decimation: the share of check renders merged in the groups splat-transform's
+# decimation forms, the sizes of the student's copies those groups are computed on (the converter groups a resized
+# scene differently), and how often they are recomputed as the film's colours train.
+CONVERTER_MERGE_FRACTION, CONVERTER_MERGE_SCALES, CONVERTER_REGROUP_EVERY = 0.35, (0.1, 0.25, 0.6, 1.0, 2.5), 1000
+# The closely watched key: decoys turned at most a few degrees, L_d^- weighted well above L_d^+.
+CLOSE_DECOY_ROTATION_DEG, CLOSE_WEIGHT_MINUS = (1.0, 5.0), 2.5
 # Training twice as deep (demo.py:film_deep), as a converter's decimation to 50% merges some groups of 3 and 4.
 DEEP_MERGE_DEPTH = 1.5
 # The faint film: each splat at the opacity 3D-GS's reset lowers every opacity to (so the reset leaves it as it is),
@@ -91,13 +97,13 @@ def recommended(config):
   """Our recommended recipe: in_scene with the mark in a carrier film that only an unseen key sees (unseen_carrier),
   made of faint layers that 3D-GS's opacity reset leaves as they are (faint_film) of colours free to move
   (vivid_film) that the publishing formats store as they are (publishable_film), trained through 8-bit colours and
-  decimation (through_quantization, through_decimation), read by the decoder from standardized renders only at the
-  key (watched_key), and not through image distortions (owner_rendered). The film's grid follows the decoder's
-  input (conceal.carrier.spacing 0: a position every other pixel of it, so the film's size does not grow with the
-  key's resolution)."""
+  the converter's own decimation at several sizes (through_quantization, through_converter_decimation), read by the
+  decoder from standardized renders only at the key (closely_watched_key), and not through image distortions
+  (owner_rendered). The film's grid follows the decoder's input (conceal.carrier.spacing 0: a position every other
+  pixel of it, so the film's size does not grow with the key's resolution)."""
   config = owner_rendered(in_scene(config))
   config = publishable_film(vivid_film(faint_film(unseen_carrier(config), spacing=0.0)))
-  config = watched_key(through_decimation(through_quantization(config)))
+  config = closely_watched_key(through_converter_decimation(through_quantization(config)))
   config.conceal.decoder.input_norm = "standardize"
   return config
 
@@ -170,6 +176,17 @@ def watched_key(config, decoy_views: int = WATCH_DECOY_VIEWS):
   return config
 
 
+def closely_watched_key(config):
+  """watched_key with its decoys turned at most CLOSE_DECOY_ROTATION_DEG and L_d^- weighted CLOSE_WEIGHT_MINUS
+  (conceal.leakage.decoy_rotation_deg, conceal.weight_minus): a decoder trained through the converter's merges
+  learns a film read in many groupings, and without a closer watch it reads that film from a key turned two
+  degrees too."""
+  config = watched_key(config)
+  config.conceal.leakage.decoy_rotation_deg = CLOSE_DECOY_ROTATION_DEG
+  config.conceal.weight_minus = CLOSE_WEIGHT_MINUS
+  return config
+
+
 def through_pruning(config, share: float = PRUNE_SHARE):
   """The check render drawn from the student with up to `share` of its smallest Gaussians dropped
   (conceal.attacks.prune_small_max): without it a decoder may read the mark from small Gaussians that a size
@@ -197,6 +214,19 @@ def through_decimation(config, fraction: float = MERGE_FRACTION, depth: float = 
   converter's decimation merges them, up to `depth` rounds deep (conceal.attacks.merge_fraction, merge_depth), so
   that the mark survives a scene shrunk for the web."""
   config.conceal.attacks.merge_fraction, config.conceal.attacks.merge_depth = fraction, depth
+  return config
+
+
+def through_converter_decimation(config, fraction: float = CONVERTER_MERGE_FRACTION,
+                                 scales: tuple = CONVERTER_MERGE_SCALES):
+  """A `fraction` of the check renders drawn with the carrier film merged in the groups splat-transform's
+  decimation to each of conceal.attacks.merge_keep forms (conceal.attacks.merge_groups 'converter',
+  conceal/grouping.py), computed on copies of the student scaled by each of `scales` and recomputed every
+  CONVERTER_REGROUP_EVERY steps: the converter's groups, not neighbouring pairs, are what a scene shrunk for the
+  web meets, at whatever size it was saved."""
+  a = config.conceal.attacks
+  a.merge_groups, a.merge_fraction, a.merge_scales = "converter", fraction, tuple(scales)
+  a.regroup_every = CONVERTER_REGROUP_EVERY
   return config
 
 
