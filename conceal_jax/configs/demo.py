@@ -16,8 +16,9 @@ The survival bench's variants (issue 39): `demo.py:film` is the first faint film
 unseen key sees, of faint layers whose colours train at a higher rate, through 8-bit colours) with 64 decoys near the
 key; the designs beside it: `film_pub` (film trained through decimation too, recipes.through_decimation), `film_web`
 (film_pub at an opacity and within colours the publishing formats store unchanged, recipes.publishable_film),
-`film_watch` (film_web with 192 decoys on most steps, recipes.watched_key), `film_long` (recipes.recommended's
-design: film_watch with 768 decoys and twice as long, FILM_ITERATIONS), `film_deep` (film_long trained through merges
+`film_watch` (film_web with 192 decoys on most steps, recipes.watched_key), `film_long` (the design of the recommended
+recipe before it trained through the converter's own groups: film_watch with 768 decoys and twice as long,
+FILM_ITERATIONS), `film_deep` (film_long trained through merges
 deeper than pairs, recipes.DEEP_MERGE_DEPTH), `film_stack` (film_long's splats in colour-tied stacks of two,
 recipes.stacked_film), `film_faint` (its colours at the gentle student's rate), `film_reset` (one layer at opacity
 0.5, trained through opacity resets), `film_far` (film_reset with the key half a camera distance from the orbit
