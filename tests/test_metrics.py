@@ -160,14 +160,14 @@ def reference_lpips_vgg(a: np.ndarray, b: np.ndarray) -> float:
 def test_lpips_vgg_matches_float64_reference():
   a = smooth_image(32, 40)
   b = noisy(a, 0.08)
-  value = float(jax.jit(metrics.lpips_fn("vgg"))(a, b))
+  value = float(metrics.lpips_fn("vgg")(a, b))
   assert value == pytest.approx(reference_lpips_vgg(a, b), rel=1e-4)
 
 
 @needs_lpips
 @pytest.mark.parametrize("net", ["vgg", "alex"])
 def test_lpips_zero_for_identical_and_grows_with_noise(net):
-  fn = jax.jit(metrics.lpips_fn(net))
+  fn = metrics.lpips_fn(net)
   a = smooth_image(64, 64)
   assert abs(float(fn(a, a))) < 1e-6
   values = [float(fn(a, noisy(a, sigma))) for sigma in (0.02, 0.08, 0.3)]
