@@ -400,7 +400,8 @@ def test_two_hidden_images_each_at_its_own_key(tiny, tmp_path):
 
 
 @pytest.mark.parametrize("overrides", [
-    dict(use_decoder=False), pytest.param(dict(consistency=False, guidance=False), marks=pytest.mark.slow),
+    pytest.param(dict(use_decoder=False), marks=pytest.mark.job),
+    pytest.param(dict(consistency=False, guidance=False), marks=pytest.mark.slow),
     pytest.param(dict(variant="released", granularity="tensor", key_kind="orbit"), marks=pytest.mark.slow),
     pytest.param(dict(identity_on_student=True, identity_on_teacher_check=True, decoy_views=3, decoy_fraction=0.5),
                  marks=pytest.mark.slow),

@@ -153,6 +153,7 @@ def test_snapshots_must_fall_on_log_windows(tiny_scene):
     train.validate(config)
 
 
+@pytest.mark.job
 def test_a_resumed_run_must_have_the_snapshots_it_passed(tiny_scene, tmp_path):
   """A run stopped at step 4 without snapshots cannot be resumed asking for one at step 4 (it would never be
   written); asking for one at step 8, not reached yet, resumes and writes it."""
