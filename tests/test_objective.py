@@ -225,21 +225,31 @@ def test_adam_of_the_colours_alone_moves_them_as_over_the_whole_student():
 @pytest.mark.parametrize("row", ["ours", pytest.param("released", marks=pytest.mark.slow),
                                  pytest.param("perturbed", marks=pytest.mark.slow)])
 def test_two_guided_steps_are_the_pre_redesign_steps(row):
-  """Two steps of the guided update (state donated): the student, decoder and statistics the step gave before."""
+  """Two steps of the guided update (state donated): the student, decoder and statistics the step gave before.
+  Row 'ours' also runs the step's two views on two devices: the same state and statistics as on one."""
   golden = golden_arrays(row)
   student, decoder, data = objective_inputs()
   s = golden_settings(row)
   student_tx = optimizer.gaussian_optimizer(default.get_config().conceal.lr, 1.0, 100)
   decoder_tx = optax.adam(1e-3)
-  step = step_lib.make_step(s, OPTIONS, student_tx, decoder_tx)
-  state = step_lib.create_state(*jax.tree.map(jnp.array, (student, decoder)), student_tx, decoder_tx)
   distortion = DISTORTION if s.augmentation.draws else None
-  for view, normal_view in ((0, 1), (1, 2)):
-    state, stats = step(state, data, view, normal_view, 0, distortion)
-  for i, (a, b) in enumerate(zip(jax.tree.leaves((state.student, state.decoder)), golden["state"])):
+  results = []
+  two = row == "ours" and jax.local_device_count() >= 2
+  for mesh in (None, parallel.batch_mesh(2)) if two else (None,):
+    step = step_lib.make_step(s, OPTIONS, student_tx, decoder_tx, mesh)
+    state = parallel.replicate(step_lib.create_state(*jax.tree.map(jnp.array, (student, decoder)), student_tx,
+                                                     decoder_tx), mesh)
+    placed = parallel.replicate(data, mesh)
+    for view, normal_view in ((0, 1), (1, 2)):
+      state, stats = step(state, placed, view, normal_view, 0, distortion)
+    results.append(jax.device_get((state.student, state.decoder, stats)))
+  state_leaves, stats = jax.tree.leaves(results[0][:2]), results[0][2]
+  for i, (a, b) in enumerate(zip(state_leaves, golden["state"])):
     np.testing.assert_allclose(sketch(a, i), b, rtol=1e-4, atol=1e-6 * float(b[0]) + 1e-9)
   for name in ("loss", "normal", "plus", "minus", "psnr", "num_pairs", "mean_guidance_weight"):
     np.testing.assert_allclose(stats[name], golden["stats"][name], rtol=1e-5, err_msg=name)
+  for other in results[1:]:
+    jax.tree.map(lambda a, b: np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-7), results[0], other)
 
 
 @pytest.mark.parametrize("reading", [reveal.PAPER_READING, reveal.Reading("center", False)])
@@ -276,21 +286,3 @@ def test_map_reduce_over_two_devices_is_the_one_device_result():
   assert two[1]["n"].dtype == jnp.int32 and list(two[1]["n"]) == [3 * (2**24 + 1), 15]
   grad = lambda m: jax.grad(lambda w: parallel.map_reduce_over_batch(fn, w, batch, m)[0][0])(w)
   np.testing.assert_allclose(jax.jit(lambda w: grad(mesh))(w), grad(None), rtol=1e-6)
-
-
-@needs_two
-def test_a_step_on_two_devices_matches_one():
-  """Two guided steps with the step's two views on two devices and on one: the same state and statistics."""
-  student, decoder, data = objective_inputs()
-  s = golden_settings("ours")
-  student_tx, decoder_tx = optimizer.gaussian_optimizer(default.get_config().conceal.lr, 1.0, 100), optax.adam(1e-3)
-  results = []
-  for mesh in (None, parallel.batch_mesh(2)):
-    step = step_lib.make_step(s, OPTIONS, student_tx, decoder_tx, mesh)
-    state = parallel.replicate(step_lib.create_state(*jax.tree.map(jnp.array, (student, decoder)), student_tx,
-                                                     decoder_tx), mesh)
-    placed = parallel.replicate(data, mesh)
-    for view, normal_view in ((0, 1), (1, 2)):
-      state, stats = step(state, placed, view, normal_view)
-    results.append(jax.device_get((state.student, state.decoder, stats)))
-  jax.tree.map(lambda a, b: np.testing.assert_allclose(b, a, rtol=1e-5, atol=1e-7), *results)
