@@ -3,6 +3,8 @@ each term against the paper's equations assembled by hand, the gradients against
 pre-redesign step (tests/data/conceal_step_golden.npz), and the views split over two devices against one."""
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -41,6 +43,7 @@ def objective_inputs(size=16, width=4, views=3, hw=(20, 24)):
   return student, unet.init_decoder(jax.random.key(0), width, size), data
 
 
+@functools.partial(jax.jit, static_argnames=("s", "options"))  # one program, not one per operation
 def terms_of(student, decoder, views, s, options=OPTIONS):
   return jax.vmap(objective.view_terms, in_axes=(None, None, None, 0, None, None))(student, decoder, decoder, views, s,
                                                                                    options)
