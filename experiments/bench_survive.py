@@ -156,6 +156,10 @@ RECIPE_NOTES = {
     "thick_mf20_wm25": "thick_wm25 with 20% of the check renders merged rather than 35% "
                        "(conceal.attacks.merge_fraction=0.2): the untouched reading against the merged ones "
                        "(workdirs/survive_runs/lego_thick_mf20_wm25)",
+    "thick03_wm25": "lego_conceal.py:recommended with the film's splats 0.3 times as thick along the key's axis as "
+                    "across it (conceal.carrier.thickness=0.3): thick enough that the converter's covariance floor "
+                    "does not decide the film's groups down to a scene resized by 0.15, thinner than thick_wm25 "
+                    "(workdirs/survive_runs/lego_thick03_wm25)",
     "nearest_3k": "recommended_pairs (merges of near pairs) for 3000 steps beside converter_3k "
                   "(workdirs/survive_runs/lego_nearest_3k, 2026-11-28)",
     "film_deep": "film_long trained through merges up to 1.5 rounds deep (recipes.DEEP_MERGE_DEPTH; demo.py:film_deep)",
