@@ -37,6 +37,9 @@ from conceal_jax.splat.projection import project
 _DEPTH_ALPHA_FLOOR = 1e-10
 # Capacity buckets: a geometric series with ratio sqrt(2) from _MIN_CAPACITY, rounded up to 256.
 _MIN_CAPACITY = 1024
+# Images whose every splat-tile pair fits this many start at that capacity (initial_capacity): small buffers, and a
+# first eager render that never compiles a second program at a grown capacity.
+_SMALL_IMAGE_PAIRS = 1 << 16
 # Pixel-pairs evaluated per loop iteration of the compositor: intermediates of 128 kB stay in cache.
 _BLOCK_PIXEL_PAIRS = 1 << 15
 # Last capacity that sufficed, per (options, number of Gaussians, image size), for eager calls.
@@ -135,11 +138,17 @@ def grow_capacity(options: RenderOptions, needed) -> RenderOptions:
   return dataclasses.replace(options, pair_capacity=capacity_bucket(needed))
 
 
-def initial_capacity(num_gaussians: int, options: RenderOptions) -> int:
+def initial_capacity(num_gaussians: int, options: RenderOptions, num_tiles: int | None = None) -> int:
   """The automatic capacity before anything is known about the scene: a few tiles per Gaussian, more for
-  smaller tiles (the pair counts it is set from: experiments/results/train_configs.md)."""
+  smaller tiles (the pair counts it is set from: experiments/results/train_configs.md). Given the image's
+  `num_tiles`, an image that can need at most _SMALL_IMAGE_PAIRS pairs (every splat on every tile) gets them
+  all at once, so that its first render never re-runs (and compiles) at a grown capacity."""
   per_gaussian = 2 + 48 / options.tile_size
-  return capacity_bucket(int(num_gaussians * per_gaussian))
+  estimate = capacity_bucket(int(num_gaussians * per_gaussian))
+  if num_tiles is None:
+    return estimate
+  most = capacity_bucket(num_gaussians * num_tiles)
+  return most if most <= max(estimate, _SMALL_IMAGE_PAIRS) else estimate
 
 
 def render(gaussians: Gaussians, camera: Camera, options: RenderOptions = RenderOptions(),
@@ -168,7 +177,10 @@ def _with_capacity(run, options: RenderOptions, scene_key) -> RenderOutput:
   key = (dataclasses.replace(options, pair_capacity=None),) + tuple(scene_key)
   opts = options
   if opts.pair_capacity is None:
-    opts = dataclasses.replace(opts, pair_capacity=_capacity_cache.get(key, initial_capacity(scene_key[0], opts)))
+    num, width, height = scene_key
+    tiles_x, tiles_y = binning.tile_grid(width, height, opts.tile_size)
+    opts = dataclasses.replace(opts, pair_capacity=_capacity_cache.get(key, initial_capacity(num, opts,
+                                                                                             tiles_x * tiles_y)))
   out = run(opts)
   needed = _concrete_max(out.num_pairs)
   while needed is not None and needed > opts.pair_capacity:
