@@ -2,8 +2,9 @@
 
 A shared scene may have been turned, moved, resized or reordered on import, and its colours graded (brighter,
 darker, more or less contrast), by an editor or a converter. Its frame: the suspect is registered onto the owner's
-copy (gs.register: the similarity owner -> suspect from the Gaussians alone) and the key camera is moved with that
-similarity (realign), so that it sees the suspect as the key saw the marked scene, reading only the SH
+copy (gs.register: the similarity owner -> suspect from the Gaussians alone), the key camera is moved with that
+similarity and its pose refined on the film (key_refine), so that it sees the suspect as the key saw the marked
+scene, reading only the SH
 bands the owner's copy shows there (key_options: a converter that quantizes zero higher bands, as .compressed.ply's
 8 bits do, returns them as a small tint that depends on the view's direction in the scene's frame). Its tone: the
 suspect's renders are mapped channel by channel onto the owner's by the gain and offset that fit them best
@@ -24,6 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from conceal_jax.conceal import key_refine
 from conceal_jax.gs import register as register_lib, similarity as similarity_lib
 from conceal_jax.splat.camera import Camera, look_at
 from conceal_jax.splat.gaussians import Gaussians
@@ -128,26 +130,34 @@ def moved_key(camera: Camera, options: RenderOptions,
 class Realignment:
   """A suspect scene re-aligned onto the owner's copy (realign): the key `camera` and render `options` moved into
   its frame (reading the key's SH degree), the `registration` (similarity owner -> suspect, residual, matched
-  fraction) and the tone maps by name, `tones` ("toned": tone_at_key; "scene_toned": scene_tone)."""
+  fraction), the key's `refinement` from the registered pose (key_refine) and the tone maps by name, `tones`
+  ("toned": tone_at_key; "scene_toned": scene_tone)."""
   camera: Camera
   options: RenderOptions
   registration: register_lib.Registration
+  refinement: key_refine.Refinement
   tones: dict[str, Tone]
 
 
 def realign(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
-            seed: int = 0) -> Realignment:
+            seed: int = 0, refine: bool = True) -> Realignment:
   """The key moved into the suspect scene's frame: registers `suspect` onto the owner's copy `owner` (the scene
   the key was made for; any order, size or count of Gaussians in either), moves `camera` and `options` at the SH
-  degree key_options finds with the similarity found (moved_key), and fits the suspect's tone maps onto the owner's
-  (tone_at_key at the moved key, scene_tone). ValueError from register for scenes too small or not finite."""
+  degree key_options finds with the similarity found (moved_key), refines the moved key's pose on the owner's render
+  at the key (key_refine.refine_key; `refine` False keeps the registered pose) and fits the suspect's tone maps onto
+  the owner's (tone_at_key at the refined key, scene_tone). ValueError from register for scenes too small or not
+  finite."""
   owner, suspect = jax.tree.map(jnp.asarray, owner), jax.tree.map(jnp.asarray, suspect)
   registration = register_lib.register(owner, suspect, seed=seed)
   options = key_options(owner, [camera], options)
   moved, moved_options = moved_key(camera, options, registration.similarity)
+  refinement = key_refine.Refinement(0.0, 0.0, 1.0, 0)
+  if refine:
+    moved, refinement = key_refine.refine_key(owner, suspect, camera, options, moved, moved_options,
+                                              registration.owner_radius * registration.similarity.scale)
   tones = dict(toned=tone_at_key(owner, suspect, camera, options, moved, moved_options),
                scene_toned=scene_tone(owner, suspect, camera, options, registration.similarity))
-  return Realignment(moved, moved_options, registration, tones)
+  return Realignment(moved, moved_options, registration, refinement, tones)
 
 
 def key_options(owner: Gaussians, cameras: Sequence[Camera], options: RenderOptions) -> RenderOptions:
