@@ -9,12 +9,15 @@ its nearest-neighbour pairs are biased by the merges, and its error, small again
 tolerance. The film itself fixes the pose: the key's render of the owner's copy is the reference, and the moved key
 is turned and shifted (in its own frame, within MAX_ROTATION and MAX_SHIFT) until the suspect's render there matches
 it best. Neither the decoder nor the hidden image enters, so the refined key is as available to an innocent scene
-as to a marked one and the ownership test's null readings keep their meaning. Both renders are standardized per
-channel first, so a colour grade of the suspect does not pull the pose.
+as to a marked one and the ownership test's null readings keep their meaning. The suspect's renders pass through a
+colour map (align.tone_at_key's) held fixed while the pose is searched, so that a colour grade of the suspect does
+not pull the pose, and fitted again where the search ends; a map fitted anew at every pose of the search (or renders
+standardized per image) would trade pose for tone.
 """
 from __future__ import annotations
 
 import dataclasses
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -31,8 +34,9 @@ from conceal_jax.splat.render import RenderOptions, grow_capacity, render
 ROTATION_UNIT, SHIFT_UNIT, MAX_UNITS = 1e-3, 1e-3, 5.0
 # L-BFGS-B's iterations and its tolerances on the loss relative to the registered pose's.
 MAX_ITERATIONS, LOSS_TOLERANCE, GRADIENT_TOLERANCE = 100, 1e-10, 1e-8
-# A channel whose standard deviation is below this is only centred (a flat channel has no pose to give).
-_MIN_STD = 1e-6
+# Rounds of the search, each after fitting the suspect's colour map anew at the pose the one before found: a map
+# fitted on misaligned renders is too flat (its gain regresses towards 0) and pulls the pose.
+TONE_ROUNDS = 2
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,12 +50,6 @@ class Refinement:
 
   def report(self) -> dict:
     return dataclasses.asdict(self)
-
-
-def standardized(image: jax.Array) -> jax.Array:
-  """image [H, W, 3] with each channel at zero mean and unit standard deviation (a flat channel only centred)."""
-  centred = image - jnp.mean(image, axis=(0, 1))
-  return centred / jnp.maximum(jnp.std(image, axis=(0, 1)), _MIN_STD)
 
 
 def skew(vector: jax.Array) -> jax.Array:
@@ -75,14 +73,14 @@ def _relative_step(parameters: jax.Array, units: jax.Array) -> tuple[jax.Array, 
   return step[:3], step[3:]
 
 
-def photometric_loss(parameters: jax.Array, suspect: Gaussians, moved: Camera, units: jax.Array, target: jax.Array,
-                     options: RenderOptions) -> tuple[jax.Array, jax.Array]:
-  """The mean squared difference between the standardized render of `suspect` at `moved` turned and shifted by
-  `parameters` [6] times `units` [6] (moved_in_own_frame) and `target` [H, W, 3] (standardized); and the
-  splat-tile pairs that render needed (a render traced here cannot grow its own pair capacity)."""
+def photometric_loss(parameters: jax.Array, suspect: Gaussians, moved: Camera, units: jax.Array, tone: jax.Array,
+                     target: jax.Array, options: RenderOptions) -> tuple[jax.Array, jax.Array]:
+  """The mean squared difference between the render of `suspect` at `moved` turned and shifted by `parameters` [6]
+  times `units` [6] (moved_in_own_frame), mapped by `tone` [2, 3] (gain, offset per channel), and `target`
+  [H, W, 3]; and the splat-tile pairs that render needed (a render traced here cannot grow its own capacity)."""
   turn, shift = _relative_step(parameters, units)
   out = render(suspect, moved_in_own_frame(moved, turn, shift), options)
-  return jnp.mean((standardized(out.rgb) - target) ** 2), out.num_pairs
+  return jnp.mean((out.rgb * tone[0] + tone[1] - target) ** 2), out.num_pairs
 
 
 # one program per scene size, key and pair capacity, however many suspects are refined
@@ -90,38 +88,45 @@ _loss_and_gradient = jax.jit(jax.value_and_grad(photometric_loss, has_aux=True),
 
 
 def refine_key(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
-               moved: Camera, moved_options: RenderOptions, radius: float) -> tuple[Camera, Refinement]:
+               moved: Camera, moved_options: RenderOptions, radius: float,
+               tone_at: Callable[[Camera], tuple] | None = None) -> tuple[Camera, Refinement]:
   """The key `moved` (the owner's key `camera` moved into the suspect's frame by the registration; render options
   `moved_options`) turned and shifted in its own frame, within MAX_UNITS of ROTATION_UNIT radians and SHIFT_UNIT
   of the suspect's `radius`, to minimise photometric_loss against the owner's render at `camera` with `options`
-  (L-BFGS-B on host float64, the loss relative to the registered pose's, gradients through the renderer)."""
-  target = standardized(render(owner, camera, options).rgb)
+  (L-BFGS-B on host float64, the loss relative to the registered pose's, gradients through the renderer). The
+  suspect's renders are mapped by `tone_at(pose)`'s (gain [3], offset [3]) (the identity if None), fitted at the
+  registered pose, then TONE_ROUNDS - 1 times again at the pose found, each round searching on from the last."""
+  target = render(owner, camera, options).rgb
   units = jnp.asarray([ROTATION_UNIT] * 3 + [SHIFT_UNIT * radius] * 3, jnp.float32)
   search = grow_capacity(moved_options, render(suspect, moved, moved_options).num_pairs)
+  at = lambda parameters: moved_in_own_frame(moved, *_relative_step(jnp.asarray(parameters, jnp.float32), units))
 
-  def evaluate(parameters: np.ndarray) -> tuple[jax.Array, jax.Array]:
+  def evaluate(parameters: np.ndarray, tone: jax.Array) -> tuple[jax.Array, jax.Array]:
     nonlocal search
     while True:
       (value, pairs), gradient = _loss_and_gradient(jnp.asarray(parameters, jnp.float32), suspect, moved, units,
-                                                    target, options=search)
+                                                    tone, target, options=search)
       if int(pairs) <= search.pair_capacity:
         return value, gradient
       search = grow_capacity(search, pairs)
 
-  start = float(evaluate(np.zeros(6))[0])
-  if not start > 0.0:  # the renders agree already (or the loss is not finite: nothing to refine from)
-    return moved, Refinement(0.0, 0.0, 1.0 if start == 0.0 else float("nan"), 0)
+  parameters, loss, iterations = np.zeros(6), 1.0, 0
+  for _ in range(TONE_ROUNDS if tone_at is not None else 1):
+    tone = jnp.asarray(tone_at(at(parameters)) if tone_at is not None else ((1.0,) * 3, (0.0,) * 3), jnp.float32)
+    start = float(evaluate(np.zeros(6), tone)[0])
+    if not start > 0.0:  # the renders agree at the registered pose (or the loss is not finite there): keep it
+      return moved, Refinement(0.0, 0.0, 1.0 if start == 0.0 else float("nan"), iterations)
 
-  def relative(parameters: np.ndarray) -> tuple[float, np.ndarray]:
-    value, gradient = evaluate(parameters)
-    return float(value) / start, np.asarray(gradient, np.float64) / start
+    def relative(x: np.ndarray, tone=tone, start=start) -> tuple[float, np.ndarray]:
+      value, gradient = evaluate(x, tone)
+      return float(value) / start, np.asarray(gradient, np.float64) / start
 
-  found = scipy.optimize.minimize(relative, np.zeros(6), jac=True, method="L-BFGS-B",
-                                  bounds=[(-MAX_UNITS, MAX_UNITS)] * 6,
-                                  options=dict(maxiter=MAX_ITERATIONS, ftol=LOSS_TOLERANCE, gtol=GRADIENT_TOLERANCE))
-  if not found.fun < 1.0:  # no pose better than the registered one
-    return moved, Refinement(0.0, 0.0, 1.0, int(found.nit))
-  turn, shift = (np.asarray(x, np.float64) for x in _relative_step(jnp.asarray(found.x, jnp.float32), units))
-  refined = moved_in_own_frame(moved, jnp.asarray(turn, jnp.float32), jnp.asarray(shift, jnp.float32))
-  return refined, Refinement(float(np.degrees(np.linalg.norm(turn))), float(np.linalg.norm(shift) / radius),
-                             float(found.fun), int(found.nit))
+    found = scipy.optimize.minimize(relative, parameters, jac=True, method="L-BFGS-B",
+                                    bounds=[(-MAX_UNITS, MAX_UNITS)] * 6,
+                                    options=dict(maxiter=MAX_ITERATIONS, ftol=LOSS_TOLERANCE, gtol=GRADIENT_TOLERANCE))
+    iterations += int(found.nit)
+    if found.fun < min(loss, 1.0):
+      parameters, loss = np.asarray(found.x), float(found.fun)
+  turn, shift = (np.asarray(x, np.float64) for x in _relative_step(jnp.asarray(parameters, jnp.float32), units))
+  return at(parameters), Refinement(float(np.degrees(np.linalg.norm(turn))), float(np.linalg.norm(shift) / radius),
+                                    loss, iterations)
