@@ -80,3 +80,14 @@ def test_a_key_registered_slightly_off_is_refined_onto_the_owners_view_of_a_grad
   np.testing.assert_allclose(np.asarray(render(suspect, refined, exact_options).rgb) / 0.8,
                              np.asarray(render(owner, camera, options).rgb), atol=2e-3)
   assert refinement.rotation_deg > np.degrees(before[0]) / 2
+
+
+def test_a_copy_whose_renders_already_agree_keeps_its_registered_key():
+  camera, options = make_camera(32, 32, eye=(0.5, -5.0, 1.5)), RenderOptions()
+  owner = filmed_scene(camera)
+  similarity = sim.Similarity(sim.rotation_from_axis_angle([0.2, 1.0, -0.4], 2.5), np.array([1.0, 0.5, -2.0]), 0.6)
+  exact, exact_options = align.moved_key(camera, options, similarity)
+  kept, refinement = key_refine.refine_key(owner, sim.transform_gaussians(owner, similarity), camera, options, exact,
+                                           exact_options, 1.2)
+  assert refinement == key_refine.Refinement(0.0, 0.0, 1.0, 0)
+  np.testing.assert_array_equal(np.asarray(kept.world_to_camera), np.asarray(exact.world_to_camera))

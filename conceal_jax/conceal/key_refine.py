@@ -34,6 +34,9 @@ from conceal_jax.splat.render import RenderOptions, grow_capacity, render
 ROTATION_UNIT, SHIFT_UNIT, MAX_UNITS = 1e-3, 1e-3, 5.0
 # L-BFGS-B's iterations and its tolerances on the loss relative to the registered pose's.
 MAX_ITERATIONS, LOSS_TOLERANCE, GRADIENT_TOLERANCE = 100, 1e-10, 1e-8
+# Renders whose mean squared difference is below this already agree (a fortieth of an 8-bit level, root mean
+# square): a suspect that is the owner's Gaussians moved is registered exactly, and nothing is searched.
+AGREEMENT = 1e-8
 # Rounds of the search, each after fitting the suspect's colour map anew at the pose the one before found: a map
 # fitted on misaligned renders is too flat (its gain regresses towards 0) and pulls the pose.
 TONE_ROUNDS = 2
@@ -42,7 +45,8 @@ TONE_ROUNDS = 2
 @dataclasses.dataclass(frozen=True)
 class Refinement:
   """What refine_key changed: the key's turn (degrees) and shift (in the scene's radii) from the registered pose,
-  the photometric loss there and after (relative to the registered pose's: 1 then below), and the iterations."""
+  the photometric loss at the pose found relative to the registered pose's (through the last tone; 1: kept, as where
+  the renders already agree), and the search's iterations."""
   rotation_deg: float
   shift: float
   loss: float
@@ -113,9 +117,10 @@ def refine_key(owner: Gaussians, suspect: Gaussians, camera: Camera, options: Re
   parameters, loss, iterations = np.zeros(6), 1.0, 0
   for _ in range(TONE_ROUNDS if tone_at is not None else 1):
     tone = jnp.asarray(tone_at(at(parameters)) if tone_at is not None else ((1.0,) * 3, (0.0,) * 3), jnp.float32)
-    start = float(evaluate(np.zeros(6), tone)[0])
-    if not start > 0.0:  # the renders agree at the registered pose (or the loss is not finite there): keep it
-      return moved, Refinement(0.0, 0.0, 1.0 if start == 0.0 else float("nan"), iterations)
+    agreement = float(jnp.mean((render(suspect, at(parameters), search).rgb * tone[0] + tone[1] - target) ** 2))
+    start = float(evaluate(np.zeros(6), tone)[0]) if agreement > AGREEMENT else 0.0
+    if not start > 0.0:  # the renders agree already (or do not compare: not finite): nothing to search
+      break
 
     def relative(x: np.ndarray, tone=tone, start=start) -> tuple[float, np.ndarray]:
       value, gradient = evaluate(x, tone)
@@ -124,9 +129,9 @@ def refine_key(owner: Gaussians, suspect: Gaussians, camera: Camera, options: Re
     found = scipy.optimize.minimize(relative, parameters, jac=True, method="L-BFGS-B",
                                     bounds=[(-MAX_UNITS, MAX_UNITS)] * 6,
                                     options=dict(maxiter=MAX_ITERATIONS, ftol=LOSS_TOLERANCE, gtol=GRADIENT_TOLERANCE))
-    iterations += int(found.nit)
-    if found.fun < min(loss, 1.0):
-      parameters, loss = np.asarray(found.x), float(found.fun)
+    parameters, loss, iterations = np.asarray(found.x), float(found.fun), iterations + int(found.nit)
+  if not loss < 1.0:  # no pose better than the registered one
+    parameters, loss = np.zeros(6), 1.0
   turn, shift = (np.asarray(x, np.float64) for x in _relative_step(jnp.asarray(parameters, jnp.float32), units))
   return at(parameters), Refinement(float(np.degrees(np.linalg.norm(turn))), float(np.linalg.norm(shift) / radius),
                                     loss, iterations)
