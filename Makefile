@@ -154,7 +154,7 @@ SURVIVE_RUNS := workdirs/survive_runs
 LEGO_TEACHER := workdirs/bench/lego/teacher/point_cloud.ply
 LEGO_FILM_STEPS ?= 10000
 DEMO_RECOMMENDED_STEPS ?= 6000
-LEGO_RECOMMENDED := lego_converter_mf35_rot5_scales_wm25
+LEGO_RECOMMENDED := lego_thick_mf20_wm25
 SURVIVE_VARIANTS := film film_pub film_web film_watch film_long film_deep film_stack film_faint film_reset film_far drift pruned orbit
 $(WORKDIR)/teacher/point_cloud.ply: | $(STAMP)
 	$(MAIN) --workdir=$(WORKDIR)/teacher
@@ -162,8 +162,8 @@ survive-runs: $(STAMP) | $(WORKDIR)/teacher/point_cloud.ply
 	for variant in $(SURVIVE_VARIANTS); do test -f $(SURVIVE_RUNS)/demo_$$variant/metrics.json || \
 	  $(PY) -m conceal_jax.main --config=conceal_jax/configs/demo.py:$$variant --workdir=$(SURVIVE_RUNS)/demo_$$variant \
 	  --config.mode=conceal --config.mark.teacher=$(WORKDIR)/teacher/point_cloud.ply || exit 1; done
-	test -f $(SURVIVE_RUNS)/demo_converter_wm25/metrics.json || $(PY) -m conceal_jax.main \
-	  --config=conceal_jax/configs/conceal.py --workdir=$(SURVIVE_RUNS)/demo_converter_wm25 \
+	test -f $(SURVIVE_RUNS)/demo_thick_mf20/metrics.json || $(PY) -m conceal_jax.main \
+	  --config=conceal_jax/configs/conceal.py --workdir=$(SURVIVE_RUNS)/demo_thick_mf20 \
 	  --config.data.path=demo --config.data.background=white --config.conceal.iterations=$(DEMO_RECOMMENDED_STEPS) \
 	  --config.conceal.checkpoint_every=200 --config.conceal.eval_every=100 \
 	  --config.mark.teacher=$(WORKDIR)/teacher/point_cloud.ply

@@ -47,12 +47,15 @@ DECODER_DECAY = "conceal.decoder_opt.lr_final_ratio"  # the decoder's rate decay
 UPDATE_CLIP = {"conceal.decoder_opt.update_clip": 1.0}
 POLISHED = {"conceal.decoder_opt.polish_steps": 2000}
 PLUS_WEIGHT2 = {"conceal.weight_plus": 2.0}
-# The recommended recipe until 2026-11-28: the film's neighbouring pairs merged, decoys turned 1-10 degrees, the
-# watched key's L_d^- weight.
+# The recommended recipe of 2026-11-28 afternoon: the film flat along the key's axis, through the converter's groups
+# in a third of the check renders.
+RECOMMENDED_FLAT = {"conceal.carrier.thickness": 0.01, "conceal.attacks.merge_fraction": 0.35}
+# The recommended recipe until 2026-11-28: the flat film's neighbouring pairs merged, decoys turned 1-10 degrees,
+# the watched key's L_d^- weight.
 RECOMMENDED_PAIRS = {"conceal.attacks.merge_groups": "nearest", "conceal.attacks.merge_scales": (1.0,),
                      "conceal.attacks.merge_fraction": recipes.MERGE_FRACTION, "conceal.attacks.regroup_every": 500,
                      "conceal.leakage.decoy_rotation_deg": (1.0, 10.0),
-                     "conceal.weight_minus": recipes.WATCH_WEIGHT_MINUS}
+                     "conceal.weight_minus": recipes.WATCH_WEIGHT_MINUS, "conceal.carrier.thickness": 0.01}
 ROWS = {
     "full": ("paper", {}),
     "no_decoder": ("paper", {"conceal.use_decoder": False}),
@@ -72,6 +75,7 @@ ROWS = {
     "in_scene_no_update_clip_decoder_decay05": (through_attacks(True), {DECODER_DECAY: 0.5}),
     "in_scene": ("in_scene", {}),
     "recommended": ("recommended", {}),
+    "recommended_flat": ("recommended", RECOMMENDED_FLAT),
     "recommended_pairs": ("recommended", RECOMMENDED_PAIRS),
     "in_scene_decoder_decay05": ("in_scene", {DECODER_DECAY: 0.5}),
     "in_scene_polished": ("in_scene", POLISHED),

@@ -75,10 +75,11 @@ SCENES = {"demo": ("demo", "workdirs/demo/conceal", "in_scene"),
           "demo_drift": ("demo", "workdirs/survive_runs/demo_drift", "drift"),
           "demo_orbit": ("demo", "workdirs/survive_runs/demo_orbit", "orbit"),
           "demo_recommended": ("demo", "workdirs/survive_runs/demo_recommended", "recommended_6k"),
-          "demo_converter_wm25": ("demo", "workdirs/survive_runs/demo_converter_wm25", "converter_wm25_6k"),
+          "demo_thick": ("demo", "workdirs/survive_runs/demo_thick_mf20", "thick_mf20_6k"),
           "lego": ("lego", "workdirs/bench/lego/conceal_in_scene_w16", "in_scene"),
           "lego_converter_wm25": ("lego", "workdirs/survive_runs/lego_converter_mf35_rot5_scales_wm25",
                                   "converter_mf35_rot5_scales_wm25"),
+          "lego_thick": ("lego", "workdirs/survive_runs/lego_thick_mf20_wm25", "thick_mf20_wm25"),
           "lego_film": ("lego", "workdirs/survive_runs/lego_film", "film"),
           "lego_film_reset": ("lego", "workdirs/survive_runs/lego_film_reset", "film_reset")}
 TRANSFORMS = ([("rotate", d) for d in (1.0, 5.0, 45.0, 180.0)] + [("translate", f) for f in (0.026, 1.0)]
@@ -101,9 +102,9 @@ RECIPE_NOTES = {
                       "demo for 6000 steps (make survive-runs' demo_recommended: conceal.py with data.path=demo; its "
                       "film grid every 4 pixels, where conceal.carrier.spacing 0 places it at 128 pixels), fine-tuned "
                       "with its config's training recipe, 3D-GS's defaults",
-    "converter_wm25_6k": "recipes.recommended (since 2026-11-28: the film through the converter's own groups, "
-                         "converter_mf35_rot5_scales_wm25's settings) on the demo for 6000 steps (make survive-runs' "
-                         "demo_converter_wm25)",
+    "thick_mf20_6k": "recipes.recommended (since 2026-11-28 evening: the thick film through the converter's own "
+                     "groups, thick_mf20_wm25's settings) on the demo for 6000 steps (make survive-runs' "
+                     "demo_thick_mf20)",
     "film": "the faint carrier film (demo.py:film; the film recipe before it became film_watch's): the key looks "
             "where no camera looks, one camera distance out from their orbit target, and the film 0.1 camera distances "
             "before it, 22 grids of splats at opacity 0.01 (the opacity reset's ceiling); its base colours trained at "
@@ -148,18 +149,15 @@ RECIPE_NOTES = {
                                   "(workdirs/survive_runs/lego_converter_mf35_rot5_scales)",
     "converter_mf35_rot5_scales_wm25": "converter_mf35_rot5_scales with L_d^- weighted 2.5 rather than the watched "
                                        "key's 1.5 (conceal.weight_minus): the near-key reading at 2-degree turns; "
-                                       "lego_conceal.py:recommended since 2026-11-28 "
-                                       "(workdirs/survive_runs/lego_converter_mf35_rot5_scales_wm25)",
+                                       "lego_conceal.py:recommended on 2026-11-28 afternoon, bench-conceal's "
+                                       "recommended_flat (workdirs/survive_runs/lego_converter_mf35_rot5_scales_wm25)",
     "thick_wm25": "lego_conceal.py:recommended (converter_mf35_rot5_scales_wm25) with the film's splats as thick along "
                   "the key's axis as across it (conceal.carrier.thickness=1.0), so that the converter groups the "
                   "film alike at every size of the scene (workdirs/survive_runs/lego_thick_wm25)",
     "thick_mf20_wm25": "thick_wm25 with 20% of the check renders merged rather than 35% "
-                       "(conceal.attacks.merge_fraction=0.2): the untouched reading against the merged ones "
+                       "(conceal.attacks.merge_fraction=0.2): the untouched reading against the merged ones; "
+                       "lego_conceal.py:recommended since 2026-11-28 evening, bench-conceal's recommended "
                        "(workdirs/survive_runs/lego_thick_mf20_wm25)",
-    "thick03_wm25": "lego_conceal.py:recommended with the film's splats 0.3 times as thick along the key's axis as "
-                    "across it (conceal.carrier.thickness=0.3): its thin-axis variance meant to stay above the "
-                    "converter's covariance floor down to a scene resized by 0.15, thinner than thick_wm25 "
-                    "(workdirs/survive_runs/lego_thick03_wm25)",
     "nearest_3k": "recommended_pairs (merges of near pairs) for 3000 steps beside converter_3k "
                   "(workdirs/survive_runs/lego_nearest_3k, 2026-11-28)",
     "film_deep": "film_long trained through merges up to 1.5 rounds deep (recipes.DEEP_MERGE_DEPTH; demo.py:film_deep)",

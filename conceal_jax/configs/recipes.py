@@ -32,9 +32,13 @@ QUANTIZE_FRACTION = RESET_FRACTION = 0.25
 # deep at most (pairs only: deeper merges cost the film more at the key than they gain after a converter's 50%).
 MERGE_FRACTION, MERGE_DEPTH = 0.25, 1.0
 # Training through the converter's own decimation: the share of check renders merged in the groups splat-transform's
-# decimation forms, the sizes of the student's copies those groups are computed on (the converter groups a resized
-# scene differently), and how often they are recomputed as the film's colours train.
-CONVERTER_MERGE_FRACTION, CONVERTER_MERGE_SCALES, CONVERTER_REGROUP_EVERY = 0.35, (0.1, 0.25, 0.6, 1.0, 2.5), 1000
+# decimation forms (a thick film, whose groups are alike at every size, reads its plain render best with a fifth of
+# them merged), the sizes of the student's copies those groups are computed on (the converter groups a resized scene
+# differently), and how often they are recomputed as the film's colours train.
+CONVERTER_MERGE_FRACTION, CONVERTER_MERGE_SCALES, CONVERTER_REGROUP_EVERY = 0.2, (0.1, 0.25, 0.6, 1.0, 2.5), 1000
+# The thick film: each splat's sigma along the key's axis equal to its in-plane sigma (conceal.carrier.thickness),
+# its variance there far above the converter's covariance regulariser at any size a scene is saved at.
+THICK_FILM = 1.0
 # The closely watched key: decoys turned at most a few degrees, L_d^- weighted well above L_d^+.
 CLOSE_DECOY_ROTATION_DEG, CLOSE_WEIGHT_MINUS = (1.0, 5.0), 2.5
 # Training twice as deep (demo.py:film_deep), as a converter's decimation to 50% merges some groups of 3 and 4.
@@ -97,12 +101,13 @@ def recommended(config):
   """Our recommended recipe: in_scene with the mark in a carrier film that only an unseen key sees (unseen_carrier),
   made of faint layers that 3D-GS's opacity reset leaves as they are (faint_film) of colours free to move
   (vivid_film) that the publishing formats store as they are (publishable_film), trained through 8-bit colours and
-  the converter's own decimation at several sizes (through_quantization, through_converter_decimation), read by the
-  decoder from standardized renders only at the key (closely_watched_key), and not through image distortions
-  (owner_rendered). The film's grid follows the decoder's input (conceal.carrier.spacing 0: a position every other
-  pixel of it, so the film's size does not grow with the key's resolution)."""
+  the converter's own decimation at several sizes (through_quantization, through_converter_decimation) of splats as
+  thick along the key's axis as across it (thick_film), read by the decoder from standardized renders only at the
+  key (closely_watched_key), and not through image distortions (owner_rendered). The film's grid follows the
+  decoder's input (conceal.carrier.spacing 0: a position every other pixel of it, so the film's size does not grow
+  with the key's resolution)."""
   config = owner_rendered(in_scene(config))
-  config = publishable_film(vivid_film(faint_film(unseen_carrier(config), spacing=0.0)))
+  config = thick_film(publishable_film(vivid_film(faint_film(unseen_carrier(config), spacing=0.0))))
   config = closely_watched_key(through_converter_decimation(through_quantization(config)))
   config.conceal.decoder.input_norm = "standardize"
   return config
@@ -151,6 +156,15 @@ def publishable_film(config):
   for 8-bit rounding of its colours."""
   c = config.conceal.carrier
   c.opacity, c.dc_bound = GRID_OPACITY, SPZ_DC_BOUND
+  return config
+
+
+def thick_film(config, thickness: float = THICK_FILM):
+  """The film's splats `thickness` times as thick along the key's axis as across it (conceal.carrier.thickness):
+  a thin film's variance along that axis falls below splat-transform's covariance regulariser, so the converter
+  groups a resized copy of the scene otherwise than the scene itself, and its decimation of a small copy costs the
+  film more."""
+  config.conceal.carrier.thickness = thickness
   return config
 
 
