@@ -511,8 +511,10 @@ def table(rows: list[dict]) -> str:
            "transforms revealed at the key as saved; aligned: the round trips re-aligned first; moved: the round "
            "trip of the student moved by a random similarity (scale 1/10-10) first, re-aligned. Registration: its "
            "rotation error against the applied rotation (degrees) and residual (owner radii), for the round trips "
-           "that of the moved variant. decided: SSIM at or above the threshold chosen from the calibration file "
-           "(robust/ownership.py; make bench-robust's, measured on other runs' decoders). Fine-tuning: the run's "
+           "that of the moved variant, and (from 2026-11-28 evening) how far the key's refinement on the film turned "
+           "the registered key (conceal/key_refine.py). decided: SSIM at or above the threshold chosen from the "
+           "calibration file (robust/ownership.py; make bench-robust's, measured on other runs' decoders). "
+           "Fine-tuning: the run's "
            "own training recipe continued on its training views; finetune_densify densifies from that recipe's "
            "densify.start, so its shorter rows equal finetune's. z: the ownership test's statistic of the revealed "
            "image against I (robust/phase_statistic.py; N(0, 1) where the scene does not carry I, 4.75 is the "
@@ -531,8 +533,10 @@ def table(rows: list[dict]) -> str:
   cell = lambda x, digits=3: "" if x is None else f"{x:.{digits}f}"
   for r in rows:
     registration = r.get("registration") or (r.get("moved") or {}).get("registration")
+    refined = (registration or {}).get("refinement")
     reg = "" if registration is None else (f"{registration['rotation_error_deg']:.1e} deg, "
-                                           f"{registration['residual']:.1e}")
+                                           f"{registration['residual']:.1e}"
+                                           + (f"; key turned {refined['rotation_deg']:.1e} deg" if refined else ""))
     lines.append(f"| {r['scene']} | {r['recipe']} | {r['attack']} | {level_label(r)} | {r['render_psnr']:.2f} "
                  f"| {r['hidden_psnr']:.2f} | {r['hidden_ssim']:.3f} "
                  f"| {cell(r.get('hidden_z'), 1)} | {owned_cell(r)} | {'yes' if r['decided'] else 'no'} "
