@@ -3,7 +3,6 @@ import json
 import sys
 
 import numpy as np
-import pytest
 
 from experiments import bench_ownership
 
@@ -62,7 +61,6 @@ def test_rates_without_the_owner_copy_skip_runs_that_predate_it():
   assert rates == {"new": 0.5}
 
 
-@pytest.mark.slow  # half a minute cold: the bench's two readings of one clean trial, compared
 def test_clean_trials_read_against_the_scene_itself_equal_those_without_the_owner_copy():
   """A clean scene whose 'owner's copy' is the scene itself: the tone found at every view is the identity, so the
   trials are those of verify without re-alignment (the per-view path and the batched path agree)."""

@@ -8,7 +8,6 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
-import pytest
 
 from conceal_jax.conceal import augment, grouping, linear_check, objective, perturb, subsets, train as conceal_train
 from conceal_jax.conceal import settings as settings_lib, step, views as views_lib
@@ -74,7 +73,6 @@ def test_a_check_view_reads_its_keys_merged_level_unless_it_draws_8_bit_grids():
   assert state(1, 2, 1) == -1
 
 
-@pytest.mark.slow  # compiles a whole merging step twice (a minute cold); the maps are checked in every state above
 def test_a_steps_gradients_through_the_maps_are_the_rendered_ones(tiny):
   """The step's gradients (the film's colours, both decoder pytrees) with the check views read through their maps are
   those of the renders, for a plain, a merged and an 8-bit check render, in a run whose film the key sees."""

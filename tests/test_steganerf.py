@@ -94,8 +94,7 @@ def _settings(**overrides):
   return steganerf.StegaNerfSettings(**values)
 
 
-# all_views compiles its own objective; its terms are check_view's at every view
-@pytest.mark.parametrize("protocol", [pytest.param("all_views", marks=pytest.mark.slow), "check_view"])
+@pytest.mark.parametrize("protocol", ["all_views", "check_view"])
 def test_objective_is_the_sum_of_stega_nerfs_terms(protocol):
   """w_render MSE(R, R_0) + w_hidden MSE(U(R), I) + w_clean MSE(U(R_0), 0) + w_classifier BCE, assembled by
   hand; R carries I at the step's view (all_views) or at the check view (check_view)."""
@@ -127,7 +126,6 @@ def test_objective_is_the_sum_of_stega_nerfs_terms(protocol):
     assert any(float(jnp.abs(g).max()) > 0 for g in jax.tree.leaves(part))
 
 
-@pytest.mark.slow  # compiles the step at two capacities; core.capacity's re-run is test_capacity's
 def test_step_lowers_the_loss_and_keeps_the_state_on_overflow():
   teacher, _, data = objective_inputs()
   s = _settings(decoder_lr=3e-3, classifier_lr=3e-3, mask_at="update")
