@@ -93,7 +93,8 @@ def test_a_fixed_view_is_its_held_image_and_reads_no_row(scene):
 @pytest.mark.parametrize("noise", [0.0, 0.2])
 def test_a_perturbed_subset_is_those_rows_of_the_perturbed_student(scene, noise):
   """perturb_gaussians of `rows` alone: bit for bit those rows of the whole student perturbed (every attack drawn,
-  merges at both levels and none), the rows past the end NaN; with parameter noise too (its spread is over all)."""
+  merges at both levels and none), the rows past the end NaN; with parameter noise too (its spread is over all), to
+  the last bit of the largest value (a multiply-add rounded once or twice, as the compiler fuses it)."""
   student, offset, _, key, _ = scene
   attacks = dataclasses.replace(ATTACKS, param_noise_max=noise)
   merges = grouping.training_merges(jax.tree.map(np.asarray, student), offset, attacks)
@@ -107,5 +108,9 @@ def test_a_perturbed_subset_is_those_rows_of_the_perturbed_student(scene, noise)
     whole, part = both(drawn)
     for field in perturb.MODEL_FIELDS:
       got, want = np.asarray(getattr(part, field)), np.asarray(getattr(whole, field))[np.asarray(rows)[real]]
-      np.testing.assert_array_equal(got[real], want, err_msg=field)
+      if noise:  # x + noise * spread: XLA may fuse it into one rounding (FMA) in one program and two in the other
+        bound = 2 * np.finfo(np.float32).eps * np.abs(want).max()
+        np.testing.assert_allclose(got[real], want, rtol=0, atol=bound, err_msg=field)
+      else:
+        np.testing.assert_array_equal(got[real], want, err_msg=field)
     assert np.all(np.isnan(np.asarray(part.means)[~real]))
