@@ -4,9 +4,9 @@ A shared scene may have been turned, moved, resized or reordered on import, and 
 darker, more or less contrast), by an editor or a converter. Its frame: the suspect is registered onto the owner's
 copy (gs.register: the similarity owner -> suspect from the Gaussians alone), the key camera is moved with that
 similarity and its pose refined on the film (key_refine), so that it sees the suspect as the key saw the marked
-scene, reading only the SH
-bands the owner's copy shows there (key_options: a converter that quantizes zero higher bands, as .compressed.ply's
-8 bits do, returns them as a small tint that depends on the view's direction in the scene's frame). Its tone: the
+scene, reading only the SH bands the owner's copy shows there (key_options: a converter that quantizes zero higher
+bands, as .compressed.ply's 8 bits do, returns them as a small tint that depends on the view's direction in the
+scene's frame). Its tone: the
 suspect's renders are mapped channel by channel onto the owner's by the gain and offset that fit them best
 (fit_tone), within what a colour grade does (MAX_TONE_GAIN, MAX_TONE_OFFSET), in two ways: at the key alone
 (tone_at_key), which restores the film's own statistics where thinning it faded it, and over the key's view and
@@ -145,9 +145,8 @@ def realign(owner: Gaussians, suspect: Gaussians, camera: Camera, options: Rende
   the key was made for; any order, size or count of Gaussians in either), moves `camera` and `options` at the SH
   degree key_options finds with the similarity found (moved_key), refines the moved key's pose on the owner's render
   at the key (key_refine.refine_key, through the suspect's tone_at_key there; `refine` False keeps the registered
-  pose) and fits the suspect's tone maps onto
-  the owner's (tone_at_key at the refined key, scene_tone). ValueError from register for scenes too small or not
-  finite."""
+  pose) and fits the suspect's tone maps onto the owner's (tone_at_key at the refined key, scene_tone). ValueError
+  from register for scenes too small or not finite."""
   owner, suspect = jax.tree.map(jnp.asarray, owner), jax.tree.map(jnp.asarray, suspect)
   registration = register_lib.register(owner, suspect, seed=seed)
   options = key_options(owner, [camera], options)
