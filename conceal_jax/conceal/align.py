@@ -6,15 +6,14 @@ copy (gs.register: the similarity owner -> suspect from the Gaussians alone), th
 similarity and its pose refined on the film (key_refine), so that it sees the suspect as the key saw the marked
 scene, reading only the SH bands the owner's copy shows there (key_options: a converter that quantizes zero higher
 bands, as .compressed.ply's 8 bits do, returns them as a small tint that depends on the view's direction in the
-scene's frame). Its tone: the
-suspect's renders are mapped channel by channel onto the owner's by the gain and offset that fit them best
-(fit_tone), within what a colour grade does (MAX_TONE_GAIN, MAX_TONE_OFFSET), in two ways: at the key alone
-(tone_at_key), which restores the film's own statistics where thinning it faded it, and over the key's view and
-views of the whole scene at SH degree 0 (scene_tone), which a grade of the scene fits and thinning does not pull;
-where the key sees a film of nearly one colour, either can be the one that reads it (the other mistakes a change of
-the film for a grade), so verify reads both and the render as it is, and decides on the best (robust.ownership).
-Every render the decoder then reads of that suspect, the key's and the null views', passes through the same map
-(Tone.apply).
+scene's frame). Its tone: the suspect's renders are mapped channel by channel onto the owner's by the gain and
+offset that fit them best (fit_tone), within what a colour grade does (MAX_TONE_GAIN, MAX_TONE_OFFSET), in two ways:
+at the key alone (tone_at_key), which restores the film's own statistics where thinning it faded it, and over the
+key's view and views of the whole scene at SH degree 0 (scene_tone), which a grade of the scene fits and thinning
+does not pull; where the key sees a film of nearly one colour, either can be the one that reads it (the other
+mistakes a change of the film for a grade), so verify reads both and the render as it is, and decides on the best
+(robust.ownership). Every render the decoder then reads of that suspect, the key's and the null views', passes
+through the same map (Tone.apply).
 """
 from __future__ import annotations
 
