@@ -3,8 +3,6 @@ composition, and a registered key off by a few thousandths of a radian and of th
 the pose that sees a colour-graded copy as the owner's key sees the scene."""
 from __future__ import annotations
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -72,8 +70,8 @@ def test_a_key_registered_slightly_off_is_refined_onto_the_owners_view_of_a_grad
   off = key_refine.moved_in_own_frame(exact, jnp.asarray([2e-3, -1.5e-3, 1e-3]),
                                       jnp.asarray([1.5e-3, -2e-3, 2e-3]) * radius)
   before = pose_error(off, exact)
-  tone_at = lambda pose: dataclasses.astuple(align.tone_at_key(owner, suspect, camera, options, pose, exact_options))
-  refined, refinement = key_refine.refine_key(owner, suspect, camera, options, off, exact_options, radius, tone_at)
+  refined, refinement = key_refine.refine_key(owner, suspect, camera, options, off, exact_options, radius,
+                                              align.fit_tone)
   after = pose_error(refined, exact)
   assert refinement.loss < 1e-3 and refinement.iterations > 0, refinement
   assert after[0] < before[0] / 5 and after[1] < before[1] / 5, (before, after)

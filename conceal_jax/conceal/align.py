@@ -137,27 +137,25 @@ class Realignment:
   refinement: key_refine.Refinement
   tones: dict[str, Tone]
 
+  def report(self) -> dict:
+    """The transform found with its fit (registration_report) and the key's refinement (key_refine.Refinement)."""
+    return dict(registration_report(self.registration), refinement=self.refinement.report())
+
 
 def realign(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
-            seed: int = 0, refine: bool = True) -> Realignment:
+            seed: int = 0) -> Realignment:
   """The key moved into the suspect scene's frame: registers `suspect` onto the owner's copy `owner` (the scene
   the key was made for; any order, size or count of Gaussians in either), moves `camera` and `options` at the SH
   degree key_options finds with the similarity found (moved_key), refines the moved key's pose on the owner's render
-  at the key (key_refine.refine_key, through the suspect's tone_at_key there; `refine` False keeps the registered
-  pose) and fits the suspect's tone maps onto the owner's (tone_at_key at the refined key, scene_tone). ValueError
-  from register for scenes too small or not finite."""
+  at the key (key_refine.refine_key, the suspect's renders through their fit_tone onto it) and fits the suspect's
+  tone maps onto the owner's (tone_at_key at the refined key, scene_tone). ValueError from register for scenes too
+  small or not finite."""
   owner, suspect = jax.tree.map(jnp.asarray, owner), jax.tree.map(jnp.asarray, suspect)
   registration = register_lib.register(owner, suspect, seed=seed)
   options = key_options(owner, [camera], options)
   moved, moved_options = moved_key(camera, options, registration.similarity)
-  refinement = key_refine.Refinement(0.0, 0.0, 1.0, 0)
-  if refine:
-    def tone_at(pose: Camera) -> tuple[np.ndarray, np.ndarray]:
-      tone = tone_at_key(owner, suspect, camera, options, pose, moved_options)
-      return tone.gain, tone.offset
-
-    moved, refinement = key_refine.refine_key(owner, suspect, camera, options, moved, moved_options,
-                                              registration.owner_radius * registration.similarity.scale, tone_at)
+  moved, refinement = key_refine.refine_key(owner, suspect, camera, options, moved, moved_options,
+                                            registration.owner_radius * registration.similarity.scale, fit_tone)
   tones = dict(toned=tone_at_key(owner, suspect, camera, options, moved, moved_options),
                scene_toned=scene_tone(owner, suspect, camera, options, registration.similarity))
   return Realignment(moved, moved_options, registration, refinement, tones)

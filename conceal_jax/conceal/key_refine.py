@@ -11,14 +11,14 @@ tolerance. The film itself fixes the pose: the key's render of the owner's copy 
 is turned and shifted (in its own frame, within MAX_UNITS of its units) until the suspect's render there matches
 it best. Neither the decoder nor the hidden image enters, so the refined key is as available to an innocent scene
 as to a marked one and the ownership test's null readings keep their meaning. The suspect's renders pass through a
-colour map (align.tone_at_key's) held fixed while the pose is searched, so that a colour grade of the suspect does
+colour map (align.fit_tone's) held fixed while the pose is searched, so that a colour grade of the suspect does
 not pull the pose, and fitted again where the search ends; a map fitted anew at every pose of the search (or renders
 standardized per image) would trade pose for tone.
 """
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
+from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
@@ -55,6 +55,10 @@ class Refinement:
 
   def report(self) -> dict:
     return dataclasses.asdict(self)
+
+
+# The registered key kept as it was.
+KEPT = Refinement(0.0, 0.0, 1.0, 0)
 
 
 def skew(vector: jax.Array) -> jax.Array:
@@ -94,16 +98,18 @@ _loss_and_gradient = jax.jit(jax.value_and_grad(photometric_loss, has_aux=True),
 
 def refine_key(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
                moved: Camera, moved_options: RenderOptions, radius: float,
-               tone_at: Callable[[Camera], tuple] | None = None) -> tuple[Camera, Refinement]:
+               fit_tone: Callable[[jax.Array, jax.Array], Any] | None = None) -> tuple[Camera, Refinement]:
   """The key `moved` (the owner's key `camera` moved into the suspect's frame by the registration; render options
   `moved_options`) turned and shifted in its own frame, within MAX_UNITS of ROTATION_UNIT radians and SHIFT_UNIT
   of the suspect's `radius`, to minimise photometric_loss against the owner's render at `camera` with `options`
   (L-BFGS-B on host float64, the loss relative to the registered pose's, gradients through the renderer). The
-  suspect's renders are mapped by `tone_at(pose)`'s (gain [3], offset [3]) (the identity if None), fitted at the
-  registered pose, then TONE_ROUNDS - 1 times again at the pose found, each round searching on from the last."""
+  suspect's renders are mapped by the gain [3] and offset [3] of `fit_tone(its render, the owner's)` (align.fit_tone;
+  the identity if None) at the registered pose, then TONE_ROUNDS - 1 times again at the pose found, each round searching
+  on from the last. The key as it was (KEPT) where the renders already agree there."""
   target = render(owner, camera, options).rgb
   units = jnp.asarray([ROTATION_UNIT] * 3 + [SHIFT_UNIT * radius] * 3, jnp.float32)
-  search = grow_capacity(moved_options, render(suspect, moved, moved_options).num_pairs)
+  registered = render(suspect, moved, moved_options)
+  search = grow_capacity(moved_options, registered.num_pairs)
   at = lambda parameters: moved_in_own_frame(moved, *_relative_step(jnp.asarray(parameters, jnp.float32), units))
 
   def evaluate(parameters: np.ndarray, tone: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -116,9 +122,11 @@ def refine_key(owner: Gaussians, suspect: Gaussians, camera: Camera, options: Re
       search = grow_capacity(search, pairs)
 
   parameters, loss, iterations = np.zeros(6), 1.0, 0
-  for _ in range(TONE_ROUNDS if tone_at is not None else 1):
-    tone = jnp.asarray(tone_at(at(parameters)) if tone_at is not None else ((1.0,) * 3, (0.0,) * 3), jnp.float32)
-    agreement = float(jnp.mean((render(suspect, at(parameters), search).rgb * tone[0] + tone[1] - target) ** 2))
+  for round_ in range(TONE_ROUNDS if fit_tone is not None else 1):
+    image = registered.rgb if round_ == 0 else render(suspect, at(parameters), search).rgb
+    fitted = fit_tone(image, target) if fit_tone is not None else None
+    tone = jnp.asarray((fitted.gain, fitted.offset) if fitted is not None else ((1.0,) * 3, (0.0,) * 3), jnp.float32)
+    agreement = float(jnp.mean((image * tone[0] + tone[1] - target) ** 2))
     start = float(evaluate(np.zeros(6), tone)[0]) if agreement > AGREEMENT else 0.0
     if not start > 0.0:  # the renders agree already (or do not compare: not finite): nothing to search
       break
@@ -132,7 +140,7 @@ def refine_key(owner: Gaussians, suspect: Gaussians, camera: Camera, options: Re
                                     options=dict(maxiter=MAX_ITERATIONS, ftol=LOSS_TOLERANCE, gtol=GRADIENT_TOLERANCE))
     parameters, loss, iterations = np.asarray(found.x), float(found.fun), iterations + int(found.nit)
   if not loss < 1.0:  # no pose better than the registered one
-    parameters, loss = np.zeros(6), 1.0
+    return moved, dataclasses.replace(KEPT, iterations=iterations)
   turn, shift = (np.asarray(x, np.float64) for x in _relative_step(jnp.asarray(parameters, jnp.float32), units))
   return at(parameters), Refinement(float(np.degrees(np.linalg.norm(turn))), float(np.linalg.norm(shift) / radius),
                                     loss, iterations)

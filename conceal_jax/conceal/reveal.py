@@ -183,7 +183,7 @@ def load_keyed_scene(r: ml_collections.ConfigDict) -> KeyedScene:
   """The scene r.ply, key number r.key_number of the key file r.key (0: its check view, k: its k-th extra key)
   and the decoder r.decoder (a `reveal` config section). With r.owner set, the suspect is re-aligned onto the
   owner's copy r.owner (align.realign) and the alignment report is
-  align.registration_report's with the key's refinement and the tone maps."""
+  align.Realignment.report's with the tone maps."""
   camera, info = key_lib.load_key(r.key, r.key_number)
   if info.get("uses_decoder", True) and not r.decoder:
     raise ValueError("reveal.decoder is required: this key was made with a decoder")
@@ -196,8 +196,7 @@ def load_keyed_scene(r: ml_collections.ConfigDict) -> KeyedScene:
     owner = ply.load_ply(r.owner)
     realigned = align.realign(owner, suspect, camera, options)
     camera, options, registration, tones = realigned.camera, realigned.options, realigned.registration, realigned.tones
-    alignment = dict(owner=r.owner, **align.registration_report(registration), refinement=realigned.refinement.report(),
-                     tones={name: tone.report() for name, tone in tones.items()})
+    alignment = dict(owner=r.owner, **realigned.report(), tones={name: tone.report() for name, tone in tones.items()})
     if registration.matched_fraction < MIN_MATCHED_FRACTION:
       logging.warning("re-alignment of %s onto %s matched only %.0f%% of its Gaussians (residual %.2g radii): the "
                       "transform found is doubtful", r.ply, r.owner, 100 * registration.matched_fraction,

@@ -68,7 +68,7 @@ class Owner:
     """What `suspect` reveals at the key after re-alignment against the owner's copy `marked` (the scene the
     key was made for; align.realign), as verify reports it: revealed_scores of the strongest reading
     (ownership.strongest: smallest p-value, then largest SSIM; its name `reading`), `registration`, the
-    transform found and its fit (align.registration_report) with the key's refinement, `tones`, the colour maps
+    transform found, its fit and the key's refinement (align.Realignment.report), `tones`, the colour maps
     found, and `test`, verify's decision at `alpha` given the owner's copy (ownership.decide_readings: read after
     each tone map and as rendered, the null outputs from the suspect at the moved key, at least `null_views` turned
     views): z, log10_p, owned, and each reading's."""
@@ -84,8 +84,7 @@ class Owner:
     test = dict(ownership.summary(both), readings={name: ownership.summary(r.result) for name, r in by_name.items()})
     name = ownership.strongest(by_name, self.hidden)
     return dict(self.revealed_scores(by_name[name].revealed), reading=name,
-                registration=dict(align.registration_report(realigned.registration),
-                                  refinement=realigned.refinement.report()),
+                registration=realigned.report(),
                 tones={n: tone.report() for n, tone in realigned.tones.items()}, test=test)
 
 
