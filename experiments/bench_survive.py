@@ -23,8 +23,9 @@ is skipped with a note. Attacks (`level` in brackets):
   (conceal/grouping.py), so this is how a decimation survives at every size someone may give the scene;
 - finetune, finetune_densify (steps): 3D-GS training continued from the student on the training views with the
   run's own training recipe, without and with densification (snapshots of one run per schedule);
-- extraction (views; `steps` in the row), with --extraction only: renders of the student at its training
-  cameras and random poses on their orbit, a fresh 3D-GS trained on them from random points.
+- extraction, extraction_sphere (views; `steps` in the row), with --extraction only: renders of the student at its
+  training cameras and random poses on their orbit (or, --extraction-poses=sphere, poses spread over the whole
+  sphere around it), a fresh 3D-GS trained on them from random points.
 
 `owned` and `log10_p` are verify's decision given the owner's copy (robust.ownership: the suspect re-aligned in
 frame and tone, read after each tone map and as rendered, at --alpha; hidden_* of the strongest reading, as
@@ -38,6 +39,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import itertools
 import json
 import math
 import pathlib
@@ -53,7 +55,7 @@ from conceal_jax.core import fileio
 from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, similarity as sim, train
 from conceal_jax.robust import converter, ownership, robustness, scene_attacks
-from conceal_jax.splat.camera import opengl_camera_to_world
+from conceal_jax.splat.camera import Camera, look_at, opengl_camera_to_world
 from experiments import bench_robust, results_io
 
 NAME = "survive_bench"
@@ -438,13 +440,23 @@ def change_profile(before, after, carrier: int = 0) -> dict | None:
   return profile
 
 
-def extraction_cameras(scene: Scene, views: int, seed: int = 0) -> list:
-  """`views` cameras: the scene's training cameras, then random poses on their orbit (key.orbit_camera)."""
+def extraction_cameras(scene: Scene, views: int, poses: str = "orbit", seed: int = 0) -> list:
+  """`views` cameras: the scene's training cameras, then `poses`: random poses on their orbit (key.orbit_camera),
+  or ("sphere") poses spread evenly over the whole sphere at the orbit's distance (similarity.fibonacci_sphere),
+  every one looking at the orbit's target, below the training cameras and where the key lies included."""
   scene_data = evaluate.load_scene_data(scene.config)
   cameras = list(scene_data.train_cameras)[:views]
-  cameras += [key_lib.orbit_camera(scene_data.train_cameras, 10_000 + seed * 100_000 + i)
-              for i in range(views - len(cameras))]
-  return cameras
+  extra = views - len(cameras)
+  if poses == "orbit":
+    return cameras + [key_lib.orbit_camera(scene_data.train_cameras, 10_000 + seed * 100_000 + i) for i in range(extra)]
+  if poses != "sphere":
+    raise ValueError(f"unknown extraction poses {poses!r} (orbit or sphere)")
+  target, distance = key_lib.orbit_target(cameras), key_lib.camera_distance(cameras)
+  up = -np.mean([np.asarray(c.world_to_camera, np.float64)[1, :3] for c in cameras], axis=0)  # -y is up
+  c = cameras[0]
+  return cameras + [Camera.from_intrinsics(look_at(target + distance * d, target, up), float(c.fx), float(c.fy),
+                                           float(c.cx), float(c.cy), c.width, c.height)
+                    for d in sim.fibonacci_sphere(max(extra, 0))]
 
 
 def write_blender_views(folder: pathlib.Path, gaussians, cameras, test_cameras, options) -> None:
@@ -463,19 +475,20 @@ def write_blender_views(folder: pathlib.Path, gaussians, cameras, test_cameras, 
     fileio.write_json(folder / f"transforms_{split}.json", {"camera_angle_x": fov_x, "frames": frames})
 
 
-def extraction_rows(scene: Scene, views: int, steps: list[int], test_views: int) -> list[dict]:
+def extraction_rows(scene: Scene, views: int, steps: list[int], test_views: int, poses: str = "orbit") -> list[dict]:
   """A fresh 3D-GS (random points, the run's training recipe) trained for max(steps) on `views` renders of the
-  student, scored at each of `steps`."""
-  folder = scene.cache / f"extraction_{views}"
+  student at extraction_cameras(poses), scored at each of `steps` (attack extraction, or extraction_<poses>)."""
+  suffix = "" if poses == "orbit" else f"_{poses}"
+  folder = scene.cache / f"extraction{suffix}_{views}"
   if not (folder / "views" / "transforms_test.json").is_file():
-    write_blender_views(folder / "views", scene.student, extraction_cameras(scene, views), scene.cameras,
+    write_blender_views(folder / "views", scene.student, extraction_cameras(scene, views, poses), scene.cameras,
                         scene.owner.options)
   config = ml_collections.ConfigDict(scene.config.to_dict())
   config.mode = "train"
   config.data.path = str(folder / "views")
   config.data.downscale = 1
   config.init.kind = "random"
-  return [scene.row("extraction", views, scores, test, steps=length)
+  return [scene.row(f"extraction{suffix}", views, scores, test, steps=length)
           for length, scores, test in snapshot_scores(scene, config, folder / f"train_{max(steps)}", steps, test_views)]
 
 
@@ -631,6 +644,8 @@ def main(argv=None):
   parser.add_argument("--extraction", action="store_true", help="also run model extraction (long)")
   parser.add_argument("--extraction-views", default="200", help="comma-separated numbers of rendered views")
   parser.add_argument("--extraction-steps", default="10000", help="comma-separated training lengths")
+  parser.add_argument("--extraction-poses", default="orbit", help="comma-separated sets of rendered poses beyond "
+                      "the training cameras: orbit (attack extraction), sphere (attack extraction_sphere)")
   parser.add_argument("--test-views", type=int, default=10, help="test views of render_psnr")
   parser.add_argument("--calibration", default="experiments/results/ownership_calibration.json")
   verify = default.get_config().verify
@@ -691,10 +706,11 @@ def main(argv=None):
         save(finetune_rows(scene, todo, attack == "finetune_densify", args.test_views))
     if "extraction" in groups:
       steps = [int(n) for n in args.extraction_steps.split(",") if n]
-      for views in (int(v) for v in args.extraction_views.split(",") if v):
-        todo = [n for n in steps if missing("extraction", views, n)]
+      for poses, views in itertools.product(args.extraction_poses.split(","), args.extraction_views.split(",")):
+        attack = "extraction" if poses == "orbit" else f"extraction_{poses}"
+        todo = [n for n in steps if missing(attack, int(views), n)]
         if todo:
-          save(extraction_rows(scene, views, todo, args.test_views))
+          save(extraction_rows(scene, int(views), todo, args.test_views, poses))
 
 
 if __name__ == "__main__":

@@ -124,6 +124,28 @@ def test_extraction_views_form_a_blender_dataset(run, tmp_path):
   assert float(loaded.train_cameras[0].fx) == pytest.approx(float(cameras[0].fx), rel=1e-5)
 
 
+def test_sphere_extraction_poses_cover_the_sphere_and_look_at_the_target(run, tmp_path):
+  """After the training cameras, poses spread over the whole sphere at the orbit's distance, each looking at the
+  orbit's target (its optical axis through it), far below the training cameras included."""
+  from conceal_jax.splat.camera import camera_centers
+  scene = bench_survive.load_scene("tiny", run / "run", "recommended", 1,
+                                   dict(threshold=0.5), tmp_path, 1e-3, 4)
+  train_cameras = bench_survive.extraction_cameras(scene, 4)
+  cameras = bench_survive.extraction_cameras(scene, 60, "sphere")
+  assert len(cameras) == 60
+  for a, b in zip(cameras[:4], train_cameras):
+    np.testing.assert_array_equal(np.asarray(a.world_to_camera), np.asarray(b.world_to_camera))
+  target, distance = key_lib.orbit_target(train_cameras), key_lib.camera_distance(train_cameras)
+  centers = camera_centers(cameras[4:])
+  np.testing.assert_allclose(np.linalg.norm(centers - target, axis=1), distance, rtol=1e-6)
+  forward = np.stack([np.asarray(c.world_to_camera, np.float64)[2, :3] for c in cameras[4:]])
+  np.testing.assert_allclose(np.einsum("vi,vi->v", forward, target - centers), distance, rtol=1e-5)
+  directions = (centers - target) / distance
+  assert directions.mean(0) == pytest.approx(np.zeros(3), abs=0.05)  # evenly spread: no hemisphere favoured
+  with pytest.raises(ValueError, match="unknown extraction poses"):
+    bench_survive.extraction_cameras(scene, 6, "ring")
+
+
 def test_the_change_profile_names_what_training_moved():
   """Per field: the share of Gaussians moved and the RMS change over the spread; with a carrier film (the last
   Gaussians), the share of it moved; None once training added or removed Gaussians."""
