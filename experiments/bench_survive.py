@@ -21,8 +21,9 @@ is skipped with a note. Attacks (`level` in brackets):
 - decimate_scaled (factor): the student resized by the factor about its centroid (Gaussians shuffled), then
   decimated to 50% by the converter, revealed after re-alignment: the converter's merges are not scale-free
   (conceal/grouping.py), so this is how a decimation survives at every size someone may give the scene;
-- finetune, finetune_densify (steps): 3D-GS training continued from the student on the training views with the
-  run's own training recipe, without and with densification (snapshots of one run per schedule);
+- finetune, finetune_densify, finetune_gentle (steps): 3D-GS training continued from the student on the training
+  views with the run's own training recipe, without and with densification, and at gentle rates without it
+  (gentle_rates); snapshots of one run per schedule;
 - extraction, extraction_sphere (views; `steps` in the row), with --extraction only: renders of the student at its
   training cameras and random poses on their orbit (or, --extraction-poses=sphere, poses spread over the whole
   sphere around it), a fresh 3D-GS trained on them from random points.
@@ -50,7 +51,7 @@ import ml_collections
 import numpy as np
 
 from conceal_jax.conceal import align, key as key_lib
-from conceal_jax.configs import default
+from conceal_jax.configs import default, recipes
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, similarity as sim, train
@@ -381,18 +382,34 @@ def scaled_decimation_rows(scene: Scene, factors) -> list[dict]:
   return rows
 
 
-def finetune_rows(scene: Scene, steps: list[int], densify: bool, test_views: int) -> list[dict]:
-  """3D-GS training continued from the student on the training views with the run's training recipe (with or
-  without densification), scored at each of `steps` (snapshots of one run of max(steps), resumable in
-  <cache>/finetune_{fixed,densify}_<max(steps)>)."""
+FINETUNE_SCHEDULES = ("finetune", "finetune_densify", "finetune_gentle")
+SCHEDULE_LABELS = dict(finetune="", finetune_densify=" (densify)", finetune_gentle=" (gentle)")
+
+
+def gentle_rates(config: ml_collections.ConfigDict) -> ml_collections.ConfigDict:
+  """`config` with the training rates of a gentle fine-tuning: the concealment's student rates made gentle
+  (recipes.gentle_student: a warmup over a tenth of the run, a quarter of the 3D-GS rates for all but the
+  positions, the positions at the concealment's rate), what an editor who only polishes a scene would use."""
+  config.train.lr = recipes.gentle_student(default.get_config()).conceal.lr
+  return config
+
+
+def finetune_rows(scene: Scene, steps: list[int], attack: str, test_views: int) -> list[dict]:
+  """3D-GS training continued from the student on the training views with the run's training recipe (attack
+  finetune), with densification (finetune_densify), or at gentle_rates without it (finetune_gentle), scored at each
+  of `steps` (snapshots of one run of max(steps), resumable in <cache>/<attack>_<max(steps)>; the first two in
+  finetune_{fixed,densify}_<max(steps)>)."""
+  densify = attack == "finetune_densify"
   config = ml_collections.ConfigDict(scene.config.to_dict())
   config.mode = "train"
   config.init.kind, config.init.ply = "ply", str(scene.run / "student.ply")
   config.train.sh_degree_start = config.train.sh_degree  # the student is trained: every band from the start
   if not densify:
     config.train.densify.until = 0  # no densification and no opacity reset
-  workdir = scene.cache / f"finetune_{'densify' if densify else 'fixed'}_{max(steps)}"
-  attack = "finetune_densify" if densify else "finetune"
+  if attack == "finetune_gentle":
+    config = gentle_rates(config)
+  folder = {"finetune": "finetune_fixed", "finetune_densify": "finetune_densify"}.get(attack, attack)
+  workdir = scene.cache / f"{folder}_{max(steps)}"
   return [scene.row(attack, length, scores, test) for length, scores, test in snapshot_scores(scene, config, workdir,
                                                                                               steps, test_views)]
 
@@ -529,10 +546,11 @@ def table(rows: list[dict]) -> str:
            "calibration file (robust/ownership.py; make bench-robust's, measured on other runs' decoders). "
            "Fine-tuning: the run's "
            "own training recipe continued on its training views; finetune_densify densifies from that recipe's "
-           "densify.start, so its shorter rows equal finetune's. z: the ownership test's statistic of the revealed "
-           "image against I (robust/phase_statistic.py; N(0, 1) where the scene does not carry I, 4.75 is the "
-           "one-sided 1e-6 level; rows measured before it have none). owned: verify's decision given the owner's "
-           "copy (robust/ownership.py: re-aligned in frame and tone, read after each tone map and as rendered, at "
+           "densify.start, so its shorter rows equal finetune's; finetune_gentle: gentle rates (warmup over a tenth "
+           "of the run, a quarter of 3D-GS's, the positions at the concealment's). z: the ownership test's "
+           "statistic of the revealed image against I (robust/phase_statistic.py; N(0, 1) where the scene does "
+           "not carry I, 4.75 is the one-sided 1e-6 level; rows measured before it have none). owned: verify's "
+           "decision given the owner's copy (robust/ownership.py: re-aligned in frame and tone, read after each tone map and as rendered, at "
            "alpha --alpha), with its log10 p-value; rows measured before it have none. Re-aligned hidden figures are "
            "the strongest reading's (as verify reports them: smallest p-value, then from 2026-11-27 night largest "
            "SSIM, before largest z; from 2026-11-27 evening: the tone at the key, over the scene's views, or none; "
@@ -604,13 +622,13 @@ def plot_curves(rows: list[dict], path: pathlib.Path) -> None:
   for index, (scene, recipe) in enumerate(groups):
     mine = [r for r in rows if (r["scene"], r["recipe"]) == (scene, recipe)]
     untouched = next((r for r in mine if r["attack"] == "none"), None)
-    for attack, style in (("finetune", "-o"), ("finetune_densify", "--s")):
+    for attack, style in zip(FINETUNE_SCHEDULES, ("-o", "--s", ":^")):
       points = sorted((r["level"], r["hidden_ssim"]) for r in mine if r["attack"] == attack)
       if untouched and points:
         points = [(0.0, untouched["hidden_ssim"])] + points
       if points:
         curves.plot([max(x, 10.0) for x, _ in points], [y for _, y in points], style, color=f"C{index}",
-                    label=f"{scene} {recipe}{' (densify)' if attack == 'finetune_densify' else ''}")
+                    label=f"{scene} {recipe}{SCHEDULE_LABELS[attack]}")
     tuned = next((r for r in mine if r["attack"] == "finetune" and r["level"] == FRONTIER_STEPS), None)
     if untouched and tuned and untouched.get("render_loss_db") is not None:
       frontier.plot(untouched["render_loss_db"], tuned["hidden_ssim"], "o", color=f"C{index}")
@@ -637,9 +655,9 @@ def main(argv=None):
   parser.add_argument("--scenes", default=",".join(SCENES), help=f"comma-separated labels of {sorted(SCENES)}, "
                       "or scene=conceal_workdir[@recipe] (recipe: recommended unless given)")
   parser.add_argument("--attacks", default=",".join(CHEAP_ATTACKS),
-                      help=f"comma-separated groups of {CHEAP_ATTACKS + ('decimate_scaled', 'extraction')}, or round "
-                           "trips of the "
-                           f"converter group by name ({', '.join(sorted({c[0] for c in CONVERSIONS}))})")
+                      help=f"comma-separated groups of "
+                           f"{CHEAP_ATTACKS + ('finetune_gentle', 'decimate_scaled', 'extraction')}, or round "
+                           f"trips of the converter group by name ({', '.join(sorted({c[0] for c in CONVERSIONS}))})")
   parser.add_argument("--finetune-steps", default="30,100,300,1000", help="fine-tuning lengths (3000, 10000 too)")
   parser.add_argument("--extraction", action="store_true", help="also run model extraction (long)")
   parser.add_argument("--extraction-views", default="200", help="comma-separated numbers of rendered views")
@@ -700,10 +718,10 @@ def main(argv=None):
         save(scaled_decimation_rows(scene, todo))
       else:
         print("skipping decimate_scaled: splat-transform is not installed (make node_modules)")
-    for attack in ("finetune", "finetune_densify"):
+    for attack in FINETUNE_SCHEDULES:
       todo = [n for n in finetune_steps if missing(attack, n)]
       if attack in groups and todo:
-        save(finetune_rows(scene, todo, attack == "finetune_densify", args.test_views))
+        save(finetune_rows(scene, todo, attack, args.test_views))
     if "extraction" in groups:
       steps = [int(n) for n in args.extraction_steps.split(",") if n]
       for poses, views in itertools.product(args.extraction_poses.split(","), args.extraction_views.split(",")):

@@ -101,13 +101,15 @@ def test_transforms_and_round_trips_are_revealed_after_re_alignment(run, monkeyp
 
 @pytest.mark.slow  # a training run's compilation: over a minute on two shared cores
 def test_finetune_and_extraction_rows_at_each_length(run, monkeypatch):
-  rows = bench(run, monkeypatch, "--attacks=finetune", "--finetune-steps=2,4", "--extraction",
+  rows = bench(run, monkeypatch, "--attacks=finetune,finetune_gentle", "--finetune-steps=2,4", "--extraction",
                "--extraction-views=6", "--extraction-steps=2,4")
   extracted = [r for r in rows if r["attack"] == "extraction"]
   assert [(r["level"], r["steps"]) for r in extracted] == [(6, 2), (6, 4)] and all(FIELDS <= set(r) for r in extracted)
   tuned = [r for r in rows if r["attack"] == "finetune"]
   assert [r["level"] for r in tuned] == [2, 4] and all(FIELDS <= set(r) for r in tuned)
   assert (run / "work" / "tiny" / "finetune_fixed_4" / "point_cloud.ply").is_file()
+  gentle = [r for r in rows if r["attack"] == "finetune_gentle"]
+  assert [r["level"] for r in gentle] == [2, 4] and (run / "work" / "tiny" / "finetune_gentle_4").is_dir()
 
 
 def test_extraction_views_form_a_blender_dataset(run, tmp_path):
@@ -144,6 +146,24 @@ def test_sphere_extraction_poses_cover_the_sphere_and_look_at_the_target(run, tm
   assert directions.mean(0) == pytest.approx(np.zeros(3), abs=0.05)  # evenly spread: no hemisphere favoured
   with pytest.raises(ValueError, match="unknown extraction poses"):
     bench_survive.extraction_cameras(scene, 6, "ring")
+
+
+def test_gentle_fine_tuning_moves_every_field_less_than_the_3dgs_recipe():
+  """One Adam step of each recipe on the same gradient: the gentle one (a warmup, lower rates) moves each field of
+  the scene by at most a quarter as much, and by something."""
+  import optax
+  from conceal_jax.gs import optimizer
+  config = demo.get_config()
+  scene = blobs(50)
+  grads = jax.tree.map(lambda x: np.ones_like(x), scene)
+  moved = []
+  for lr in (config.train.lr, bench_survive.gentle_rates(demo.get_config()).train.lr):
+    tx = optimizer.gaussian_optimizer(lr, 1.0, 1000)
+    updates, _ = tx.update(grads, tx.init(scene), scene)
+    moved.append({f: float(np.max(np.abs(getattr(updates, f)))) for f in ("means", "sh", "opacity_logits",
+                                                                          "log_scales", "quats")})
+  full, gentle = moved
+  assert all(0 < gentle[f] <= full[f] / 4 for f in full), (full, gentle)
 
 
 def test_the_change_profile_names_what_training_moved():
