@@ -550,8 +550,8 @@ def table(rows: list[dict]) -> str:
            "of the run, a quarter of 3D-GS's, the positions at the concealment's). z: the ownership test's "
            "statistic of the revealed image against I (robust/phase_statistic.py; N(0, 1) where the scene does "
            "not carry I, 4.75 is the one-sided 1e-6 level; rows measured before it have none). owned: verify's "
-           "decision given the owner's copy (robust/ownership.py: re-aligned in frame and tone, read after each tone map and as rendered, at "
-           "alpha --alpha), with its log10 p-value; rows measured before it have none. Re-aligned hidden figures are "
+           "decision given the owner's copy (robust/ownership.py: re-aligned in frame and tone, read after each "
+           "tone map and as rendered, at alpha --alpha), with its log10 p-value; rows measured before it have none. Re-aligned hidden figures are "
            "the strongest reading's (as verify reports them: smallest p-value, then from 2026-11-27 night largest "
            "SSIM, before largest z; from 2026-11-27 evening: the tone at the key, over the scene's views, or none; "
            "before: the tone at the key).", "", "Recipes:", "",
