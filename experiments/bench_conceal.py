@@ -77,6 +77,7 @@ ROWS = {
     "recommended": ("recommended", {}),
     "recommended_flat": ("recommended", RECOMMENDED_FLAT),
     "recommended_pairs": ("recommended", RECOMMENDED_PAIRS),
+    "recommended_decoder_size": ("recommended", {"conceal.carrier.at_decoder_size": True}),
     "in_scene_decoder_decay05": ("in_scene", {DECODER_DECAY: 0.5}),
     "in_scene_polished": ("in_scene", POLISHED),
     "in_scene_decoder_lr3e4": ("in_scene", {"conceal.decoder_opt.lr": 3e-4}),

@@ -261,3 +261,59 @@ def test_layers_are_grids_shifted_within_a_cell_each_splat_at_its_own_depth():
     return np.stack([30.0 * x + 11.0, 34.0 * y + 9.0], 1)
 
   np.testing.assert_allclose(pixels(three.means[:one.num]), pixels(one.means), atol=1e-3)  # layer 0: the one grid
+
+
+def test_at_decoder_size_views_read_the_teacher_as_the_decoder_reads_it():
+  """build_data with at_decoder_size: the training views' renders are the teacher's resized as the decoder reads
+  them (clipped, then resized: reveal.resize_for_decoder), the decoys the teacher rendered at their own S x S
+  cameras, and every normal camera is S x S (one stack), the training ones the same views resized."""
+  from conceal_jax.conceal import near, reveal, views as views_lib
+  cameras = hemisphere_cameras(4, 32)
+  teacher = helpers.random_gaussians(0, 300, degree=1)
+  key = key_lib.unseen_camera(cameras, 0).resized(16, 16)
+  decoys = near.decoy_cameras(key, 4.0, 3, (0.02, 0.05), (1.0, 2.0), seed=0)
+  assert all((d.width, d.height) == (16, 16) for d in decoys)
+  options = dataclasses.replace(OPTIONS, pair_capacity=1 << 15)
+  images = [np.zeros((32, 32, 3), np.float32)] * len(cameras)
+  data = views_lib.build_data(images, teacher, options, cameras + decoys, [key], [np.zeros((16, 16, 3))], 16,
+                              clip=True, at_decoder_size=True)
+  assert data.teacher.shape == (7, 16, 16, 3) and data.teacher_small.shape == (7, 16, 16, 3)
+  full = evaluate.render_images(teacher, cameras, options)
+  np.testing.assert_allclose(np.asarray(data.teacher[:4]), np.asarray(reveal.resize_for_decoder(full, 16, True)),
+                             atol=1e-6)
+  np.testing.assert_allclose(np.asarray(data.teacher[4:]), np.asarray(evaluate.render_images(teacher, decoys,
+                                                                                             options)), atol=1e-6)
+  np.testing.assert_array_equal(np.asarray(data.teacher_small), np.asarray(data.teacher))  # already the decoder's
+  assert (int(data.cameras.width), int(data.cameras.height)) == (16, 16)
+  np.testing.assert_allclose(np.asarray(data.cameras.fx[0]), float(cameras[0].fx) / 2, rtol=1e-6)
+
+
+def test_at_decoder_size_needs_teacher_normal_views(tiny, tmp_path):
+  film = {"carrier.film": True, "carrier.at_decoder_size": True}
+  with pytest.raises(ValueError, match="at_decoder_size needs the training views left as the teacher's"):
+    conceal_train.train_and_evaluate(tiny_config(tiny, key_kind="unseen", **film, **{"attacks.param_noise_max": 0.1}),
+                                     str(tmp_path))
+  with pytest.raises(ValueError, match="at_decoder_size holds the normal views to the teacher's renders"):
+    conceal_train.train_and_evaluate(tiny_config(tiny, key_kind="unseen", variant="released", **film), str(tmp_path))
+
+
+@pytest.mark.slow  # a whole film run
+def test_a_film_run_at_decoder_size_keeps_its_key_at_that_size_and_the_film_where_it_was(tiny, tmp_path):
+  """The key saved is the unseen key at the decoder's size (its field of view kept), the film (spacing 0: two
+  decoder pixels) lies where it lies without the option, and the run reveals at its key."""
+  config = tiny_config(tiny, iterations=4, key_kind="unseen", decoy_views=4, decoy_fraction=0.5,
+                       **{"carrier.film": True, "carrier.spacing": 0.0, "carrier.at_decoder_size": True})
+  conceal_train.train_and_evaluate(config, str(tmp_path))
+  camera, _ = key_lib.load_key(str(tmp_path / "key.json"))
+  full = key_lib.unseen_camera(evaluate.load_scene_data(config).train_cameras, config.mark.key_seed)
+  assert (camera.width, camera.height) == (16, 16)
+  np.testing.assert_allclose(float(camera.fx), float(full.fx) * 16 / full.width, rtol=1e-6)
+  np.testing.assert_allclose(np.asarray(camera.world_to_camera), np.asarray(full.world_to_camera), atol=1e-6)
+  teacher, student = ply.load_ply(str(tiny[1])), ply.load_ply(str(tmp_path / "student.ply"))
+  cameras = evaluate.load_scene_data(config)
+  distance = config.conceal.carrier.distance * key_lib.camera_distance(cameras.train_cameras)
+  at_full = carrier.film(full, distance, carrier.key_spacing(0.0, full, 16), 0.5, (1.0, 1.0, 1.0), 1)
+  assert student.num - teacher.num == at_full.num
+  np.testing.assert_allclose(student.means[teacher.num:], at_full.means, atol=1e-5)
+  metrics = json.loads((tmp_path / "metrics.json").read_text())
+  assert np.isfinite(metrics["hidden"]["psnr"]) and np.isfinite(metrics["leakage"]["max_ssim_near_check"])

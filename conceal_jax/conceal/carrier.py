@@ -9,11 +9,13 @@ the teacher's Gaussians as they are, so the normal views render exactly the teac
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 from typing import Sequence
 
 import jax
 import jax.numpy as jnp
+import ml_collections
 import numpy as np
 
 from conceal_jax.gs import similarity
@@ -45,6 +47,44 @@ def layer_offsets(layers: int) -> np.ndarray:
   plastic = 1.32471795724474602596  # the real root of x^3 = x + 1
   steps = np.arange(layers)[:, None] / np.array([plastic, plastic**2])
   return (0.5 + steps) % 1.0
+
+
+@dataclasses.dataclass(frozen=True)
+class Film:
+  """conceal.carrier with film on: the film's distance from the key (median camera distances from the orbit target),
+  grid spacing (key pixels; 0: carrier.key_spacing's), opacity, in-plane sigma (grid spacings), grids, splats per
+  grid position, thickness along the key's axis (fraction of the in-plane sigma) (carrier.film), and whether the
+  keys and decoys are cameras of the decoder's input size (at_decoder_size)."""
+  distance: float
+  spacing: float
+  opacity: float
+  spread: float
+  layers: int
+  stack: int
+  thickness: float
+  at_decoder_size: bool = False
+
+
+def film_plan(config: ml_collections.ConfigDict) -> Film | None:
+  """conceal.carrier checked: None with film off; a film needs mark.key_kind 'unseen' (it fills what it sees)."""
+  c = config.conceal.carrier
+  if not c.film:
+    return None
+  if config.mark.key_kind != "unseen":
+    raise ValueError(f"conceal.carrier.film needs mark.key_kind='unseen', got {config.mark.key_kind!r}")
+  if not (min(c.distance, c.spread, c.thickness) > 0 <= c.spacing and 0 < c.opacity < 1 <= min(c.layers, c.stack)):
+    raise ValueError("conceal.carrier.distance, spread and thickness must be positive, spacing not negative, opacity "
+                     f"in (0, 1), layers and stack at least 1, got {c.distance}, {c.spread}, {c.thickness}, "
+                     f"{c.spacing}, {c.opacity}, {c.layers}, {c.stack}")
+  if c.at_decoder_size and not (config.conceal.variant == "paper" and config.conceal.consistency):
+    raise ValueError("conceal.carrier.at_decoder_size holds the normal views to the teacher's renders (L_kd): it "
+                     "needs conceal.variant='paper' with conceal.consistency")
+  if c.at_decoder_size and config.conceal.attacks.param_noise_max > 0:
+    raise ValueError("conceal.carrier.at_decoder_size needs the training views left as the teacher's: parameter "
+                     "noise (conceal.attacks.param_noise_max) moves every Gaussian")
+  return Film(distance=float(c.distance), spacing=float(c.spacing), opacity=float(c.opacity), spread=float(c.spread),
+              layers=int(c.layers), stack=int(c.stack), thickness=float(c.thickness),
+              at_decoder_size=bool(c.at_decoder_size))
 
 
 def film(camera: Camera, distance: float, spacing: float, opacity: float, color: Sequence[float],

@@ -12,7 +12,7 @@ import os
 import ml_collections
 import optax
 
-from conceal_jax.conceal import augment, guidance, key as key_lib, reveal, unet
+from conceal_jax.conceal import augment, carrier, guidance, key as key_lib, reveal, unet
 from conceal_jax.core import loop, settings as settings_lib
 from conceal_jax.gs import evaluate, optimizer
 
@@ -122,22 +122,8 @@ class RunPlan:
   decoy_views: int
   decoy_translation: tuple[float, float]
   decoy_rotation_deg: tuple[float, float]
-  film: Film | None = None
+  film: carrier.Film | None = None
   decoy_key_axes: bool = False
-
-
-@dataclasses.dataclass(frozen=True)
-class Film:
-  """conceal.carrier with film on: the film's distance from the key (median camera distances from the orbit target),
-  grid spacing (key pixels; 0: carrier.key_spacing's), opacity, in-plane sigma (grid spacings), grids, splats per
-  grid position, thickness along the key's axis (fraction of the in-plane sigma) (carrier.film)."""
-  distance: float
-  spacing: float
-  opacity: float
-  spread: float
-  layers: int
-  stack: int
-  thickness: float
 
 
 def key_offset(config: ml_collections.ConfigDict) -> float:
@@ -145,21 +131,6 @@ def key_offset(config: ml_collections.ConfigDict) -> float:
   if not config.mark.key_offset > 0:
     raise ValueError(f"mark.key_offset must be positive, got {config.mark.key_offset}")
   return float(config.mark.key_offset)
-
-
-def film_plan(config: ml_collections.ConfigDict) -> Film | None:
-  """conceal.carrier checked: None with film off; a film needs mark.key_kind 'unseen' (it fills what it sees)."""
-  c = config.conceal.carrier
-  if not c.film:
-    return None
-  if config.mark.key_kind != "unseen":
-    raise ValueError(f"conceal.carrier.film needs mark.key_kind='unseen', got {config.mark.key_kind!r}")
-  if not (min(c.distance, c.spread, c.thickness) > 0 <= c.spacing and 0 < c.opacity < 1 <= min(c.layers, c.stack)):
-    raise ValueError("conceal.carrier.distance, spread and thickness must be positive, spacing not negative, opacity "
-                     f"in (0, 1), layers and stack at least 1, got {c.distance}, {c.spread}, {c.thickness}, "
-                     f"{c.spacing}, {c.opacity}, {c.layers}, {c.stack}")
-  return Film(distance=float(c.distance), spacing=float(c.spacing), opacity=float(c.opacity), spread=float(c.spread),
-              layers=int(c.layers), stack=int(c.stack), thickness=float(c.thickness))
 
 
 def step_settings(config: ml_collections.ConfigDict) -> ConcealSettings:
@@ -210,7 +181,7 @@ def plan(config: ml_collections.ConfigDict) -> RunPlan:
     raise ValueError("conceal.carrier.dc_bound bounds the carrier film's colours: it needs conceal.carrier.film")
   return RunPlan(settings, dataclasses.replace(joint, iterations=joint.iterations + polish), c.iterations, polish,
                  sources, m.key_kind, m.key_index, m.key_seed, key_offset(config), lk.decoy_views,
-                 ranges["decoy_translation"], ranges["decoy_rotation_deg"], film_plan(config),
+                 ranges["decoy_translation"], ranges["decoy_rotation_deg"], carrier.film_plan(config),
                  bool(lk.decoy_key_axes))
 
 

@@ -79,6 +79,8 @@ def marking(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ma
   lengths = [near.near_length(teacher, camera, scene.train_cameras) for camera, _ in keys]
   keys = [(camera, dict(info, near_length=length, near_length_from=source))
           for (camera, info), (length, source) in zip(keys, lengths)]
+  if plan.film is not None and plan.film.at_decoder_size:  # the decoder's input rendered, not resized
+    keys = [(camera.resized(plan.settings.hidden_size, plan.settings.hidden_size), info) for camera, info in keys]
   return Marking(teacher, scene, hiddens, keys, evaluate.render_options(config, scene.background), message)
 
 
@@ -110,7 +112,8 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
            if plan.film is not None and s.augmentation.param_noise_max == 0 else {})
   data = views_lib.build_data(scene.train_images, teacher, options, list(scene.train_cameras) + decoys,
                               [camera for camera, _ in keys], hiddens, s.hidden_size, s.reading.clip, key_images,
-                              colour_rows, merges, ties, **reach)
+                              colour_rows, merges, ties, plan.film is not None and plan.film.at_decoder_size,
+                              **reach)
   return Run(plan, teacher, start, scene, hiddens, keys, decoys, options, data, message)
 
 

@@ -59,14 +59,24 @@ class ConcealData:
 
 def build_data(train_images, teacher, options: RenderOptions, normal_cameras: list[Camera], key_cameras, hiddens,
                size: int, clip: bool = False, key_images=None, colour_rows=None, merges=None,
-               ties=None, student=None, check_states: int = 0) -> ConcealData:
+               ties=None, at_decoder_size: bool = False, student=None, check_states: int = 0) -> ConcealData:
   """The device-resident inputs of the concealment step. `normal_cameras`: the training cameras then the
   decoys; `key_cameras` and `hiddens` [S, S, 3]: one of each per key; `key_images` [H, W, 3] per key: the
   released variant's check-view targets (None: the teacher's renders there); `colour_rows`, `merges`, `ties`:
   ConcealData's. The teacher renders at the decoder size are clipped to [0, 1] first with `clip` (reveal.Reading).
+  With `at_decoder_size` (conceal.carrier.at_decoder_size: the decoys and keys are S x S cameras), the training
+  views' renders are the teacher's resized as the decoder reads them, their cameras the same views at S x S.
   With `student` (where only colour_rows train), ConcealData's rows and fixed: every render reads colour_rows; and
   with `check_states` (linear_check.states, where linear_check.applies) its check_weights."""
-  teacher_renders = evaluate.render_images(teacher, normal_cameras, options)
+  if at_decoder_size:
+    trained = len(train_images)
+    decoys = normal_cameras[trained:]
+    teacher_renders = jnp.concatenate(
+        [reveal.resize_for_decoder(evaluate.render_images(teacher, normal_cameras[:trained], options), size, clip)]
+        + ([evaluate.render_images(teacher, decoys, options)] if decoys else []))
+    normal_cameras = [camera.resized(size, size) for camera in normal_cameras[:trained]] + normal_cameras[trained:]
+  else:
+    teacher_renders = evaluate.render_images(teacher, normal_cameras, options)
   key_stack = camera_lib.stack(list(key_cameras))
   teacher_keys = render_batch(teacher, key_stack, options).rgb
   keys = key_lib.stack_keys(key_cameras, hiddens, teacher_keys if key_images is None else key_images,

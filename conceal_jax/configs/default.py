@@ -309,7 +309,11 @@ def conceal_carrier_section() -> ml_collections.ConfigDict:
   overlapping neighbour over an identical stack partner). A merged stack renders a little larger than its splats
   (the renderer's 1/255 alpha cut): attacks.merge_fraction trains through it. thickness: each splat's sigma along
   the key's axis as a fraction of its in-plane sigma (a thin film's variance there can fall below the converter's
-  covariance regulariser, which makes the converter group a resized copy of the scene differently)."""
+  covariance regulariser, which makes the converter group a resized copy of the scene differently).
+  at_decoder_size: the keys, and the decoys around them, are cameras of the decoder's input size
+  (mark.hidden_size square, their field of view kept), so that what the decoder reads there is rendered, not
+  resized; the training views, which the film leaves as the teacher's, enter as the teacher's renders resized,
+  as the decoder reads any view. Needs every training view left as the teacher's (no attacks.param_noise_max)."""
   c = ml_collections.ConfigDict()
   c.film = False
   c.distance = 0.1
@@ -320,6 +324,7 @@ def conceal_carrier_section() -> ml_collections.ConfigDict:
   c.stack = 1
   c.spread = 0.6
   c.thickness = 0.01
+  c.at_decoder_size = False
   return c
 
 
