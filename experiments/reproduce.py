@@ -353,8 +353,8 @@ SURVIVAL_STEPS = (30, 100, 300, 1000, 3000, 10000)
 
 def survival_table(survive_bench: dict) -> list[str]:
   """The paper's research question 3 (is the mark retained after re-training?), which it leaves open: hidden SSIM
-  at the key after 3D-GS fine-tuning on the training views for each number of steps (bench-survive), per scene and
-  recipe, with the decision (*: owned, by verify's test given the owner's copy, or by the calibrated threshold in
+  at the key after fine-tuning on the training views for each number of steps (bench-survive: the 3D-GS recipe
+  without and with densification, and gentle rates), per scene and recipe, with the decision (*: owned, by verify's test given the owner's copy, or by the calibrated threshold in
   rows measured before it), the untouched scene's SSIM and what the recipe cost the render, and per scene and
   recipe how many attacked rows verify decided owned (bench_survive.true_positive_lines)."""
   rows = survive_bench.get("rows", [])
@@ -370,7 +370,7 @@ def survival_table(survive_bench: dict) -> list[str]:
   for scene, recipe in groups:
     mine = [r for r in rows if (r["scene"], r["recipe"]) == (scene, recipe)]
     untouched = next((r for r in mine if r["attack"] == "none"), None)
-    for attack in ("finetune", "finetune_densify"):
+    for attack in bench_survive.FINETUNE_SCHEDULES:
       by_steps = {r["level"]: r for r in mine if r["attack"] == attack}
       if by_steps:
         loss = (untouched or {}).get("render_loss_db")
