@@ -56,6 +56,9 @@ RECOMMENDED_PAIRS = {"conceal.attacks.merge_groups": "nearest", "conceal.attacks
                      "conceal.attacks.merge_fraction": recipes.MERGE_FRACTION, "conceal.attacks.regroup_every": 500,
                      "conceal.leakage.decoy_rotation_deg": (1.0, 10.0),
                      "conceal.weight_minus": recipes.WATCH_WEIGHT_MINUS, "conceal.carrier.thickness": 0.01}
+# A film grid every 6 pixels of a 64-pixel key (lego's film grid, lego_conceal.FILM_SPACING, read at the decoder's
+# size), in pixels of lego's 200-pixel key: a ninth of its splats.
+SPARSE_FILM_SPACING = 18.75
 ROWS = {
     "full": ("paper", {}),
     "no_decoder": ("paper", {"conceal.use_decoder": False}),
@@ -78,6 +81,8 @@ ROWS = {
     "recommended_flat": ("recommended", RECOMMENDED_FLAT),
     "recommended_pairs": ("recommended", RECOMMENDED_PAIRS),
     "recommended_decoder_size": ("recommended", {"conceal.carrier.at_decoder_size": True}),
+    "recommended_decoder_size_sparse": ("recommended", {"conceal.carrier.at_decoder_size": True,
+                                                        "conceal.carrier.spacing": SPARSE_FILM_SPACING}),
     "in_scene_decoder_decay05": ("in_scene", {DECODER_DECAY: 0.5}),
     "in_scene_polished": ("in_scene", POLISHED),
     "in_scene_decoder_lr3e4": ("in_scene", {"conceal.decoder_opt.lr": 3e-4}),

@@ -5,6 +5,8 @@
   python -m experiments.profile_conceal --scene=demo --teacher=workdirs/demo/teacher/point_cloud.ply --widths=16
   python -m experiments.profile_conceal --widths=16 --set=conceal.attacks.merge_groups=converter \
       --set=conceal.attacks.merge_fraction=0.35 --name=conceal_step_profile_converter
+  python -m experiments.profile_conceal --widths=16 --row=recommended_decoder_size \
+      --name=conceal_step_profile_decoder_size
 
 With the settings of a bench-conceal row, for each decoder width, the median of --repeats (each part jitted on its
 own): one view's terms (objective.view_terms) with their gradient, for the normal view and for the check view, its
@@ -13,8 +15,9 @@ forward+backward, one image); the guided combination of the two decoder gradient
 the whole step with its two views on one device and split over two (core.parallel), taking turns, and where views
 render from the rows that reach them (conceal/subsets.py) the same from the whole student beside it, and where only
 the film's colours train the same with the gradient taken with respect to every parameter, and where the check
-renders are read through linear maps (conceal/linear_check.py) the same rendering them. The whole steps draw their
-distortions as a run does, one per step. --set overrides the row's config (dotted key=value). Writes
+renders are read through linear maps (conceal/linear_check.py) the same rendering them, and where the keys and decoys
+are cameras of the decoder's size (conceal.carrier.at_decoder_size) the same at the training size. The whole steps
+draw their distortions as a run does, one per step. --set overrides the row's config (dotted key=value). Writes
 <--name>.json (conceal_step_profile.json) to --out. Run it on a quiet machine.
 """
 from __future__ import annotations
@@ -52,32 +55,34 @@ def row_config(scene: str, row: str, width: int, teacher: pathlib.Path):
   return base
 
 
-def step_ms(run, settings, student_tx, decoder_tx, decoder, repeats: int, rounds: int = 3) -> dict:
+def step_ms(run, settings, student_tx, decoder_tx, decoder, repeats: int, rounds: int = 3, others=None) -> dict:
   """Median ms of the whole jitted step (state donated) with its views on one device and, where there are two,
   split over two, after one warm-up each; normal views and distortions drawn as the run draws them (decoys at its
   decoy share); where the run reads check renders through linear maps, the same rendering them beside it.
   Where the run renders each view from the rows that reach it (subsets.py), the same with every view rendered
-  from the whole student beside it (`_whole_renders`). They take turns, `rounds` times `repeats` steps."""
+  from the whole student beside it (`_whole_renders`); `others` {suffix: run}: other runs of the same settings
+  (prepared otherwise) beside it. They take turns, `rounds` times `repeats` steps."""
   meshes = {"conceal_step_1_device": None}
   if jax.local_device_count() >= 2:
     meshes["conceal_step_2_devices"] = parallel.batch_mesh(2)
-  datas = {"": run.data}
+  datas = {"": (run.start, run.data)}
   if run.data.rows is not None:
-    datas["_whole_renders"] = run.data.replace(rows=None, fixed=None)
+    datas["_whole_renders"] = (run.start, run.data.replace(rows=None, fixed=None))
   if run.data.colour_rows is not None:  # the time of a gradient with respect to every parameter (the whole trains)
-    datas["_whole_gradient"] = run.data.replace(colour_rows=None, ties=None)
+    datas["_whole_gradient"] = (run.start, run.data.replace(colour_rows=None, ties=None))
   if run.data.check_weights is not None:
-    datas["_rendered_checks"] = run.data.replace(check_weights=None)
+    datas["_rendered_checks"] = (run.start, run.data.replace(check_weights=None))
+  datas.update({suffix: (other.start, other.data) for suffix, other in (others or {}).items()})
   rng = np.random.default_rng(0)
   num_views, num_decoys = run.data.images.shape[0], len(run.decoys)
   normal = [views_lib.draw_normal_view(rng, num_views, num_decoys, settings.decoy_fraction) for _ in range(repeats)]
   a = settings.augmentation
   drawn = [augment.draw(rng, a) if a.draws else None for _ in range(repeats)]
   runs = {}
-  for (name, mesh), (suffix, data) in itertools.product(meshes.items(), datas.items()):
+  for (name, mesh), (suffix, (start, data)) in itertools.product(meshes.items(), datas.items()):
     tx = student_tx(data.colour_rows is not None)
     step = step_lib.make_step(settings, run.options, tx, decoder_tx, mesh)
-    state = step_lib.create_state(*jax.tree.map(jnp.copy, (run.start, decoder)), tx, decoder_tx, data.colour_rows)
+    state = step_lib.create_state(*jax.tree.map(jnp.copy, (start, decoder)), tx, decoder_tx, data.colour_rows)
     state, placed = parallel.replicate(state, mesh), parallel.replicate(data, mesh)
     state, _ = step(state, placed, normal[0], normal[-1], 0, drawn[0])
     runs[name + suffix] = [step, state, placed, []]
@@ -137,8 +142,12 @@ def profile(scene: str, row: str, width: int, teacher: pathlib.Path, repeats: in
   plan = settings_lib.plan(config)
   s = plan.settings
   run = conceal_train.prepare(config, plan)
-  needed = max(int(render_lib.render(run.start, camera, run.options).num_pairs)
-               for camera in (run.keys[0][0], run.scene.train_cameras[0]))
+  others = {}
+  if plan.film is not None and plan.film.at_decoder_size:  # beside it: the keys and decoys at the training size
+    set_dotted(config, "conceal.carrier.at_decoder_size", False)
+    others["_training_size"] = conceal_train.prepare(config, settings_lib.plan(config))
+  needed = max(int(render_lib.render(r.start, camera, r.options).num_pairs) for r in [run, *others.values()]
+               for camera in (r.keys[0][0], r.scene.train_cameras[0]))
   run.options = render_lib.grow_capacity(run.options, needed)
   decoder = conceal_train.initial_decoder(config, s)
   # the parts of a row trained through distortions are timed at one fixed draw
@@ -146,7 +155,7 @@ def profile(scene: str, row: str, width: int, teacher: pathlib.Path, repeats: in
   student_tx = lambda colours: settings_lib.student_optimizer(config, run.scene.scene_extent(), colours)
   decoder_tx = settings_lib.decoder_optimizer(config)
   times = part_ms(run, s, student_tx, decoder_tx, decoder, distortion, repeats)
-  times.update(step_ms(run, s, student_tx, decoder_tx, decoder, repeats))
+  times.update(step_ms(run, s, student_tx, decoder_tx, decoder, repeats, others=others))
   camera = run.scene.train_cameras[0]
   return dict(scene=scene, row=row, decoder_width=width, num_gaussians=int(run.start.num),
               num_carrier=int(run.start.num - run.teacher.num),

@@ -354,9 +354,10 @@ SURVIVAL_STEPS = (30, 100, 300, 1000, 3000, 10000)
 def survival_table(survive_bench: dict) -> list[str]:
   """The paper's research question 3 (is the mark retained after re-training?), which it leaves open: hidden SSIM
   at the key after fine-tuning on the training views for each number of steps (bench-survive: the 3D-GS recipe
-  without and with densification, and gentle rates), per scene and recipe, with the decision (*: owned, by verify's test given the owner's copy, or by the calibrated threshold in
-  rows measured before it), the untouched scene's SSIM and what the recipe cost the render, and per scene and
-  recipe how many attacked rows verify decided owned (bench_survive.true_positive_lines)."""
+  without and with densification, and gentle rates), per scene and recipe, with the decision (*: owned, by
+  verify's test given the owner's copy, or by the calibrated threshold in rows measured before it), the untouched
+  scene's SSIM and what the recipe cost the render, and per scene and recipe how many attacked rows verify decided
+  owned (bench_survive.true_positive_lines)."""
   rows = survive_bench.get("rows", [])
   lines = ["### Research question 3: is the mark retained after re-training? (hidden SSIM at the key after "
            "fine-tuning on the training views; * owned: by verify at alpha given the owner's copy, by the calibrated "

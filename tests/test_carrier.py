@@ -299,10 +299,10 @@ def test_at_decoder_size_needs_teacher_normal_views(tiny, tmp_path):
 
 @pytest.mark.slow  # a whole film run
 def test_a_film_run_at_decoder_size_keeps_its_key_at_that_size_and_the_film_where_it_was(tiny, tmp_path):
-  """The key saved is the unseen key at the decoder's size (its field of view kept), the film (spacing 0: two
-  decoder pixels) lies where it lies without the option, and the run reveals at its key."""
+  """The key saved is the unseen key at the decoder's size (its field of view kept), the film lies where it lies
+  without the option (its spacing in pixels of the key at the training size), and the run scores at its key."""
   config = tiny_config(tiny, iterations=4, key_kind="unseen", decoy_views=4, decoy_fraction=0.5,
-                       **{"carrier.film": True, "carrier.spacing": 0.0, "carrier.at_decoder_size": True})
+                       **{"carrier.film": True, "carrier.spacing": 4.0, "carrier.at_decoder_size": True})
   conceal_train.train_and_evaluate(config, str(tmp_path))
   camera, _ = key_lib.load_key(str(tmp_path / "key.json"))
   full = key_lib.unseen_camera(evaluate.load_scene_data(config).train_cameras, config.mark.key_seed)
@@ -312,7 +312,7 @@ def test_a_film_run_at_decoder_size_keeps_its_key_at_that_size_and_the_film_wher
   teacher, student = ply.load_ply(str(tiny[1])), ply.load_ply(str(tmp_path / "student.ply"))
   cameras = evaluate.load_scene_data(config)
   distance = config.conceal.carrier.distance * key_lib.camera_distance(cameras.train_cameras)
-  at_full = carrier.film(full, distance, carrier.key_spacing(0.0, full, 16), 0.5, (1.0, 1.0, 1.0), 1)
+  at_full = carrier.film(full, distance, 4.0, 0.5, (1.0, 1.0, 1.0), 1)
   assert student.num - teacher.num == at_full.num
   np.testing.assert_allclose(student.means[teacher.num:], at_full.means, atol=1e-5)
   metrics = json.loads((tmp_path / "metrics.json").read_text())

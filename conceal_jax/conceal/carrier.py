@@ -18,6 +18,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
+from conceal_jax.conceal import key as key_lib
 from conceal_jax.gs import similarity
 from conceal_jax.splat import sh as sh_lib
 from conceal_jax.splat.camera import Camera
@@ -164,6 +165,18 @@ def unseen_film(teacher: Gaussians, key: Camera, cameras: Sequence[Camera], opti
     carrier = jax.tree.map(lambda x: x[keep], carrier)
   raise ValueError("the carrier film: every splat of it is seen from a view of the scene (or unseen from the "
                    "key); the key does not look where the scene's cameras do not")
+
+
+def planned_film(plan: Film, teacher: Gaussians, key: Camera, train_cameras: Sequence[Camera],
+                 test_cameras: Sequence[Camera], options: RenderOptions, hidden_size: int) -> Gaussians:
+  """The film `plan` lays before the first `key` (unseen_film), on the key's image at the training cameras' size
+  (a key at the decoder's size, at_decoder_size, sees the same film): plan.distance camera distances from it
+  (key.camera_distance: the cameras' median distance from their orbit target), its spacing key_spacing's."""
+  key = key.resized(train_cameras[0].width, train_cameras[0].height)
+  distance = plan.distance * key_lib.camera_distance(train_cameras)
+  return unseen_film(teacher, key, list(train_cameras) + list(test_cameras), options, distance,
+                     key_spacing(plan.spacing, key, hidden_size), plan.opacity, plan.layers, plan.stack, plan.spread,
+                     plan.thickness)
 
 
 def colour_rows(num_teacher: int, num_film: int) -> jax.Array:

@@ -96,12 +96,9 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
   # teacher's render (an orbit pose has no image)
   key_images = ([scene.train_images[info["index"]] for _, info in keys] if plan.key_kind == "train_index" else None)
   start, colour_rows, merges, ties = teacher, None, None, None
-  if plan.film is not None:  # before the first key, unseen from every training and test view
-    film = carrier.unseen_film(teacher, keys[0][0], list(scene.train_cameras) + list(scene.test_cameras), options,
-                               plan.film.distance * key_lib.camera_distance(scene.train_cameras),
-                               carrier.key_spacing(plan.film.spacing, keys[0][0], s.hidden_size),
-                               plan.film.opacity, plan.film.layers, plan.film.stack, plan.film.spread,
-                               plan.film.thickness)
+  if plan.film is not None:
+    film = carrier.planned_film(plan.film, teacher, keys[0][0], scene.train_cameras, scene.test_cameras, options,
+                                s.hidden_size)
     start, colour_rows = concatenate([teacher, film]), carrier.colour_rows(teacher.num, film.num)
     ties = carrier.tied_rows(film.num, plan.film.stack) if plan.film.stack > 1 else None
     if s.augmentation.merge_fraction > 0:
