@@ -84,6 +84,8 @@ SCENES = {"demo": ("demo", "workdirs/demo/conceal", "in_scene"),
                                   "converter_mf35_rot5_scales_wm25"),
           "lego_thick": ("lego", "workdirs/survive_runs/lego_thick_mf20_wm25", "thick_mf20_wm25"),
           "lego_decoder_size": ("lego", "workdirs/bench/lego/conceal_recommended_decoder_size_w16", "decoder_size"),
+          "lego_decoder_size_sparse": ("lego", "workdirs/bench/lego/conceal_recommended_decoder_size_sparse_w16",
+                                       "decoder_size_sparse"),
           "lego_film": ("lego", "workdirs/survive_runs/lego_film", "film"),
           "lego_film_reset": ("lego", "workdirs/survive_runs/lego_film_reset", "film_reset")}
 TRANSFORMS = ([("rotate", d) for d in (1.0, 5.0, 45.0, 180.0)] + [("translate", f) for f in (0.026, 1.0)]
@@ -165,6 +167,10 @@ RECIPE_NOTES = {
     "decoder_size": "thick_mf20_wm25 with the key and its decoys cameras of the decoder's input size, 64x64 "
                     "(conceal.carrier.at_decoder_size): bench-conceal's recommended_decoder_size "
                     "(workdirs/bench/lego/conceal_recommended_decoder_size_w16)",
+    "decoder_size_sparse": "decoder_size with a ninth of the film: a grid position every 18.75 pixels of the "
+                           "200-pixel key (every 6 of the 64-pixel one) rather than every 6, its splats three times "
+                           "as wide: bench-conceal's recommended_decoder_size_sparse "
+                           "(workdirs/bench/lego/conceal_recommended_decoder_size_sparse_w16)",
     "nearest_3k": "recommended_pairs (merges of near pairs) for 3000 steps beside converter_3k "
                   "(workdirs/survive_runs/lego_nearest_3k, 2026-11-28)",
     "film_deep": "film_long trained through merges up to 1.5 rounds deep (recipes.DEEP_MERGE_DEPTH; demo.py:film_deep)",
