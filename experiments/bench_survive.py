@@ -456,7 +456,13 @@ def change_profile(before, after, carrier: int = 0) -> dict | None:
   last), `carrier_moved`: the fraction of those that moved in any field."""
   if after.num != before.num:
     return None
-  rows = lambda g, f: np.asarray(getattr(g, f), np.float64).reshape(before.num, -1)
+  bases = max(before.sh.shape[1], after.sh.shape[1])  # a lower SH degree is the higher one with empty bands
+
+  def rows(g, f):
+    x = np.asarray(getattr(g, f), np.float64)
+    x = np.pad(x, ((0, 0), (0, bases - x.shape[1]), (0, 0))) if f == "sh" else x
+    return x.reshape(before.num, -1)
+
   moved = {f: np.any(rows(before, f) != rows(after, f), axis=1) for f in FIELDS}
   profile = {f: dict(moved=float(np.mean(moved[f])),
                      relative_rms=float(np.mean(np.sqrt(np.mean((rows(after, f) - rows(before, f)) ** 2, axis=0)))

@@ -107,9 +107,11 @@ def test_finetune_and_extraction_rows_at_each_length(run, monkeypatch):
   assert [(r["level"], r["steps"]) for r in extracted] == [(6, 2), (6, 4)] and all(FIELDS <= set(r) for r in extracted)
   tuned = [r for r in rows if r["attack"] == "finetune"]
   assert [r["level"] for r in tuned] == [2, 4] and all(FIELDS <= set(r) for r in tuned)
-  assert (run / "work" / "tiny" / "finetune_fixed_4" / "point_cloud.ply").is_file()
+  cache = run / "work" / "tiny_run"  # a scene given by path caches under label_folder
+  assert (cache / "finetune_fixed_4" / "point_cloud.ply").is_file()
   gentle = [r for r in rows if r["attack"] == "finetune_gentle"]
-  assert [r["level"] for r in gentle] == [2, 4] and (run / "work" / "tiny" / "finetune_gentle_4").is_dir()
+  assert [r["level"] for r in gentle] == [2, 4] and (cache / "finetune_gentle_4" / "point_cloud.ply").is_file()
+  assert all(r["changed"] is not None for r in tuned + gentle)  # the student's degree-1 SH against the tuned degree 3
 
 
 def test_extraction_views_form_a_blender_dataset(run, tmp_path):
