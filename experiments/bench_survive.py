@@ -206,7 +206,8 @@ def row_key(row: dict) -> tuple:
 class Scene:
   """A marked scene under test: its name and recipe label, conceal workdir, run config, student (numpy), owner
   (robustness.Owner), test cameras and images, the decision's calibration, its cache folder, and how many
-  Gaussians of the student are a carrier film (the last ones; conceal.carrier)."""
+  Gaussians of the student are a carrier film (the last ones; conceal.carrier), and the longest a converter call
+  may take."""
   name: str
   recipe: str
   run: pathlib.Path
@@ -220,6 +221,8 @@ class Scene:
   alpha: float
   null_views: int
   carrier: int = 0
+
+  converter_timeout_s: float = CONVERTER_TIMEOUT_S
 
   def row(self, attack: str, level, scores: dict, test: dict, **extra) -> dict:
     """A result row: scores holds render_psnr, hidden_psnr and hidden_ssim; owned, log10_p and `verify` (each
@@ -354,9 +357,9 @@ def converter_rows(scene: Scene, todo) -> list[dict]:
                                               MOVED_MAX_SCALE, seed=MOVED_SEED)
     try:
       published = cached_ply(folder / "scene.ply", lambda: converter.round_trip(
-          scene.student, workdir=folder / "work", timeout_s=CONVERTER_TIMEOUT_S, **arguments))
+          scene.student, workdir=folder / "work", timeout_s=scene.converter_timeout_s, **arguments))
       moved = cached_ply(folder / "moved.ply", lambda: converter.round_trip(
-          moved_student, workdir=folder / "moved_work", timeout_s=CONVERTER_TIMEOUT_S, **arguments))
+          moved_student, workdir=folder / "moved_work", timeout_s=scene.converter_timeout_s, **arguments))
     except converter.ConverterError as e:
       print(f"skipping {attack} {level} of {scene.name} ({scene.recipe}): {e}", flush=True)
       continue
@@ -380,7 +383,7 @@ def scaled_decimation_rows(scene: Scene, factors) -> list[dict]:
     resized, applied = scene_attacks.attack(jax.tree.map(jnp.asarray, scene.student), "scale", factor)
     try:
       published = cached_ply(folder / "scene.ply", lambda: converter.round_trip(
-          resized, decimate=SCALED_KEEP, workdir=folder / "work", timeout_s=CONVERTER_TIMEOUT_S))
+          resized, decimate=SCALED_KEEP, workdir=folder / "work", timeout_s=scene.converter_timeout_s))
     except converter.ConverterError as e:
       print(f"skipping decimate_scaled {factor:g} of {scene.name} ({scene.recipe}): {e}", flush=True)
       continue
@@ -685,6 +688,8 @@ def main(argv=None):
   parser.add_argument("--alpha", type=float, default=verify.alpha, help="verify's decision level (owned)")
   parser.add_argument("--null-views", type=int, default=verify.null_views, help="verify's turned views, at least")
   parser.add_argument("--redo", action="store_true", help="recompute rows already in the results")
+  parser.add_argument("--converter-timeout-s", type=float, default=CONVERTER_TIMEOUT_S,
+                      help="the longest one converter call may take (.sog of lego: most of an hour on 2 cores)")
   args = parser.parse_args(argv)
   out, workdir = pathlib.Path(args.out), pathlib.Path(args.workdir)
   calibration = ownership.load_calibration(args.calibration)
@@ -715,6 +720,7 @@ def main(argv=None):
     # a run given by path caches under its own folder's name: a label alone would share a named scene's cache
     cache = workdir / (f"{label}_{run.name}" if path else label)
     scene = load_scene(name, run, recipe, args.test_views, calibration, cache, args.alpha, args.null_views)
+    scene.converter_timeout_s = args.converter_timeout_s
     missing = lambda attack, level, steps=None: (name, recipe, attack, json.dumps(level), steps) not in done
     if "none" in groups and missing("none", None):
       save([scene.row("none", None, scores_of(scene, scene.student), aligned(scene, scene.student)["test"],
