@@ -69,12 +69,11 @@ def build_data(train_images, teacher, options: RenderOptions, normal_cameras: li
   With `student` (where only colour_rows train), ConcealData's rows and fixed: every render reads colour_rows; and
   with `check_states` (linear_check.states, where linear_check.applies) its check_weights."""
   if at_decoder_size:
-    trained = len(train_images)
-    decoys = normal_cameras[trained:]
+    views, decoys = normal_cameras[:len(train_images)], normal_cameras[len(train_images):]
     teacher_renders = jnp.concatenate(
-        [reveal.resize_for_decoder(evaluate.render_images(teacher, normal_cameras[:trained], options), size, clip)]
+        [reveal.resize_for_decoder(evaluate.render_images(teacher, views, options), size, clip)]
         + ([evaluate.render_images(teacher, decoys, options)] if decoys else []))
-    normal_cameras = [camera.resized(size, size) for camera in normal_cameras[:trained]] + normal_cameras[trained:]
+    normal_cameras = [camera.resized(size, size) for camera in views] + decoys
   else:
     teacher_renders = evaluate.render_images(teacher, normal_cameras, options)
   key_stack = camera_lib.stack(list(key_cameras))
