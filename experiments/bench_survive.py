@@ -56,7 +56,7 @@ from conceal_jax.core import fileio
 from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, similarity as sim, train
 from conceal_jax.robust import converter, ownership, robustness, scene_attacks
-from conceal_jax.splat.camera import Camera, look_at, opengl_camera_to_world
+from conceal_jax.splat.camera import opengl_camera_to_world
 from experiments import bench_robust, results_io
 
 NAME = "survive_bench"
@@ -487,11 +487,9 @@ def extraction_cameras(scene: Scene, views: int, poses: str = "orbit", seed: int
     return cameras + [key_lib.orbit_camera(scene_data.train_cameras, 10_000 + seed * 100_000 + i) for i in range(extra)]
   if poses != "sphere":
     raise ValueError(f"unknown extraction poses {poses!r} (orbit or sphere)")
-  target, distance = key_lib.orbit_target(cameras), key_lib.camera_distance(cameras)
-  up = -np.mean([np.asarray(c.world_to_camera, np.float64)[1, :3] for c in cameras], axis=0)  # -y is up
-  c = cameras[0]
-  return cameras + [Camera.from_intrinsics(look_at(target + distance * d, target, up), float(c.fx), float(c.fy),
-                                           float(c.cx), float(c.cy), c.width, c.height)
+  orbit = scene_data.train_cameras
+  target, distance, up = key_lib.orbit_target(orbit), key_lib.camera_distance(orbit), key_lib.orbit_up(orbit)
+  return cameras + [key_lib.looking_at(orbit, target + distance * d, target, up)
                     for d in sim.fibonacci_sphere(max(extra, 0))]
 
 

@@ -144,8 +144,9 @@ def profile(scene: str, row: str, width: int, teacher: pathlib.Path, repeats: in
   run = conceal_train.prepare(config, plan)
   others = {}
   if plan.film is not None and plan.film.at_decoder_size:  # beside it: the keys and decoys at the training size
-    set_dotted(config, "conceal.carrier.at_decoder_size", False)
-    others["_training_size"] = conceal_train.prepare(config, settings_lib.plan(config))
+    training_size = config.copy_and_resolve_references()
+    set_dotted(training_size, "conceal.carrier.at_decoder_size", False)
+    others["_training_size"] = conceal_train.prepare(training_size, settings_lib.plan(training_size))
   needed = max(int(render_lib.render(r.start, camera, r.options).num_pairs) for r in [run, *others.values()]
                for camera in (r.keys[0][0], r.scene.train_cameras[0]))
   run.options = render_lib.grow_capacity(run.options, needed)

@@ -57,22 +57,30 @@ def orbit_target(cameras: Sequence[Camera]) -> np.ndarray:
   return np.linalg.lstsq(projectors.sum(0), np.einsum("vij,vj->i", projectors, centers), rcond=None)[0]
 
 
+def orbit_up(cameras: Sequence[Camera]) -> np.ndarray:
+  """[3] the cameras' mean up direction (each camera's -y), unit length."""
+  up = -np.mean([np.asarray(c.world_to_camera, np.float64)[1, :3] for c in cameras], axis=0)
+  return up / np.linalg.norm(up)
+
+
+def looking_at(cameras: Sequence[Camera], eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> Camera:
+  """A camera at `eye` looking at `target`, upright along `up`, with the intrinsics of cameras[0]."""
+  c = cameras[0]
+  return Camera.from_intrinsics(look_at(eye, target, up), float(c.fx), float(c.fy), float(c.cx), float(c.cy),
+                                c.width, c.height)
+
+
 def orbit_camera(cameras: Sequence[Camera], seed: int) -> Camera:
   """A secret camera on the training orbit: same intrinsics as cameras[0], at the median distance from
   the orbit target, elevation drawn within the cameras' elevation range and azimuth uniformly."""
-  target = orbit_target(cameras)
+  target, up = orbit_target(cameras), orbit_up(cameras)
   offsets = camera_centers(cameras) - target
-  up = -np.mean([np.asarray(c.world_to_camera, np.float64)[1, :3] for c in cameras], axis=0)  # -y is up
-  up /= np.linalg.norm(up)
   distances = np.linalg.norm(offsets, axis=1)
   elevations = np.arcsin(np.clip(offsets @ up / distances, -1, 1))
   rng = np.random.default_rng(seed)
   elevation = rng.uniform(elevations.min(), elevations.max())
   azimuth = rng.uniform(0.0, 2 * math.pi)
-  eye = orbit_eye(target, float(np.median(distances)), azimuth, elevation, up)
-  c = cameras[0]
-  return Camera.from_intrinsics(look_at(eye, target, up), float(c.fx), float(c.fy), float(c.cx), float(c.cy),
-                                c.width, c.height)
+  return looking_at(cameras, orbit_eye(target, float(np.median(distances)), azimuth, elevation, up), target, up)
 
 
 def unseen_direction(cameras: Sequence[Camera], samples: int = 4096) -> np.ndarray:
@@ -96,9 +104,7 @@ def unseen_camera(cameras: Sequence[Camera], seed: int, offset: float = 1.0) -> 
   eye = target + offset * camera_distance(cameras) * direction
   helper = np.eye(3)[int(np.argmin(np.abs(direction)))]
   up = rotation_about(direction, np.random.default_rng(seed).uniform(0, 2 * math.pi)) @ np.cross(direction, helper)
-  c = cameras[0]
-  return Camera.from_intrinsics(look_at(eye, eye + direction, up), float(c.fx), float(c.fy), float(c.cx),
-                                float(c.cy), c.width, c.height)
+  return looking_at(cameras, eye, eye + direction, up)
 
 
 def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:

@@ -1,19 +1,18 @@
 """The key's pose refined photometrically after registration (beyond the paper): the pose near the registered key
 whose render of the suspect looks most like the owner's copy seen from the key.
 
-The decoder reads the check view at the key's exact pose: the key turned with the scene by a tenth of a degree
-about its centre loses most of the hidden image, and moved by a two-thousandth of the scene's radius a few
-hundredths of its SSIM (the film sits close in front of the key, so a small move of the camera is a large move of
-the film in the image). Point registration (gs.register)
-recovers a similarity exactly from a scene whose Gaussians are the owner's, but from a decimated or re-trained copy
-its nearest-neighbour pairs are biased by the merges, and its error, small against the scene, is large against that
-tolerance. The film itself fixes the pose: the key's render of the owner's copy is the reference, and the moved key
-is turned and shifted (in its own frame, within MAX_UNITS of its units) until the suspect's render there matches
-it best. Neither the decoder nor the hidden image enters, so the refined key is as available to an innocent scene
-as to a marked one and the ownership test's null readings keep their meaning. The suspect's renders pass through a
-colour map (align.fit_tone's) held fixed while the pose is searched, so that a colour grade of the suspect does
-not pull the pose, and fitted again where the search ends; a map fitted anew at every pose of the search (or renders
-standardized per image) would trade pose for tone.
+The decoder reads the check view at the key's exact pose: the key turned with the scene by a tenth of a degree about
+its centre loses most of the hidden image, and moved by a two-thousandth of the scene's radius a few hundredths of
+its SSIM (the film sits close in front of the key, so a small move of the camera is a large move of the film in the
+image). Point registration (gs.register) recovers a similarity exactly from a scene whose Gaussians are the owner's,
+but from a decimated or re-trained copy its nearest-neighbour pairs are biased by the merges, and its error, small
+against the scene, is large against that tolerance. The film itself fixes the pose: the key's render of the owner's
+copy is the reference, and the moved key is turned and shifted (in its own frame, within MAX_UNITS of its units)
+until the suspect's render there matches it best. Neither the decoder nor the hidden image enters, so the refined
+key is as available to an innocent scene as to a marked one and the ownership test's null readings keep their
+meaning. The suspect's renders pass through a colour map (align.fit_tone's) held fixed while the pose is searched,
+so that a colour grade of the suspect does not pull the pose, and fitted again where the search ends; a map fitted
+anew at every pose of the search (or renders standardized per image) would trade pose for tone.
 """
 from __future__ import annotations
 
