@@ -15,10 +15,10 @@ forward+backward, one image); the guided combination of the two decoder gradient
 the whole step with its two views on one device and split over two (core.parallel), taking turns, and where views
 render from the rows that reach them (conceal/subsets.py) the same from the whole student beside it, and where only
 the film's colours train the same with the gradient taken with respect to every parameter, and where the check
-renders are read through linear maps (conceal/linear_check.py) the same rendering them, and where the keys and decoys
-are cameras of the decoder's size (conceal.carrier.at_decoder_size) the same at the training size. The whole steps
-draw their distortions as a run does, one per step. --set overrides the row's config (dotted key=value). Writes
-<--name>.json (conceal_step_profile.json) to --out. Run it on a quiet machine.
+renders, or the normal views, are read through linear maps (conceal/linear_check.py) the same rendering them,
+and where the keys and decoys are cameras of the decoder's size (conceal.carrier.at_decoder_size) the same at
+the training size. The whole steps draw their distortions as a run does, one per step. --set overrides the row's
+config (dotted key=value). Writes <--name>.json (conceal_step_profile.json) to --out. Run it on a quiet machine.
 """
 from __future__ import annotations
 
@@ -58,7 +58,8 @@ def row_config(scene: str, row: str, width: int, teacher: pathlib.Path):
 def step_ms(run, settings, student_tx, decoder_tx, decoder, repeats: int, rounds: int = 3, others=None) -> dict:
   """Median ms of the whole jitted step (state donated) with its views on one device and, where there are two,
   split over two, after one warm-up each; normal views and distortions drawn as the run draws them (decoys at its
-  decoy share); where the run reads check renders through linear maps, the same rendering them beside it.
+  decoy share); where the run reads check renders, or normal views, through linear maps, the same rendering them
+  beside it.
   Where the run renders each view from the rows that reach it (subsets.py), the same with every view rendered
   from the whole student beside it (`_whole_renders`); `others` {suffix: run}: other runs of the same settings
   (prepared otherwise) beside it. They take turns, `rounds` times `repeats` steps."""
@@ -72,6 +73,8 @@ def step_ms(run, settings, student_tx, decoder_tx, decoder, repeats: int, rounds
     datas["_whole_gradient"] = (run.start, run.data.replace(colour_rows=None, ties=None))
   if run.data.check_weights is not None:
     datas["_rendered_checks"] = (run.start, run.data.replace(check_weights=None))
+  if run.data.normal_weights is not None:
+    datas["_rendered_normal_views"] = (run.start, run.data.replace(normal_weights=None, normal_maps=None))
   datas.update({suffix: (other.start, other.data) for suffix, other in (others or {}).items()})
   rng = np.random.default_rng(0)
   num_views, num_decoys = run.data.images.shape[0], len(run.decoys)
@@ -110,8 +113,7 @@ def part_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
     view = jax.tree.map(lambda x, i=index: x[i], views)
     for suffix, read in (("", objective.l1_of_decoded_pair), ("_batched", decoder_pair.batched_l1_of_decoded_pair)):
       def loss(g, d, whole, v=view, read=read):
-        terms = objective.view_terms(place(whole, g), d, d, v, s, run.options, run.data.merges, read_pair=read,
-                                     check_weights=run.data.check_weights)
+        terms = objective.view_terms(place(whole, g), d, d, v, s, run.options, run.data.merges, read_pair=read)
         return terms.student + terms.plus + terms.minus
 
       times[f"{name}_view_terms_fwd_bwd{suffix}"] = median_ms(jax.jit(jax.grad(loss, argnums=(0, 1))), trained,
@@ -121,8 +123,7 @@ def part_ms(run, settings, student_tx, decoder_tx, decoder, distortion, repeats:
   times["decoder_fwd"] = median_ms(jax.jit(apply), decoder, image, repeats=repeats)
   times["decoder_fwd_bwd"] = median_ms(jax.jit(jax.grad(lambda d, x: jnp.sum(apply(d, x)))), decoder, image,
                                        repeats=repeats)
-  gradients = lambda g, d: step_lib.gradients(g, d, views, s, run.options, merges=run.data.merges, colour_rows=rows,
-                                              check_weights=run.data.check_weights)
+  gradients = lambda g, d: step_lib.gradients(g, d, views, s, run.options, merges=run.data.merges, colour_rows=rows)
   grads, _ = jax.jit(gradients)(run.start, decoder)
   guided = jax.jit(lambda p, m: guidance.guided_decoder_gradient(p, m, 1.0, 1.0, s.granularity))
   times["guidance"] = median_ms(guided, grads["plus"], grads["minus"], repeats=repeats)

@@ -42,8 +42,9 @@ def test_the_check_render_through_its_map_is_the_render_in_every_state(scene):
   def image(dc, distortion, camera, reading, state):
     moved = student.replace(sh=student.sh.at[offset:, 0].set(dc))
     perturbed = lambda g, rows: perturb.perturb_gaussians(g, distortion, ATTACKS, merges, rows)
-    seen = view(camera, reading).replace(linear=state)
-    out = objective.rendered(moved, seen, OPTIONS, perturbed, check)
+    seen = view(camera, reading).replace(weights=jax.tree.map(lambda x: x[jnp.maximum(state, 0)], check),
+                                        linear=state >= 0)
+    out = objective.rendered(moved, seen, OPTIONS, perturbed)
     return out.rgb, out.num_pairs
 
   loss = lambda *args: jnp.sum(weights * image(*args)[0])
@@ -90,13 +91,64 @@ def test_a_steps_gradients_through_the_maps_are_the_rendered_ones(tiny):
   @jax.jit
   def grads(data, distortion):
     views = views_lib.step_views(data, 0, 0, 0, distortion, s)
-    return step.gradients(student, decoder, views, s, run.options, None, True, data.merges, data.colour_rows,
-                          data.check_weights)[0]
+    return step.gradients(student, decoder, views, s, run.options, None, True, data.merges, data.colour_rows)[0]
 
   for merge, quantize in ((0, 0), (2, 0), (1, 1)):
     distortion = dict(augment.draw(np.random.default_rng(merge), s.augmentation), merge=np.float32(merge),
                       quantize=np.float32(quantize))
     want, got = grads(run.data.replace(check_weights=None), distortion), grads(run.data, distortion)
+    for name in ("student", "plus", "minus"):
+      for a, b in zip(jax.tree.leaves(got[name]), jax.tree.leaves(want[name])):
+        b = np.asarray(b)
+        assert np.all(np.isfinite(a)) and (name == "minus" or np.any(b != 0))
+        np.testing.assert_allclose(np.asarray(a), b, atol=1e-4 * np.abs(b).max(), rtol=0, err_msg=name)
+
+
+def test_the_normal_views_maps_cover_the_views_that_render_within_the_budget(scene):
+  student, offset, cameras, key, decoys = scene
+  film = np.arange(student.num) >= offset
+  views = [cameras[0], decoys[0], decoys[1]]
+  fixed = np.array([True, False, False])
+  rows = subsets.view_rows(student, views, OPTIONS, film, fixed)
+  weights, index = linear_check.normal_weights(student, views, rows, fixed, OPTIONS, 64.0)
+  assert np.asarray(index).tolist() == [-1, 0, 1] and weights.weights.shape[0] == 2
+  for camera, k in ((decoys[0], 0), (decoys[1], 1)):
+    seen = view(camera, jnp.asarray(rows[k + 1])).replace(weights=jax.tree.map(lambda x, k=k: x[k], weights),
+                                                          linear=jnp.bool_(True))
+    want = objective.rendered(student, view(camera, jnp.asarray(rows[k + 1])), OPTIONS).rgb
+    np.testing.assert_allclose(np.asarray(objective.rendered(student, seen, OPTIONS).rgb), np.asarray(want),
+                               atol=2e-6, rtol=0)
+  assert linear_check.normal_weights(student, views, rows, fixed, OPTIONS, 0.01) == (None, None)
+  assert linear_check.normal_weights(student, views, rows, np.ones(3, bool), OPTIONS, 64.0) == (None, None)
+
+
+def test_a_steps_gradients_through_the_normal_views_maps_are_the_rendered_ones(tiny):
+  """With decoys, a step whose normal view is a decoy read through its map has the gradients of its render (the
+  film's colours, both decoder pytrees), with its check view read through its map or rendered (8-bit); a training
+  view's render stays the teacher's."""
+  config = tiny_config(tiny, key_kind="unseen", decoy_views=3, decoy_fraction=0.9,
+                       **{"carrier.film": True, "carrier.spacing": 4.0, "attacks.quantize_fraction": 0.3,
+                          "identity_on_student": True})
+  plan = settings_lib.plan(config)
+  run = conceal_train.prepare(config, plan)
+  data = run.data
+  num_views = data.images.shape[0]
+  assert data.normal_weights is not None and data.normal_weights.weights.shape[0] == 3
+  assert np.asarray(data.normal_maps).tolist() == [-1] * num_views + [0, 1, 2]
+  s, film = plan.settings, data.colour_rows
+  student = jax.tree.map(jnp.asarray, run.start)
+  student = student.replace(sh=student.sh.at[film, 0].set(jax.random.normal(jax.random.key(0), (film.size, 3))))
+  decoder = conceal_train.initial_decoder(config, s)
+
+  @jax.jit
+  def grads(data, normal, distortion):
+    views = views_lib.step_views(data, normal, 0, 0, distortion, s)
+    return step.gradients(student, decoder, views, s, run.options, None, True, data.merges, data.colour_rows)[0]
+
+  rendered = data.replace(normal_weights=None, normal_maps=None, check_weights=None)
+  for normal, quantize in ((num_views + 1, 0), (num_views + 2, 1), (0, 0)):
+    distortion = dict(augment.draw(np.random.default_rng(normal), s.augmentation), quantize=np.float32(quantize))
+    want, got = grads(rendered, normal, distortion), grads(data, normal, distortion)
     for name in ("student", "plus", "minus"):
       for a, b in zip(jax.tree.leaves(got[name]), jax.tree.leaves(want[name])):
         b = np.asarray(b)

@@ -1,4 +1,5 @@
-"""The check render as a linear map of the film's colours (beyond the paper; a speed-up that changes no value).
+"""The check render, and the normal views' renders, as linear maps of the film's colours (beyond the paper; a
+speed-up that changes no value).
 
 Where only the carrier film's colours train (carrier.colour_rows) and the check render's attacks leave the geometry
 in one of a few fixed states, the key's image is linear in the colours (splat/linear.py): C = W c + T b, one W per
@@ -8,11 +9,17 @@ regroups); a step whose check render draws no 8-bit grid then renders through it
 linear.render_through) instead of the renderer. Attacks that move a Gaussian's geometry or opacity by a fresh draw
 each step (dropout, parameter noise, size pruning, opacity resets, merges of near pairs at a drawn share) leave no
 fixed W: those runs render.
+
+A normal view renders the student as it is (its attacks are the check render's), so where only the film's colours
+train each normal view that renders has one fixed W too: `normal_weights` reads them once, within a memory budget
+(conceal.carrier.linear_maps_mb: the decoys of a 64 x 64 key fit, those of a 200 x 200 one take about ten times
+as much), and a step's normal view is read through its W.
 """
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from conceal_jax.conceal import decimate, subsets
 from conceal_jax.conceal.augment import Augmentation
@@ -54,3 +61,34 @@ def check_weights(student, key_cameras, key_rows, merges, options: RenderOptions
   longest = max(int(m.weights.size) for m in maps)
   length = max(length, -(-max(longest, 1) // LENGTH_STEP) * LENGTH_STEP)
   return jax.tree.map(lambda *xs: jnp.stack(xs), *[linear.padded(m, length) for m in maps])
+
+
+def map_bytes(weights: linear.ColourWeights) -> int:
+  """The memory one view's map takes: its pixel, row and weight entries and its final transmittance."""
+  return sum(int(x.size) * x.dtype.itemsize for x in (weights.pixels, weights.rows, weights.weights,
+                                                        weights.transmittance))
+
+
+def normal_weights(student, cameras, rows, fixed, options: RenderOptions, budget_mb: float):
+  """(linear.ColourWeights [R], int32 [C]): the maps of `student`'s renders at the `cameras` [C] that are not
+  `fixed` ([C] bool: their render is held), each reading its `rows` [C, M] (subsets.view_rows), padded to one
+  length (a multiple of LENGTH_STEP); and each camera's index among them, -1 for the fixed ones. (None, None) where
+  no camera renders or the padded maps would take more than `budget_mb` MB, given up as soon as the maps read so
+  far and the rest at the size of the last would. Eager."""
+  student, budget = jax.tree.map(jnp.asarray, student), budget_mb * 2**20
+  maps, index, used = [], np.full(len(cameras), -1, np.int32), 0
+  rendering = int(np.sum(~np.asarray(fixed, bool)))
+  for c, (camera, still) in enumerate(zip(cameras, fixed)):
+    if still:
+      continue
+    maps.append(linear.colour_weights(subsets.gather(student, jnp.asarray(rows[c])), camera, options))
+    index[c], used = len(maps) - 1, used + map_bytes(maps[-1])
+    if used + map_bytes(maps[-1]) * (rendering - len(maps)) > budget:
+      return None, None
+  if not maps:
+    return None, None
+  length = -(-max(max(int(m.weights.size) for m in maps), 1) // LENGTH_STEP) * LENGTH_STEP
+  padded = [linear.padded(m, length) for m in maps]
+  if sum(map_bytes(m) for m in padded) > budget:
+    return None, None
+  return jax.tree.map(lambda *xs: jnp.stack(xs), *padded), jnp.asarray(index)

@@ -38,8 +38,9 @@ class View:
   L_d^-'s share on this render (the student's normal view with identity_on_student); teacher_small
   [S, S, 3] and teacher_minus_weight: a teacher render at the decoder size and its L_d^- share; rows: None, or
   int32 [M] the student rows its render reads (subsets.py: the same image), and fixed: whether its render is
-  fixed_rgb [H, W, 3] (the teacher's: no row that trains reaches it), not rendered; linear: None, or int32 the
-  state of the step's check weights (linear_check.check_weights) its render is read through (-1: rendered).
+  fixed_rgb [H, W, 3] (the teacher's: no row that trains reaches it), not rendered; weights: None, or its render
+  as a linear map of the colours (linear.ColourWeights, of linear_check's maps), which it is read through where
+  `linear` (bool) holds, else rendered.
   """
   camera: Camera
   target: jax.Array
@@ -55,6 +56,7 @@ class View:
   rows: jax.Array | None = None
   fixed: jax.Array | None = None
   fixed_rgb: jax.Array | None = None
+  weights: linear.ColourWeights | None = None
   linear: jax.Array | None = None
 
 
@@ -98,9 +100,9 @@ def l1_of_decoded_pair(decoders, images: jax.Array, targets: jax.Array, settings
 
 
 def view_terms(student, decoder_plus, decoder_minus, view: View, settings: ConcealSettings,
-               options: RenderOptions, merges=None, read_pair=l1_of_decoded_pair, check_weights=None) -> Terms:
+               options: RenderOptions, merges=None, read_pair=l1_of_decoded_pair) -> Terms:
   """The terms of one view: the student rendered through view.model (with `merges`, the film pairs a decimation
-  merges: perturb.perturb_gaussians; through `check_weights` where view.linear names a state) and its pixel loss;
+  merges: perturb.perturb_gaussians; through view.weights where view.linear holds) and its pixel loss;
   the render read by F at the decoder size (through view.image), once: against I where the view carries L_d^+
   (lambda+ L_d^+, eq. 5, through the render, F as `decoder_plus`), else against itself as a constant (its L_d^-
   share, eq. 4, F as `decoder_minus`); and the teacher render against itself (its L_d^- share). A view carries L_d^+ or
@@ -108,7 +110,7 @@ def view_terms(student, decoder_plus, decoder_minus, view: View, settings: Conce
   (l1_of_decoded_pair, or decoder_pair.py's batch of two)."""
   s = settings
   perturbed = lambda g, rows: perturb.perturb_gaussians(g, view.model, s.augmentation, merges, rows)
-  out = rendered(student, view, options, perturbed, check_weights)
+  out = rendered(student, view, options, perturbed)
   seen = decoder_view(augment.distort(out.rgb, view.image, s.augmentation), s)
   reads_hidden = view.plus_weight > 0
   own_decoder = jax.tree.map(lambda p, m: jnp.where(reads_hidden, p, m), decoder_plus, decoder_minus)
@@ -122,13 +124,12 @@ def view_terms(student, decoder_plus, decoder_minus, view: View, settings: Conce
                overflowed=out.overflowed)
 
 
-def rendered(gaussians, view: View, options: RenderOptions, perturbed=subsets.rows_of,
-             check_weights: linear.ColourWeights | None = None) -> RenderOutput:
+def rendered(gaussians, view: View, options: RenderOptions, perturbed=subsets.rows_of) -> RenderOutput:
   """The view's render of `gaussians` (its rgb and pair counts), as `perturbed(gaussians, rows)` gives them (the
   rows [M] it reads, or None: all; default: as they are): of its rows alone where it has them (the same image:
-  subsets.py); where it is fixed its fixed image, neither perturbed nor rendered (no pairs); where view.linear names
-  a state of `check_weights` ([L] stacked, linear_check.check_weights), the same image through that linear map
-  (linear.render_through), with the pairs its render would need."""
+  subsets.py); where it is fixed its fixed image, neither perturbed nor rendered (no pairs); where view.linear
+  holds, the same image through its linear map view.weights (linear.render_through), with the pairs its render
+  would need."""
   if view.rows is None:
     return render(perturbed(gaussians, None), view.camera, options)
 
@@ -138,15 +139,15 @@ def rendered(gaussians, view: View, options: RenderOptions, perturbed=subsets.ro
 
   blank = jax.tree.map(lambda x: jnp.zeros(x.shape, x.dtype), jax.eval_shape(draw))
   held = lambda: blank.replace(rgb=view.fixed_rgb)
-  if check_weights is None or view.linear is None:
+  if view.weights is None:
     return jax.lax.cond(view.fixed, held, draw)
 
   def through():
-    weights = jax.tree.map(lambda x: x[jnp.maximum(view.linear, 0)], check_weights)
-    rgb = linear.render_through(weights, perturbed(gaussians, view.rows), view.camera, options)
-    return blank.replace(rgb=rgb.astype(blank.rgb.dtype), num_pairs=weights.num_pairs.astype(blank.num_pairs.dtype))
+    rgb = linear.render_through(view.weights, perturbed(gaussians, view.rows), view.camera, options)
+    pairs = view.weights.num_pairs.astype(blank.num_pairs.dtype)
+    return blank.replace(rgb=rgb.astype(blank.rgb.dtype), num_pairs=pairs)
 
-  return jax.lax.switch(jnp.where(view.fixed, 1, jnp.where(view.linear >= 0, 2, 0)), (draw, held, through))
+  return jax.lax.switch(jnp.where(view.fixed, 1, jnp.where(view.linear, 2, 0)), (draw, held, through))
 
 
 def l1_of_decoded(decoder, image: jax.Array, target: jax.Array, settings: ConcealSettings) -> jax.Array:

@@ -43,32 +43,31 @@ def create_state(student, decoder, student_tx, decoder_tx, colour_rows=None) -> 
 
 
 def gradients(student, decoder, views: objective.View, settings: ConcealSettings, options: RenderOptions, mesh=None,
-              train_student: bool = True, merges=None, colour_rows=None, check_weights=None):
+              train_student: bool = True, merges=None, colour_rows=None):
   """({'student': ..., 'plus': ..., 'minus': ...} gradients summed over the stacked views [B], their Terms [B]).
   'student' is the gradient of every term with respect to the student, or where `colour_rows` [F] name the rows
   whose base colours alone train (views.ConcealData), with respect to those colours [F, 3] (the rest of the
   student is then a constant, and nothing else is differentiated); None without `train_student` (the renders
   are not differentiated). 'plus' and 'minus' are the decoder's gradients of lambda+ L_d^+ and of lambda- L_d^-.
-  `merges`, `check_weights`: the film pairs a decimation merges, the check renders' linear maps (views.ConcealData).
+  `merges`: the film pairs a decimation merges (views.ConcealData).
   A view's two decoder reads run as one batch (decoder_pair.py: exact here, where both decoder arguments are
   `decoder`)."""
   argnums = (0, 1, 2) if train_student else (1, 2)
 
   def per_view(shared, view):
-    whole, decoder, merges, rows, check = shared
+    whole, decoder, merges, rows = shared
 
     def loss(trained, decoder_plus, decoder_minus):
       student = carrier.with_trained(whole, rows, trained)
       terms = objective.view_terms(student, decoder_plus, decoder_minus, view, settings, options, merges,
-                                   read_pair=decoder_pair.batched_l1_of_decoded_pair, check_weights=check)
+                                   read_pair=decoder_pair.batched_l1_of_decoded_pair)
       return terms.student + terms.plus + terms.minus, terms
 
     grads, terms = jax.grad(loss, argnums, has_aux=True)(carrier.trained_part(whole, rows), decoder, decoder)
     named = dict(zip(("student", "plus", "minus")[3 - len(argnums):], grads))
     return named, terms.replace(overflowed=terms.overflowed.astype(jnp.int32))
 
-  grads, terms = parallel.map_reduce_over_batch(per_view, (student, decoder, merges, colour_rows, check_weights),
-                                                views, mesh)
+  grads, terms = parallel.map_reduce_over_batch(per_view, (student, decoder, merges, colour_rows), views, mesh)
   return dict(grads, student=grads.get("student")), terms
 
 
@@ -91,7 +90,7 @@ def make_step(settings: ConcealSettings, options: RenderOptions, student_tx, dec
   def step(state: ConcealState, data: ConcealData, view, normal_view, key_number=0, distortion=None):
     views = step_views(data, view, normal_view, key_number, distortion, s)
     grads, terms = gradients(state.student, state.decoder, views, s, options, mesh, train_student, data.merges,
-                             data.colour_rows, data.check_weights)
+                             data.colour_rows)
     new = state.replace(step=state.step + 1)
     if train_student:
       rows, student_grads = data.colour_rows, grads["student"]

@@ -105,7 +105,8 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
       merges = grouping.training_merges(start, teacher.num, s.augmentation)
   # with only the film's colours trained, each view renders the rows that reach it (subsets.py); not where
   # parameter noise moves every Gaussian's geometry
-  reach = (dict(student=start, check_states=linear_check.states(s.augmentation))
+  reach = (dict(student=start, check_states=linear_check.states(s.augmentation),
+                linear_maps_mb=config.conceal.carrier.linear_maps_mb)
            if plan.film is not None and s.augmentation.param_noise_max == 0 else {})
   data = views_lib.build_data(scene.train_images, teacher, options, list(scene.train_cameras) + decoys,
                               [camera for camera, _ in keys], hiddens, s.hidden_size, s.reading.clip, key_images,

@@ -19,7 +19,7 @@ from conceal_jax.conceal.objective import View
 from conceal_jax.conceal.settings import ConcealSettings
 from conceal_jax.core import parallel
 from conceal_jax.gs import evaluate
-from conceal_jax.splat import camera as camera_lib
+from conceal_jax.splat import camera as camera_lib, linear
 from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.render import RenderOptions, render_batch
 
@@ -43,7 +43,9 @@ class ConcealData:
   keys' renders read (subsets.view_rows), with fixed [V + D] bool: the normal views rendered by no row that trains,
   whose render is the teacher's; check_weights: None or the keys' renders as linear maps of the colours
   (linear_check.check_weights: linear.ColourWeights [K * L]), which the check views that draw no 8-bit grid are
-  read through."""
+  read through; normal_weights: None or the renders of the normal views that are not fixed as linear maps
+  (linear_check.normal_weights: linear.ColourWeights [R]), with normal_maps int32 [V + D]: each normal view's index
+  among them (-1: fixed), which those views are read through."""
   images: jax.Array
   teacher: jax.Array
   teacher_small: jax.Array
@@ -55,11 +57,14 @@ class ConcealData:
   rows: Any = None
   fixed: Any = None
   check_weights: Any = None
+  normal_weights: Any = None
+  normal_maps: Any = None
 
 
 def build_data(train_images, teacher, options: RenderOptions, normal_cameras: list[Camera], key_cameras, hiddens,
                size: int, clip: bool = False, key_images=None, colour_rows=None, merges=None,
-               ties=None, at_decoder_size: bool = False, student=None, check_states: int = 0) -> ConcealData:
+               ties=None, at_decoder_size: bool = False, student=None, check_states: int = 0,
+               linear_maps_mb: float = 0.0) -> ConcealData:
   """The device-resident inputs of the concealment step. `normal_cameras`: the training cameras then the
   decoys; `key_cameras` and `hiddens` [S, S, 3]: one of each per key; `key_images` [H, W, 3] per key: the
   released variant's check-view targets (None: the teacher's renders there); `colour_rows`, `merges`, `ties`:
@@ -67,7 +72,8 @@ def build_data(train_images, teacher, options: RenderOptions, normal_cameras: li
   With `at_decoder_size` (conceal.carrier.at_decoder_size: the decoys and keys are S x S cameras), the training
   views' renders are the teacher's resized as the decoder reads them, their cameras the same views at S x S.
   With `student` (where only colour_rows train), ConcealData's rows and fixed: every render reads colour_rows; and
-  with `check_states` (linear_check.states, where linear_check.applies) its check_weights."""
+  with `check_states` (linear_check.states, where linear_check.applies) its check_weights, and within
+  `linear_maps_mb` MB (conceal.carrier.linear_maps_mb) its normal_weights."""
   if at_decoder_size:
     views, decoys = normal_cameras[:len(train_images)], normal_cameras[len(train_images):]
     teacher_renders = jnp.concatenate(
@@ -80,16 +86,20 @@ def build_data(train_images, teacher, options: RenderOptions, normal_cameras: li
   teacher_keys = render_batch(teacher, key_stack, options).rgb
   keys = key_lib.stack_keys(key_cameras, hiddens, teacher_keys if key_images is None else key_images,
                             reveal.resize_for_decoder(teacher_keys, size, clip))
-  rows = fixed = None
+  rows = fixed = normal_weights = normal_maps = None
   if student is not None:
     fixed = np.arange(len(normal_cameras)) < len(train_images)
     always = np.isin(np.arange(student.num), np.asarray(colour_rows))  # what trains is read by every render
     rows = jnp.asarray(subsets.view_rows(student, list(normal_cameras) + list(key_cameras), options, always,
                                          np.concatenate([fixed, np.zeros(len(key_cameras), bool)])))
+    if linear_maps_mb > 0:
+      normal_weights, normal_maps = linear_check.normal_weights(student, normal_cameras, np.asarray(rows), fixed,
+                                                                options, linear_maps_mb)
   data = ConcealData(images=jnp.asarray(np.stack(train_images)), teacher=teacher_renders,
                    teacher_small=reveal.resize_for_decoder(teacher_renders, size, clip),
                    cameras=camera_lib.stack(list(normal_cameras)), keys=keys, colour_rows=colour_rows, merges=merges,
-                   ties=ties, rows=rows, fixed=None if fixed is None else jnp.asarray(fixed))
+                   ties=ties, rows=rows, fixed=None if fixed is None else jnp.asarray(fixed),
+                   normal_weights=normal_weights, normal_maps=normal_maps)
   return regrouped(data, student, merges, options, check_states) if student is not None and check_states else data
 
 
@@ -129,6 +139,7 @@ def step_views(data: ConcealData, view, normal_view, key_number, distortion, set
   released = s.variant == "released"
   num_normal = data.teacher.shape[0]
   rows = lambda index: None if data.rows is None else data.rows[index]
+  (normal_map, normal_linear), (check_map, check_linear) = view_maps(data, view, key_number, distortion)
   normal = View(camera=jax.tree.map(lambda x: x[view], data.cameras),
                 target=data.teacher[view] if s.distill else data.images[view],
                 l1_weight=f32(s.weight_kd if s.distill else 0.0), photometric_weight=f32(0.0 if s.distill else 1.0),
@@ -136,14 +147,30 @@ def step_views(data: ConcealData, view, normal_view, key_number, distortion, set
                 plus_weight=f32(0.0), own_minus_weight=f32(w["student"]), teacher_small=data.teacher_small[normal_view],
                 teacher_minus_weight=f32(w["teacher_normal"]), rows=rows(view),
                 fixed=None if data.fixed is None else data.fixed[view], fixed_rgb=data.teacher[view],
-                linear=None if data.check_weights is None else jnp.int32(-1))
+                weights=normal_map, linear=normal_linear)
   check = View(camera=key.camera, target=key.check_image, l1_weight=f32(s.weight_check if released else 0.0),
                photometric_weight=f32(0.0), model=distortion, image=distortion, hidden=key.hidden,
                plus_weight=f32(s.weight_plus), own_minus_weight=f32(0.0), teacher_small=key.teacher_check,
                teacher_minus_weight=f32(w["teacher_check"]), rows=rows(num_normal + key_number),
                fixed=None if data.fixed is None else jnp.bool_(False), fixed_rgb=key.check_image,
-               linear=None if data.check_weights is None else check_state(data, key_number, distortion))
+               weights=check_map, linear=check_linear)
   return jax.tree.map(lambda a, b: jnp.stack([a, b]), normal, check)
+
+
+def view_maps(data: ConcealData, view, key_number, distortion: dict) -> tuple[tuple, tuple]:
+  """((weights, linear) of the normal view `view`, the same of the check view of key `key_number` through
+  `distortion`): the linear map each is read through (data.normal_weights[data.normal_maps[view]], the check state's
+  of data.check_weights: check_state) and whether it is (a view without one holds another view's map, unread), both
+  padded to one length so that the two views stack; (None, None) each where the data holds no maps."""
+  stacks = [m for m in (data.normal_weights, data.check_weights) if m is not None]
+  if not stacks:
+    return (None, None), (None, None)
+  length = max(int(m.weights.shape[1]) for m in stacks)
+  pick = lambda maps, index: linear.padded(jax.tree.map(lambda x: x[jnp.maximum(index, 0)], maps), length)
+  normal = jnp.int32(-1) if data.normal_weights is None else data.normal_maps[view]
+  check = jnp.int32(-1) if data.check_weights is None else check_state(data, key_number, distortion)
+  return ((pick(stacks[0] if data.normal_weights is None else data.normal_weights, normal), normal >= 0),
+          (pick(stacks[-1] if data.check_weights is None else data.check_weights, check), check >= 0))
 
 
 def check_state(data: ConcealData, key_number, distortion: dict) -> jax.Array:

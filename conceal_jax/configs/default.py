@@ -325,6 +325,9 @@ def conceal_carrier_section() -> ml_collections.ConfigDict:
   c.spread = 0.6
   c.thickness = 0.01
   c.at_decoder_size = False
+  # the most memory (MB) the normal views' renders of the film may take held as linear maps of its colours
+  # (conceal/linear_check.py: the same images, read in a fraction of a render's time); 0: they render
+  c.linear_maps_mb = 4096.0
   return c
 
 
