@@ -23,7 +23,7 @@ import numpy as np
 
 from conceal_jax.conceal import decimate, subsets
 from conceal_jax.conceal.augment import Augmentation
-from conceal_jax.splat import linear
+from conceal_jax.splat import linear, render
 from conceal_jax.splat.render import RenderOptions
 
 # The weights' length is a multiple of this many entries, so that a regrouped run seldom changes the step's shapes.
@@ -53,11 +53,13 @@ def check_weights(student, key_cameras, key_rows, merges, options: RenderOptions
   (subsets.view_rows), in L = `num_states` states; all padded (linear.padded) to `length` entries or the next
   multiple of LENGTH_STEP above the most any needs, where that is more. Eager."""
   student = jax.tree.map(jnp.asarray, student)
-  maps = []
+  maps, fitted, most = [], options, 0
   for camera, rows in zip(key_cameras, key_rows):
     for state in range(num_states):
       g = student if state == 0 else decimate.merge_levels(student, merges, jnp.float32(state))
-      maps.append(linear.colour_weights(subsets.gather(g, jnp.asarray(rows)), camera, options))
+      maps.append(linear.colour_weights(subsets.gather(g, jnp.asarray(rows)), camera, fitted))
+      most = max(most, int(maps[-1].num_pairs))  # the next renders' buffer: the most pairs a view needed so far
+      fitted = render.grow_capacity(options, most)
   longest = max(int(m.weights.size) for m in maps)
   length = max(length, -(-max(longest, 1) // LENGTH_STEP) * LENGTH_STEP)
   return jax.tree.map(lambda *xs: jnp.stack(xs), *[linear.padded(m, length) for m in maps])
@@ -76,12 +78,14 @@ def normal_weights(student, cameras, rows, fixed, options: RenderOptions, budget
   no camera renders or the padded maps would take more than `budget_mb` MB, given up as soon as the maps read so
   far and the rest at the size of the last would. Eager."""
   student, budget = jax.tree.map(jnp.asarray, student), budget_mb * 2**20
-  maps, index, used = [], np.full(len(cameras), -1, np.int32), 0
+  maps, index, used, fitted, most = [], np.full(len(cameras), -1, np.int32), 0, options, 0
   rendering = int(np.sum(~np.asarray(fixed, bool)))
   for c, (camera, still) in enumerate(zip(cameras, fixed)):
     if still:
       continue
-    maps.append(linear.colour_weights(subsets.gather(student, jnp.asarray(rows[c])), camera, options))
+    maps.append(linear.colour_weights(subsets.gather(student, jnp.asarray(rows[c])), camera, fitted))
+    most = max(most, int(maps[-1].num_pairs))
+    fitted = render.grow_capacity(options, most)
     index[c], used = len(maps) - 1, used + map_bytes(maps[-1])
     if used + map_bytes(maps[-1]) * (rendering - len(maps)) > budget:
       return None, None

@@ -22,7 +22,7 @@ from conceal_jax.splat import binning, composite
 from conceal_jax.splat import sh as sh_lib
 from conceal_jax.splat.camera import Camera, camera_center
 from conceal_jax.splat.gaussians import Gaussians
-from conceal_jax.splat.render import RenderOptions, render, sh_degree, tile_layout, untile_image
+from conceal_jax.splat.render import RenderOptions, grow_capacity, render, sh_degree, tile_layout, untile_image
 
 
 @struct.dataclass
@@ -39,13 +39,15 @@ class ColourWeights:
 
 def colour_weights(gaussians: Gaussians, camera: Camera, options: RenderOptions = RenderOptions()) -> ColourWeights:
   """The weights of `gaussians`' colours in their render from `camera` with `options` (eager: the number of
-  nonzero weights decides the arrays' length). Depth and SH options do not matter: the weights are geometry's."""
+  nonzero weights decides the arrays' length). Depth and SH options do not matter: the weights are geometry's.
+  Several views of a kind read fastest with options.pair_capacity near their pair counts (render.grow_capacity to
+  the most one needed so far: a view that needs more grows it)."""
   options = dataclasses.replace(options, with_depth=False, with_alpha=True)
   out = render(gaussians, camera, options)  # grows the pair capacity to what the view needs
   if gaussians.num == 0:
     nothing = jnp.zeros((0,), jnp.int32)
     return ColourWeights(nothing, nothing, jnp.zeros((0,), out.alpha.dtype), 1.0 - out.alpha, out.num_pairs)
-  options = dataclasses.replace(options, pair_capacity=out.pair_capacity)
+  options = grow_capacity(options, out.num_pairs)  # the segments the view's pairs fill, not the render's buffer
   weights, splats, tiles, count = _segment_weights(gaussians, camera, options)
   weights, splats, tiles = (np.asarray(x)[:int(count)] for x in (weights, splats, tiles))
   seg, pixel, lane = np.nonzero(weights)
