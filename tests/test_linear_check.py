@@ -112,12 +112,15 @@ def test_the_normal_views_maps_cover_the_views_that_render_within_the_budget(sce
   rows = subsets.view_rows(student, views, OPTIONS, film, fixed)
   weights, index = linear_check.normal_weights(student, views, rows, fixed, OPTIONS, 64.0)
   assert np.asarray(index).tolist() == [-1, 0, 1] and weights.weights.shape[0] == 2
+  longer = linear_check.lengthened(weights, weights.weights.shape[1] + linear_check.LENGTH_STEP)
+  assert longer.weights.shape == (2, weights.weights.shape[1] + linear_check.LENGTH_STEP)
   for camera, k in ((decoys[0], 0), (decoys[1], 1)):
-    seen = view(camera, jnp.asarray(rows[k + 1])).replace(weights=jax.tree.map(lambda x, k=k: x[k], weights),
-                                                          linear=jnp.bool_(True))
     want = objective.rendered(student, view(camera, jnp.asarray(rows[k + 1])), OPTIONS).rgb
-    np.testing.assert_allclose(np.asarray(objective.rendered(student, seen, OPTIONS).rgb), np.asarray(want),
-                               atol=2e-6, rtol=0)
+    for maps in (weights, longer):
+      seen = view(camera, jnp.asarray(rows[k + 1])).replace(weights=jax.tree.map(lambda x, k=k: x[k], maps),
+                                                            linear=jnp.bool_(True))
+      np.testing.assert_allclose(np.asarray(objective.rendered(student, seen, OPTIONS).rgb), np.asarray(want),
+                                 atol=2e-6, rtol=0)
   assert linear_check.normal_weights(student, views, rows, fixed, OPTIONS, 0.01) == (None, None)
   assert linear_check.normal_weights(student, views, rows, np.ones(3, bool), OPTIONS, 64.0) == (None, None)
 
@@ -135,6 +138,7 @@ def test_a_steps_gradients_through_the_normal_views_maps_are_the_rendered_ones(t
   num_views = data.images.shape[0]
   assert data.normal_weights is not None and data.normal_weights.weights.shape[0] == 3
   assert np.asarray(data.normal_maps).tolist() == [-1] * num_views + [0, 1, 2]
+  assert data.normal_weights.weights.shape[1] == data.check_weights.weights.shape[1]  # the two views stack
   s, film = plan.settings, data.colour_rows
   student = jax.tree.map(jnp.asarray, run.start)
   student = student.replace(sh=student.sh.at[film, 0].set(jax.random.normal(jax.random.key(0), (film.size, 3))))

@@ -50,49 +50,63 @@ def check_weights(student, key_cameras, key_rows, merges, options: RenderOptions
                   length: int = 0) -> linear.ColourWeights:
   """linear.ColourWeights [K * L] of `student` at each of `key_cameras` (key k's state l at k * L + l; state 0 the
   student as it is, state l >= 1 merged level l of `merges`), each key's render reading its rows `key_rows` [K, M]
-  (subsets.view_rows), in L = `num_states` states; all padded (linear.padded) to `length` entries or the next
-  multiple of LENGTH_STEP above the most any needs, where that is more. Eager."""
+  (subsets.view_rows), in L = `num_states` states; `stacked` to at least `length` entries. Eager."""
   student = jax.tree.map(jnp.asarray, student)
-  maps, fitted, most = [], options, 0
-  for camera, rows in zip(key_cameras, key_rows):
-    for state in range(num_states):
-      g = student if state == 0 else decimate.merge_levels(student, merges, jnp.float32(state))
-      maps.append(linear.colour_weights(subsets.gather(g, jnp.asarray(rows)), camera, fitted))
-      most = max(most, int(maps[-1].num_pairs))  # the next renders' buffer: the most pairs a view needed so far
-      fitted = render.grow_capacity(options, most)
+  views = ((subsets.gather(student if state == 0 else decimate.merge_levels(student, merges, jnp.float32(state)),
+                           jnp.asarray(rows)), camera)
+           for camera, rows in zip(key_cameras, key_rows) for state in range(num_states))
+  return stacked(list(read_maps(views, options)), length)
+
+
+def normal_weights(student, cameras, rows, fixed, options: RenderOptions, budget_mb: float):
+  """(linear.ColourWeights [R], int32 [C]): the maps of `student`'s renders at the `cameras` [C] that are not
+  `fixed` ([C] bool: their render is held), each reading its `rows` [C, M] (subsets.view_rows), `stacked`; and each
+  camera's index among them, -1 for the fixed ones. (None, None) where no camera renders or the stacked maps would
+  take more than `budget_mb` MB, given up as soon as the maps read so far and the rest at the size of the last
+  would. Eager."""
+  student, budget = jax.tree.map(jnp.asarray, student), budget_mb * 2**20
+  rendering = np.flatnonzero(~np.asarray(fixed, bool))
+  maps, used = [], 0
+  for m in read_maps(((subsets.gather(student, jnp.asarray(rows[c])), cameras[c]) for c in rendering), options):
+    maps.append(m)
+    used += map_bytes(m)
+    if used + map_bytes(m) * (len(rendering) - len(maps)) > budget:
+      return None, None
+  if not maps:
+    return None, None
+  weights = stacked(maps)
+  if map_bytes(weights) > budget:
+    return None, None
+  index = np.full(len(cameras), -1, np.int32)
+  index[rendering] = np.arange(len(rendering), dtype=np.int32)
+  return weights, jnp.asarray(index)
+
+
+def read_maps(views, options: RenderOptions):
+  """linear.colour_weights of each (gaussians, camera) of `views` in turn (a generator), each rendered into a pair
+  buffer of the most pairs a view before it needed (a view needing more grows it), not the largest render's."""
+  fitted, most = options, 0
+  for gaussians, camera in views:
+    weights = linear.colour_weights(gaussians, camera, fitted)
+    most = max(most, int(weights.num_pairs))
+    fitted = render.grow_capacity(options, most)
+    yield weights
+
+
+def stacked(maps, length: int = 0) -> linear.ColourWeights:
+  """linear.ColourWeights [len(maps)]: `maps` padded (linear.padded) to `length` entries or the next multiple of
+  LENGTH_STEP above the most any holds, where that is more."""
   longest = max(int(m.weights.size) for m in maps)
   length = max(length, -(-max(longest, 1) // LENGTH_STEP) * LENGTH_STEP)
   return jax.tree.map(lambda *xs: jnp.stack(xs), *[linear.padded(m, length) for m in maps])
 
 
+def lengthened(maps: linear.ColourWeights, length: int) -> linear.ColourWeights:
+  """Stacked `maps` [R] padded to `length` entries each (at least theirs)."""
+  return jax.vmap(lambda m: linear.padded(m, length))(maps)
+
+
 def map_bytes(weights: linear.ColourWeights) -> int:
-  """The memory one view's map takes: its pixel, row and weight entries and its final transmittance."""
+  """The memory a map (or a stack of them) takes: its pixel, row and weight entries and its final transmittance."""
   return sum(int(x.size) * x.dtype.itemsize for x in (weights.pixels, weights.rows, weights.weights,
                                                         weights.transmittance))
-
-
-def normal_weights(student, cameras, rows, fixed, options: RenderOptions, budget_mb: float):
-  """(linear.ColourWeights [R], int32 [C]): the maps of `student`'s renders at the `cameras` [C] that are not
-  `fixed` ([C] bool: their render is held), each reading its `rows` [C, M] (subsets.view_rows), padded to one
-  length (a multiple of LENGTH_STEP); and each camera's index among them, -1 for the fixed ones. (None, None) where
-  no camera renders or the padded maps would take more than `budget_mb` MB, given up as soon as the maps read so
-  far and the rest at the size of the last would. Eager."""
-  student, budget = jax.tree.map(jnp.asarray, student), budget_mb * 2**20
-  maps, index, used, fitted, most = [], np.full(len(cameras), -1, np.int32), 0, options, 0
-  rendering = int(np.sum(~np.asarray(fixed, bool)))
-  for c, (camera, still) in enumerate(zip(cameras, fixed)):
-    if still:
-      continue
-    maps.append(linear.colour_weights(subsets.gather(student, jnp.asarray(rows[c])), camera, fitted))
-    most = max(most, int(maps[-1].num_pairs))
-    fitted = render.grow_capacity(options, most)
-    index[c], used = len(maps) - 1, used + map_bytes(maps[-1])
-    if used + map_bytes(maps[-1]) * (rendering - len(maps)) > budget:
-      return None, None
-  if not maps:
-    return None, None
-  length = -(-max(max(int(m.weights.size) for m in maps), 1) // LENGTH_STEP) * LENGTH_STEP
-  padded = [linear.padded(m, length) for m in maps]
-  if sum(map_bytes(m) for m in padded) > budget:
-    return None, None
-  return jax.tree.map(lambda *xs: jnp.stack(xs), *padded), jnp.asarray(index)

@@ -19,7 +19,7 @@ from conceal_jax.conceal.objective import View
 from conceal_jax.conceal.settings import ConcealSettings
 from conceal_jax.core import parallel
 from conceal_jax.gs import evaluate
-from conceal_jax.splat import camera as camera_lib, linear
+from conceal_jax.splat import camera as camera_lib
 from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.render import RenderOptions, render_batch
 
@@ -45,7 +45,8 @@ class ConcealData:
   (linear_check.check_weights: linear.ColourWeights [K * L]), which the check views that draw no 8-bit grid are
   read through; normal_weights: None or the renders of the normal views that are not fixed as linear maps
   (linear_check.normal_weights: linear.ColourWeights [R]), with normal_maps int32 [V + D]: each normal view's index
-  among them (-1: fixed), which those views are read through."""
+  among them (-1: fixed), which those views are read through. The two stacks hold maps of one length, so that a
+  step's two views stack whichever they read."""
   images: jax.Array
   teacher: jax.Array
   teacher_small: jax.Array
@@ -106,16 +107,20 @@ def build_data(train_images, teacher, options: RenderOptions, normal_cameras: li
 def regrouped(data: ConcealData, student, merges, options: RenderOptions, check_states: int,
               mesh=None) -> ConcealData:
   """`data` with the film's merges `merges` and its check_weights read anew from `student` in `check_states` states
-  (none: kept None), at least as long as the ones it held (a step keeps its shapes while they suffice); both
-  replicated over `mesh` (parallel.replicate)."""
+  (none: kept None), at least as long as the maps it held (a step keeps its shapes while they suffice; the normal
+  views' maps lengthened to theirs where they grew); replicated over `mesh` (parallel.replicate)."""
   if not check_states:
     return data.replace(merges=parallel.replicate(merges, mesh))
   num_keys = data.keys.hidden.shape[0]
   cameras = [data.keys.at(k).camera for k in range(num_keys)]
-  held = 0 if data.check_weights is None else int(data.check_weights.weights.shape[1])
+  held = max([int(m.weights.shape[1]) for m in (data.check_weights, data.normal_weights) if m is not None] + [0])
   weights = linear_check.check_weights(student, cameras, np.asarray(data.rows)[data.teacher.shape[0]:], merges,
                                        options, check_states, held)
-  return data.replace(merges=parallel.replicate(merges, mesh), check_weights=parallel.replicate(weights, mesh))
+  data = data.replace(merges=parallel.replicate(merges, mesh), check_weights=parallel.replicate(weights, mesh))
+  length = int(weights.weights.shape[1])
+  if data.normal_weights is not None and int(data.normal_weights.weights.shape[1]) < length:
+    data = data.replace(normal_weights=parallel.replicate(linear_check.lengthened(data.normal_weights, length), mesh))
+  return data
 
 
 def identity_weights(settings: ConcealSettings) -> dict:
@@ -160,17 +165,16 @@ def step_views(data: ConcealData, view, normal_view, key_number, distortion, set
 def view_maps(data: ConcealData, view, key_number, distortion: dict) -> tuple[tuple, tuple]:
   """((weights, linear) of the normal view `view`, the same of the check view of key `key_number` through
   `distortion`): the linear map each is read through (data.normal_weights[data.normal_maps[view]], the check state's
-  of data.check_weights: check_state) and whether it is (a view without one holds another view's map, unread), both
-  padded to one length so that the two views stack; (None, None) each where the data holds no maps."""
-  stacks = [m for m in (data.normal_weights, data.check_weights) if m is not None]
-  if not stacks:
+  of data.check_weights: check_state) and whether it is (a view without one holds the other stack's first map,
+  unread: ConcealData's stacks share one length); (None, None) each where the data holds no maps."""
+  normals, checks = data.normal_weights, data.check_weights
+  if normals is None and checks is None:
     return (None, None), (None, None)
-  length = max(int(m.weights.shape[1]) for m in stacks)
-  pick = lambda maps, index: linear.padded(jax.tree.map(lambda x: x[jnp.maximum(index, 0)], maps), length)
-  normal = jnp.int32(-1) if data.normal_weights is None else data.normal_maps[view]
-  check = jnp.int32(-1) if data.check_weights is None else check_state(data, key_number, distortion)
-  return ((pick(stacks[0] if data.normal_weights is None else data.normal_weights, normal), normal >= 0),
-          (pick(stacks[-1] if data.check_weights is None else data.check_weights, check), check >= 0))
+  pick = lambda maps, index: jax.tree.map(lambda x: x[jnp.maximum(index, 0)], maps)
+  normal = jnp.int32(-1) if normals is None else data.normal_maps[view]
+  check = jnp.int32(-1) if checks is None else check_state(data, key_number, distortion)
+  return ((pick(checks if normals is None else normals, normal), normal >= 0),
+          (pick(normals if checks is None else checks, check), check >= 0))
 
 
 def check_state(data: ConcealData, key_number, distortion: dict) -> jax.Array:
