@@ -19,7 +19,7 @@ import pathlib
 import numpy as np
 from scipy.spatial import cKDTree
 
-from conceal_jax.conceal import decimate, grouping
+from conceal_jax.conceal import decimate, grouping, merge_costs
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
 from conceal_jax.robust import converter
@@ -29,7 +29,7 @@ from conceal_jax.splat.gaussians import Gaussians
 def group_means(g: Gaussians, group: np.ndarray) -> np.ndarray:
   """[G, 3] each group's mass-weighted mean (where the converter puts the merged Gaussian)."""
   merged = group >= 0
-  mass = grouping.masses(g)[merged]
+  mass = merge_costs.masses(g)[merged]
   pos = np.asarray(g.means, np.float64)[merged]
   weight = np.bincount(group[merged], weights=mass)
   return np.stack([np.bincount(group[merged], weights=mass * pos[:, c]) for c in range(3)], axis=1) / weight[:, None]

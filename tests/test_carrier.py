@@ -99,6 +99,12 @@ def test_contributing_is_what_the_renderer_lets_through():
   probes = probes.replace(log_scales=jnp.full_like(probes.log_scales, np.log(0.05)))
   seen = carrier.contributing(jax.tree.map(jnp.asarray, wall), jax.tree.map(jnp.asarray, probes), [camera], OPTIONS)
   np.testing.assert_array_equal(seen, [False, True, False, False])
+  # a camera that none of the probes reaches is skipped, and changes nothing
+  away = Camera.from_fov(look_at([0.0, 0.0, -3.0], [-10.0, 0.0, -3.0], up=(0.0, 1.0, 0.0)), 0.75, 24, 24)
+  assert not carrier._reaches_image(jax.tree.map(jnp.asarray, probes), away, OPTIONS)
+  assert carrier._reaches_image(jax.tree.map(jnp.asarray, probes), camera, OPTIONS)
+  np.testing.assert_array_equal(carrier.contributing(jax.tree.map(jnp.asarray, wall), jax.tree.map(jnp.asarray, probes),
+                                                     [away, camera], OPTIONS), seen)
 
 
 def test_an_unseen_film_changes_no_normal_view():

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from conceal_jax.robust import converter
-from conceal_jax.conceal import grouping
+from conceal_jax.conceal import grouping, merge_costs
 from experiments import converter_decimation
 from tests.helpers import random_gaussians
 
@@ -29,10 +29,10 @@ def test_the_grouping_removes_what_the_target_asks_in_groups_of_two_to_four():
 
 
 def test_the_sample_is_a_standard_normal_draw_and_costs_are_finite():
-  z = grouping.mulberry32_normal(0)
-  assert z.shape == (3,) and np.all(np.abs(z) < 5) and not np.allclose(z, grouping.mulberry32_normal(1))
+  z = merge_costs.mulberry32_normal(0)
+  assert z.shape == (3,) and np.all(np.abs(z) < 5) and not np.allclose(z, merge_costs.mulberry32_normal(1))
   g = scene(50)
-  cost = grouping.edge_costs(g, np.arange(49), np.arange(1, 50))
+  cost = merge_costs.edge_costs(g, np.arange(49), np.arange(1, 50))
   assert cost.dtype == np.float32 and np.all(np.isfinite(cost))
 
 

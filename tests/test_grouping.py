@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from conceal_jax.conceal import augment, decimate, grouping, train as conceal_train
+from conceal_jax.conceal import augment, decimate, grouping, merge_costs, train as conceal_train
 from conceal_jax.data import ply
 from conceal_jax.robust import converter
 from tests.helpers import random_gaussians
@@ -145,3 +145,18 @@ def test_a_film_run_through_the_converters_groups_regroups_and_resumes_exactly(t
   assert not np.allclose(whole.sh[teacher.num:, 0], whole.sh[teacher.num, 0])  # the film's colours trained
   for a, b in zip(jax.tree.leaves(whole), jax.tree.leaves(resumed)):
     np.testing.assert_array_equal(a, b)
+
+
+def test_kept_neighbourhoods_walk_as_a_fresh_one_after_colours_change_and_are_redone_when_geometry_does():
+  g = scene()
+  kept = merge_costs.Neighbourhoods()
+  before = kept(g, 1.0)
+  recoloured = g.replace(sh=np.asarray(g.sh) + np.random.default_rng(3).normal(0.0, 0.3, g.sh.shape))
+  assert kept(recoloured, 1.0) is before  # geometry unchanged: the k-d tree and shape costs are reused
+  for fresh, reused in zip(grouping.candidate_edges(recoloured), grouping.candidate_edges(recoloured, before)):
+    np.testing.assert_array_equal(fresh, reused)
+  moved = g.replace(means=np.asarray(g.means) + 0.01)
+  np.testing.assert_array_equal(kept(moved, 1.0).shape, merge_costs.neighbourhood(moved).shape)
+  assert kept(moved, 1.0) is not before
+  np.testing.assert_array_equal(grouping.candidate_edges(moved, kept(moved, 1.0))[1],
+                                grouping.candidate_edges(moved)[1])

@@ -35,6 +35,14 @@ def test_quaternion_round_trip_for_random_and_special_rotations():
     np.testing.assert_allclose(sim.quaternion_to_matrix(q), rotation, atol=1e-12)
 
 
+def test_a_batch_of_rotations_reads_as_each_alone():
+  rng = np.random.default_rng(2)
+  rotations = np.stack(SPECIAL_ROTATIONS + [sim.random_rotation(rng) for _ in range(30)]).reshape(6, 6, 3, 3)
+  batched = sim.matrix_to_quaternion(rotations)
+  assert batched.shape == (6, 6, 4)
+  np.testing.assert_array_equal(batched, [[sim.matrix_to_quaternion(r) for r in row] for row in rotations])
+
+
 def test_host_quaternion_matches_the_renderers_convention():
   from conceal_jax.splat.gaussians import quaternion_to_rotation
   q = np.random.default_rng(1).normal(size=(20, 4))

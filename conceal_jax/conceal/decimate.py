@@ -107,7 +107,7 @@ def moment_matched(gaussians: Gaussians, groups: np.ndarray) -> dict[str, np.nda
   merged_scales = np.sqrt(np.maximum(variances, 1e-18))
   merged_opacity = np.minimum(1.0, total / ellipsoid_area(merged_scales))
   return dict(means=mean, log_scales=np.log(merged_scales),
-              quats=np.array([similarity.matrix_to_quaternion(a) for a in axes]).reshape(-1, 4),
+              quats=similarity.matrix_to_quaternion(axes).reshape(-1, 4),
               opacity_logits=np.asarray(opacity_logit(np.clip(merged_opacity, 1e-7, 1.0 - 1e-7))), weights=weights)
 
 

@@ -3,89 +3,35 @@
 merge_groups 'converter').
 
 The converter (3.7.0, read in its dist/index.mjs: computeEdgeCostView, selectMerges) scores each Gaussian's
-NEIGHBOURS nearest neighbours by an edge cost: a KL-style term between the pair's mixture and its moment-matched
-merge (the mixture's log-density at one fixed standard-normal sample per splat, seed 0 of mulberry32) plus the
-squared difference of every colour coefficient; keeps each Gaussian's CANDIDATES cheapest; walks the candidate edges
-in COST_BUCKETS buckets over the scene's whole cost range, cheapest bucket first and by edge index within one,
-pairing free endpoints; then attaches Gaussians still free to a candidate's group (at most 3, then 4) until the
-target count. Each group merges as decimate.moment_matched says. The colour term depends on the trained colours, so
-a run regroups as they train (conceal.attacks.regroup_every).
+NEIGHBOURS nearest neighbours by an edge cost (merge_costs.py); keeps each Gaussian's CANDIDATES cheapest; walks the
+candidate edges in COST_BUCKETS buckets over the scene's whole cost range, cheapest bucket first and by edge index
+within one, pairing free endpoints; then attaches Gaussians still free to a candidate's group (at most 3, then 4)
+until the target count. Each group merges as decimate.moment_matched says. The colour term depends on the trained
+colours, so a run regroups as they train (conceal.attacks.regroup_every).
 """
 from __future__ import annotations
 
 import jax
-import jax.numpy as jnp
 import numpy as np
-from scipy.spatial import cKDTree
 
 from conceal_jax.conceal import decimate
-from conceal_jax.splat.gaussians import Gaussians, quaternion_to_rotation
+from conceal_jax.conceal.merge_costs import NEIGHBOURS, Neighbourhood, Neighbourhoods, colour_costs, neighbourhood
+from conceal_jax.splat.gaussians import Gaussians
 
-NEIGHBOURS, CANDIDATES, COST_BUCKETS, GROUP_CAPS = 16, 4, 1024, (3, 4)
+CANDIDATES, COST_BUCKETS, GROUP_CAPS = 4, 1024, (3, 4)
 MAX_GROUP = GROUP_CAPS[-1]
 # The training merges' capacities are multiples of this many groups.
 CAPACITY_STEP = 1024
-LOG_2PI = np.log(2.0 * np.pi)
 
 
-def mulberry32_normal(seed: int = 0) -> np.ndarray:
-  """[3] the converter's one standard-normal sample (Box-Muller on mulberry32(seed), its first four draws)."""
-  state = seed & 0xFFFFFFFF
-
-  def draw() -> float:
-    nonlocal state
-    state = (state + 0x6D2B79F5) & 0xFFFFFFFF
-    t = ((state ^ (state >> 15)) * (state | 1)) & 0xFFFFFFFF
-    t ^= (t + (((t ^ (t >> 7)) * (t | 61)) & 0xFFFFFFFF)) & 0xFFFFFFFF
-    return ((t ^ (t >> 14)) & 0xFFFFFFFF) / 4294967296
-
-  u1, u2, u3, u4 = max(draw(), 1e-12), draw(), max(draw(), 1e-12), draw()
-  r1, r2 = np.sqrt(-2.0 * np.log(u1)), np.sqrt(-2.0 * np.log(u3))
-  return np.array([r1 * np.cos(2 * np.pi * u2), r1 * np.sin(2 * np.pi * u2), r2 * np.cos(2 * np.pi * u4)])
-
-
-def masses(g: Gaussians) -> np.ndarray:
-  """[N] the converter's merge weight: decimate.masses (opacity times ellipsoid area) and its 1e-12 floor."""
-  return decimate.masses(g) + 1e-12
-
-
-def edge_costs(g: Gaussians, first: np.ndarray, second: np.ndarray) -> np.ndarray:
-  """[E] float32 the converter's cost of merging each pair (first[e], second[e]) of `g`."""
-  pos = np.asarray(g.means, np.float64)
-  var = np.maximum(np.exp(np.asarray(g.log_scales, np.float64)), 1e-12) ** 2 + decimate.EPS_COV
-  rot = np.asarray(quaternion_to_rotation(jnp.asarray(g.quats)), np.float64)  # float32, as the converter's
-  sigma = (rot * var[:, None, :]) @ rot.transpose(0, 2, 1)
-  logdet = np.log(var).sum(axis=1)
-  colours = np.asarray(g.sh, np.float64).reshape(g.num, -1)
-  mass = masses(g)
-  p = np.clip(mass[first] / (mass[first] + mass[second]), 1e-12, 1 - 1e-12)[:, None]
-  mean = p * pos[first] + (1 - p) * pos[second]
-  d1, d2 = pos[first] - mean, pos[second] - mean
-  outer = lambda d: d[:, :, None] * d[:, None, :]
-  merged = (p[:, :, None] * (sigma[first] + outer(d1)) + (1 - p[:, :, None]) * (sigma[second] + outer(d2))
-            + decimate.EPS_COV * np.eye(3))
-  neg_log_q = 0.5 * (3 * LOG_2PI + np.log(np.maximum(np.linalg.det(merged), 1e-30)) + 3)
-  z = mulberry32_normal(0)
-
-  def log_density(x, rows):
-    local = np.sum(rot[rows] * (x - pos[rows])[:, :, None], axis=1)  # R^T (x - mean)
-    return -0.5 * (3 * LOG_2PI + logdet[rows] + np.sum(local**2 / var[rows], axis=1))
-
-  log_p = 0.0
-  for rows, weight in ((first, p[:, 0]), (second, 1 - p[:, 0])):
-    sample = pos[rows] + np.sum(rot[rows] * (z * np.sqrt(var[rows]))[:, None, :], axis=2)
-    log_p = log_p + weight * np.logaddexp(np.log(p[:, 0]) + log_density(sample, first),
-                                          np.log(1 - p[:, 0]) + log_density(sample, second))
-  return (log_p + neg_log_q + np.sum((colours[first] - colours[second]) ** 2, axis=1)).astype(np.float32)
-
-
-def candidate_edges(g: Gaussians) -> tuple[np.ndarray, np.ndarray]:
+def candidate_edges(g: Gaussians, around: Neighbourhood | None = None) -> tuple[np.ndarray, np.ndarray]:
   """The converter's walk over candidate merges of `g`: ([E] source, [E] target) rows, in the order it takes them
-  (each Gaussian's CANDIDATES cheapest of its NEIGHBOURS nearest, by cost bucket, then by edge index)."""
+  (each Gaussian's CANDIDATES cheapest of its NEIGHBOURS nearest, by cost bucket, then by edge index). `around`:
+  g's Neighbourhood where known (a scene whose colours alone changed since it was computed)."""
   n = g.num
-  _, near = cKDTree(np.asarray(g.means, np.float64)).query(np.asarray(g.means, np.float64), k=NEIGHBOURS + 1)
-  near = near[:, 1:]
-  cost = edge_costs(g, np.repeat(np.arange(n), NEIGHBOURS), near.ravel()).reshape(n, NEIGHBOURS)
+  near, shape = around if around is not None else neighbourhood(g)
+  cost = (shape + colour_costs(g, np.repeat(np.arange(n), NEIGHBOURS), near.ravel()).reshape(n, NEIGHBOURS))
+  cost = cost.astype(np.float32)
   best = np.argsort(cost, axis=1, kind="stable")[:, :CANDIDATES]
   target = np.take_along_axis(near, best, 1).ravel()
   cost = np.take_along_axis(cost, best, 1).ravel()
@@ -151,18 +97,19 @@ def scaled(gaussians: Gaussians, factor: float) -> Gaussians:
                            log_scales=np.asarray(gaussians.log_scales) + np.log(factor))
 
 
-def converter_merges(gaussians: Gaussians, rows: np.ndarray, keeps, capacity: int = 0,
-                     scales=(1.0,)) -> tuple[decimate.Merges, ...]:
+def converter_merges(gaussians: Gaussians, rows: np.ndarray, keeps, capacity: int = 0, scales=(1.0,),
+                     neighbourhoods: Neighbourhoods | None = None) -> tuple[decimate.Merges, ...]:
   """One decimate.Merges per scale of `scales` and kept fraction of `keeps` (scale-major): the converter's groups
   (converter_groups) of `gaussians` scaled by that factor (`scaled`: what it merges in a copy someone resized)
   that hold any of `rows` (the film), merged in that copy as the converter merges them and scaled back to
   `gaussians`' own frame; every level padded with members past the last Gaussian to the same number of groups:
   `capacity`, or the next multiple of CAPACITY_STEP above the most any level has, where that is more (a regrouped
-  run keeps its capacity, so its step keeps its shapes)."""
+  run keeps its capacity, so its step keeps its shapes). `neighbourhoods`: the copies' Neighbourhoods kept from
+  an earlier call."""
   levels = []
   for factor in scales:
     copy = scaled(gaussians, factor)
-    edges = candidate_edges(copy)
+    edges = candidate_edges(copy, neighbourhoods(copy, factor) if neighbourhoods is not None else None)
     levels += [(factor, copy, group_members(converter_groups(copy, keep, edges), rows)) for keep in keeps]
   most = max(len(members) for _, _, members in levels)
   capacity = max(capacity, -(-most // CAPACITY_STEP) * CAPACITY_STEP)
@@ -177,7 +124,8 @@ def converter_merges(gaussians: Gaussians, rows: np.ndarray, keeps, capacity: in
   return tuple(merges)
 
 
-def training_merges(student: Gaussians, offset: int, augmentation, capacity: int = 0) -> tuple[decimate.Merges, ...]:
+def training_merges(student: Gaussians, offset: int, augmentation, capacity: int = 0,
+                    neighbourhoods: Neighbourhoods | None = None) -> tuple[decimate.Merges, ...]:
   """What a run's merging check renders merge (conceal.attacks.merge_groups, augment.Augmentation
   `augmentation`) of the film, the rows of `student` from `offset` on: the converter's groups at each of merge_keep
   and merge_scales (`converter_merges`, at least `capacity` groups), or merge_rounds rounds of near pairs
@@ -185,18 +133,21 @@ def training_merges(student: Gaussians, offset: int, augmentation, capacity: int
   student = jax.tree.map(np.asarray, student)
   if augmentation.merge_groups == "converter":
     return converter_merges(student, np.arange(offset, student.num), augmentation.merge_keep, capacity,
-                            augmentation.merge_scales)
+                            augmentation.merge_scales, neighbourhoods)
   return decimate.film_merges(jax.tree.map(lambda x: x[offset:], student), offset, augmentation.merge_rounds)
 
 
 class Regrouping:
   """When a run merging the converter's groups computes them anew from the student (`due`): every
   augmentation.regroup_every steps and at each checkpoint (so a resumed run regroups where the first did), and at a
-  process's first step unless its groups are the student's at `grouped_at` (a fresh run's, from the start)."""
+  process's first step unless its groups are the student's at `grouped_at` (a fresh run's, from the start); each
+  time from the scaled copies' `neighbourhoods` while their geometry holds."""
 
-  def __init__(self, offset: int, augmentation, checkpoint_every: int, grouped_at: int = 0):
+  def __init__(self, offset: int, augmentation, checkpoint_every: int, grouped_at: int = 0,
+               neighbourhoods: Neighbourhoods | None = None):
     self.offset, self.augmentation = offset, augmentation
     self.checkpoint_every, self.grouped_at, self.first = checkpoint_every, grouped_at, True
+    self.neighbourhoods = Neighbourhoods() if neighbourhoods is None else neighbourhoods
 
   def due(self, iteration: int) -> bool:
     """Whether step `iteration` (1-based) reads groups computed from the student it starts from."""
@@ -211,12 +162,13 @@ class Regrouping:
     """training_merges of `student`, the state before step `iteration`, in at least `capacity` groups (the run's
     merges so far: a capacity that only grows recompiles the step only when it grows)."""
     self.grouped_at = iteration - 1
-    return training_merges(student, self.offset, self.augmentation, capacity)
+    return training_merges(student, self.offset, self.augmentation, capacity, self.neighbourhoods)
 
 
-def regrouping(offset: int, augmentation, checkpoint_every: int) -> Regrouping | None:
-  """A run's Regrouping where its check renders merge the converter's groups of the film (rows from `offset` on),
-  else None (near pairs are computed once)."""
+def regrouping(offset: int, augmentation, checkpoint_every: int,
+               neighbourhoods: Neighbourhoods | None = None) -> Regrouping | None:
+  """A run's Regrouping (from the scaled copies' `neighbourhoods` kept so far) where its check renders merge the
+  converter's groups of the film (rows from `offset` on), else None (near pairs are computed once)."""
   if augmentation.merge_fraction > 0 and augmentation.merge_groups == "converter":
-    return Regrouping(offset, augmentation, checkpoint_every)
+    return Regrouping(offset, augmentation, checkpoint_every, neighbourhoods=neighbourhoods)
   return None

@@ -98,12 +98,12 @@ def stacked(maps, length: int = 0) -> linear.ColourWeights:
   LENGTH_STEP above the most any holds, where that is more."""
   longest = max(int(m.weights.size) for m in maps)
   length = max(length, -(-max(longest, 1) // LENGTH_STEP) * LENGTH_STEP)
-  return jax.tree.map(lambda *xs: jnp.stack(xs), *[linear.padded(m, length) for m in maps])
+  return jax.tree.map(jnp.asarray, linear.stacked_maps(maps, length))
 
 
 def lengthened(maps: linear.ColourWeights, length: int) -> linear.ColourWeights:
   """Stacked `maps` [R] padded to `length` entries each (at least theirs)."""
-  return jax.vmap(lambda m: linear.padded(m, length))(maps)
+  return jax.tree.map(jnp.asarray, linear.padded(maps, length))
 
 
 def map_bytes(weights: linear.ColourWeights) -> int:

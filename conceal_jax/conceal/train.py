@@ -20,7 +20,7 @@ import ml_collections
 import numpy as np
 
 from conceal_jax.conceal import augment, hidden as hidden_lib, key as key_lib, reveal, scoring, settings as settings_lib
-from conceal_jax.conceal import align, carrier, grouping, linear_check, message as message_lib, near, unet
+from conceal_jax.conceal import align, carrier, grouping, linear_check, merge_costs, message as message_lib, near, unet
 from conceal_jax.conceal import views as views_lib
 from conceal_jax.conceal.step import create_state, make_step
 from conceal_jax.core import fileio, loop, parallel
@@ -51,6 +51,7 @@ class Run:
   options: render_lib.RenderOptions
   data: views_lib.ConcealData
   message: np.ndarray | None = None  # the bits hidden in message mode (mark.message_bits), hiddens[0] their image
+  neighbourhoods: merge_costs.Neighbourhoods = dataclasses.field(default_factory=merge_costs.Neighbourhoods)
 
 
 class Marking(NamedTuple):
@@ -95,14 +96,14 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
   # the released variant's check-view L1 target: the training image at a training-camera key, else the
   # teacher's render (an orbit pose has no image)
   key_images = ([scene.train_images[info["index"]] for _, info in keys] if plan.key_kind == "train_index" else None)
-  start, colour_rows, merges, ties = teacher, None, None, None
+  start, colour_rows, merges, ties, neighbourhoods = teacher, None, None, None, merge_costs.Neighbourhoods()
   if plan.film is not None:
     film = carrier.planned_film(plan.film, teacher, keys[0][0], scene.train_cameras, scene.test_cameras, options,
                                 s.hidden_size)
     start, colour_rows = concatenate([teacher, film]), carrier.colour_rows(teacher.num, film.num)
     ties = carrier.tied_rows(film.num, plan.film.stack) if plan.film.stack > 1 else None
     if s.augmentation.merge_fraction > 0:
-      merges = grouping.training_merges(start, teacher.num, s.augmentation)
+      merges = grouping.training_merges(start, teacher.num, s.augmentation, neighbourhoods=neighbourhoods)
   # with only the film's colours trained, each view renders the rows that reach it (subsets.py); not where
   # parameter noise moves every Gaussian's geometry
   reach = (dict(student=start, check_states=linear_check.states(s.augmentation),
@@ -112,7 +113,7 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
                               [camera for camera, _ in keys], hiddens, s.hidden_size, s.reading.clip, key_images,
                               colour_rows, merges, ties, plan.film is not None and plan.film.at_decoder_size,
                               **reach)
-  return Run(plan, teacher, start, scene, hiddens, keys, decoys, options, data, message)
+  return Run(plan, teacher, start, scene, hiddens, keys, decoys, options, data, message, neighbourhoods)
 
 
 def initial_decoder(config: ml_collections.ConfigDict, settings: settings_lib.ConcealSettings):
@@ -184,7 +185,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
     student = jax.tree.map(lambda x: jnp.array(x, copy=True), run.start)  # the step donates its buffers
     return create_state(student, initial_decoder(config, s), student_tx, decoder_tx, run.data.colour_rows)
 
-  regroup = grouping.regrouping(run.teacher.num, s.augmentation, c.checkpoint_every)
+  regroup = grouping.regrouping(run.teacher.num, s.augmentation, c.checkpoint_every, run.neighbourhoods)
 
   def step(state, iteration):
     nonlocal data

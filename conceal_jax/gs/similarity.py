@@ -110,23 +110,30 @@ def quaternion_to_matrix(quat) -> np.ndarray:
 
 
 def matrix_to_quaternion(rotation) -> np.ndarray:
-  """[3, 3] rotation -> unit quaternion (w, x, y, z) with w >= 0, the inverse of quaternion_to_matrix.
+  """[..., 3, 3] rotations -> [..., 4] unit quaternions (w, x, y, z) with w >= 0, the inverse of
+  quaternion_to_matrix.
 
   Read off the largest of the four squared components (Shepperd's method), so it is accurate for every
   rotation, 180 degrees included."""
   r = np.asarray(rotation, np.float64)
-  trace = np.trace(r)
-  squares = np.array([1 + trace, 1 + 2 * r[0, 0] - trace, 1 + 2 * r[1, 1] - trace, 1 + 2 * r[2, 2] - trace])
-  i = int(np.argmax(squares))
-  big = 0.5 * np.sqrt(squares[i])
+  batch, r = r.shape[:-2], r.reshape(-1, 3, 3)
+  trace = r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2]
+  squares = np.stack([1 + trace, 1 + 2 * r[:, 0, 0] - trace, 1 + 2 * r[:, 1, 1] - trace, 1 + 2 * r[:, 2, 2] - trace],
+                     axis=-1)
+  every = np.arange(len(r))
+  i = np.argmax(squares, axis=-1)
+  big = 0.5 * np.sqrt(squares[every, i])
   # Off-diagonal sums and differences: 4 w x, 4 w y, 4 w z, 4 x y, 4 x z, 4 y z.
-  wx, wy, wz = r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]
-  xy, xz, yz = r[0, 1] + r[1, 0], r[0, 2] + r[2, 0], r[1, 2] + r[2, 1]
+  wx, wy, wz = r[:, 2, 1] - r[:, 1, 2], r[:, 0, 2] - r[:, 2, 0], r[:, 1, 0] - r[:, 0, 1]
+  xy, xz, yz = r[:, 0, 1] + r[:, 1, 0], r[:, 0, 2] + r[:, 2, 0], r[:, 1, 2] + r[:, 2, 1]
+  zero = np.zeros_like(trace)
   # Row i: 4 q_i q_j for j = w, x, y, z (the diagonal entry is unused, replaced by q_i itself).
-  products = np.array([[0.0, wx, wy, wz], [wx, 0.0, xy, xz], [wy, xy, 0.0, yz], [wz, xz, yz, 0.0]])
-  q = products[i] / (4 * big)
-  q[i] = big
-  return q if q[0] >= 0 else -q
+  products = np.stack([np.stack(row, axis=-1) for row in ([zero, wx, wy, wz], [wx, zero, xy, xz], [wy, xy, zero, yz],
+                                                           [wz, xz, yz, zero])], axis=1)
+  q = products[every, i] / (4 * big)[:, None]
+  q[every, i] = big
+  q = np.where(q[:, :1] >= 0, q, -q)
+  return q.reshape(batch + (4,))
 
 
 def quaternion_multiply(a, b):

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -22,7 +23,7 @@ from conceal_jax.splat import binning, composite
 from conceal_jax.splat import sh as sh_lib
 from conceal_jax.splat.camera import Camera, camera_center
 from conceal_jax.splat.gaussians import Gaussians
-from conceal_jax.splat.render import RenderOptions, grow_capacity, render, sh_degree, tile_layout, untile_image
+from conceal_jax.splat.render import RenderOptions, sh_degree, tile_layout, untile_image, with_capacity
 
 
 @struct.dataclass
@@ -39,26 +40,32 @@ class ColourWeights:
 
 def colour_weights(gaussians: Gaussians, camera: Camera, options: RenderOptions = RenderOptions()) -> ColourWeights:
   """The weights of `gaussians`' colours in their render from `camera` with `options` (eager: the number of
-  nonzero weights decides the arrays' length). Depth and SH options do not matter: the weights are geometry's.
-  Several views of a kind read fastest with options.pair_capacity near their pair counts (render.grow_capacity to
-  the most one needed so far: a view that needs more grows it)."""
+  nonzero weights decides the arrays' length), and the final transmittance 1 - sum_i w_i (eq. 3's T, which the
+  render's alpha is up to float rounding). Depth and SH options do not matter: the weights are geometry's. Several
+  views of a kind read fastest with options.pair_capacity near their pair counts (render.grow_capacity to the most
+  one needed so far: a view that needs more grows it)."""
   options = dataclasses.replace(options, with_depth=False, with_alpha=True)
-  out = render(gaussians, camera, options)  # grows the pair capacity to what the view needs
+  height, width = camera.height, camera.width
   if gaussians.num == 0:
     nothing = jnp.zeros((0,), jnp.int32)
-    return ColourWeights(nothing, nothing, jnp.zeros((0,), out.alpha.dtype), 1.0 - out.alpha, out.num_pairs)
-  options = grow_capacity(options, out.num_pairs)  # the segments the view's pairs fill, not the render's buffer
-  weights, splats, tiles, count = _segment_weights(gaussians, camera, options)
-  weights, splats, tiles = (np.asarray(x)[:int(count)] for x in (weights, splats, tiles))
+    return ColourWeights(nothing, nothing, jnp.zeros((0,), gaussians.means.dtype),
+                         jnp.ones((height, width), gaussians.means.dtype), jnp.int32(0))
+  # the segments the view's pairs fill, grown (and re-run) where it needs more than the options hold
+  out = with_capacity(lambda opts: _segment_weights(gaussians, camera, opts), options,
+                      (gaussians.num, width, height))
+  weights, splats, tiles = (np.asarray(x)[:int(out.count)] for x in (out.weights, out.splats, out.tiles))
   seg, pixel, lane = np.nonzero(weights)
   flat = image_pixels(camera, options.tile_size)[tiles[seg], pixel]
   inside = flat >= 0
   flat = flat[inside]
   order = np.argsort(flat, kind="stable")
+  values = weights[seg, pixel, lane][inside][order]
+  covered = np.bincount(flat, weights=weights[seg, pixel, lane][inside].astype(np.float64), minlength=height * width)
   pick = lambda a: jnp.asarray(a[inside][order])
   return ColourWeights(pixels=jnp.asarray(flat[order].astype(np.int32)),
-                       rows=pick(splats[seg, lane].astype(np.int32)), weights=pick(weights[seg, pixel, lane]),
-                       transmittance=1.0 - out.alpha, num_pairs=out.num_pairs)
+                       rows=pick(splats[seg, lane].astype(np.int32)), weights=jnp.asarray(values),
+                       transmittance=jnp.asarray((1.0 - covered).reshape(height, width).astype(values.dtype)),
+                       num_pairs=out.num_pairs)
 
 
 def image_pixels(camera: Camera, tile_size: int) -> np.ndarray:
@@ -72,26 +79,54 @@ def image_pixels(camera: Camera, tile_size: int) -> np.ndarray:
   return index.reshape(-1, tile_size * tile_size)
 
 
+class _Segments(NamedTuple):
+  weights: jax.Array
+  splats: jax.Array
+  tiles: jax.Array
+  count: jax.Array
+  num_pairs: jax.Array
+
+
 @functools.partial(jax.jit, static_argnames=("options",))
-def _segment_weights(gaussians: Gaussians, camera: Camera, options: RenderOptions):
-  """Every segment's weights [S, P, L], splat indices [S, L], tiles [S] and the number of segments in use."""
+def _segment_weights(gaussians: Gaussians, camera: Camera, options: RenderOptions) -> _Segments:
+  """Every segment's weights [S, P, L], splat indices [S, L], tiles [S], the number of segments in use and the
+  splat-tile pairs the view needs (more than options.pair_capacity: the rest were dropped)."""
   view = tile_layout(gaussians, camera, options, 0)
   s = view.segments
   weights = composite.pair_weights(view.splats.means2d, view.splats.conics, view.splats.opacities, s.splats,
                                    s.tiles, s.first, s.count, options.tile_size, view.grid, view.block)
-  return weights, s.splats, s.tiles, s.count
+  return _Segments(weights, s.splats, s.tiles, s.count, view.num_pairs)
 
 
 def padded(weights: ColourWeights, length: int) -> ColourWeights:
-  """`weights` with zero weights appended to `length` entries (on the last pixel, so pixels stay ascending, and
-  row 0): the same image, in a shape several views' weights share."""
-  pad = length - int(weights.weights.size)
-  if pad < 0:
-    raise ValueError(f"cannot pad {weights.weights.size} weights to {length}")
-  last = weights.transmittance.size - 1
-  extend = lambda x, value: jnp.concatenate([x, jnp.full((pad,), value, x.dtype)])
+  """`weights` (one map [K] or a stack [R, K]) with zero weights appended to `length` entries (on the last pixel,
+  so pixels stay ascending, and row 0): the same image, in a shape several views' weights share. Host-side (numpy:
+  an eager jnp concatenate compiles anew for every length)."""
+  have = int(weights.weights.shape[-1])
+  if length < have:
+    raise ValueError(f"cannot pad {have} weights to {length}")
+  last = int(np.prod(weights.transmittance.shape[-2:])) - 1
+  extend = lambda x, value: np.concatenate(
+      [np.asarray(x), np.full(x.shape[:-1] + (length - have,), value, x.dtype)], axis=-1)
   return weights.replace(pixels=extend(weights.pixels, last), rows=extend(weights.rows, 0),
                          weights=extend(weights.weights, 0))
+
+
+def stacked_maps(maps, length: int) -> ColourWeights:
+  """ColourWeights [R] of `maps` (each [K_r] with K_r <= `length`), each `padded` to `length`, written into one
+  host array per field (no per-map copy)."""
+  pixels = np.empty((len(maps), length), np.int32)
+  rows = np.zeros((len(maps), length), np.int32)
+  weights = np.zeros((len(maps), length), np.asarray(maps[0].weights).dtype)
+  for r, m in enumerate(maps):
+    k = int(m.weights.shape[0])
+    if k > length:
+      raise ValueError(f"cannot pad {k} weights to {length}")
+    pixels[r, :k], rows[r, :k], weights[r, :k] = np.asarray(m.pixels), np.asarray(m.rows), np.asarray(m.weights)
+    pixels[r, k:] = m.transmittance.size - 1
+  return ColourWeights(pixels=pixels, rows=rows, weights=weights,
+                       transmittance=np.stack([np.asarray(m.transmittance) for m in maps]),
+                       num_pairs=np.stack([np.asarray(m.num_pairs) for m in maps]))
 
 
 def view_colours(gaussians: Gaussians, camera: Camera, degree: int) -> jax.Array:

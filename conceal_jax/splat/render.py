@@ -159,7 +159,7 @@ def render(gaussians: Gaussians, camera: Camera, options: RenderOptions = Render
   differentiating with respect to them gives the loss gradient at the 2D means, which 3D-GS
   densification accumulates (the offsets do not move the tile binning).
   """
-  return _with_capacity(lambda opts: _render(gaussians, camera, opts, means2d_offset), options,
+  return with_capacity(lambda opts: _render(gaussians, camera, opts, means2d_offset), options,
                         (gaussians.num, camera.width, camera.height))
 
 
@@ -168,12 +168,14 @@ def render_batch(gaussians: Gaussians, cameras: Camera,
   """`render` vmapped over a stacked Camera (see camera.stack): every output gains a leading axis.
   One capacity serves every view; eagerly it grows to the max over views."""
   batched = lambda opts: jax.vmap(_render, in_axes=(None, 0, None))(gaussians, cameras, opts)
-  return _with_capacity(batched, options, (gaussians.num, cameras.width, cameras.height))
+  return with_capacity(batched, options, (gaussians.num, cameras.width, cameras.height))
 
 
-def _with_capacity(run, options: RenderOptions, scene_key) -> RenderOutput:
-  """Runs `run(options)` with a concrete capacity; re-runs with a grown one while it reports overflow and
-  its outputs are concrete (an eager call). Traced outputs are returned as they are."""
+def with_capacity(run, options: RenderOptions, scene_key):
+  """Runs `run(options)` (a RenderOutput, or any output with the `num_pairs` a render needed) with a concrete
+  capacity (where `options` hold none, the one last found for `scene_key`: N, width, height); re-runs with a grown
+  one while it reports overflow and its outputs are concrete (an eager call). Traced outputs are returned as they
+  are."""
   key = (dataclasses.replace(options, pair_capacity=None),) + tuple(scene_key)
   opts = options
   if opts.pair_capacity is None:
