@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conceal_jax.conceal import carrier, key as key_lib, train as conceal_train
+from conceal_jax.conceal import carrier, key as key_lib, subsets, train as conceal_train
 from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, init, optimizer, train as gs_train
 from conceal_jax.splat.camera import Camera, look_at, orbit_eye
@@ -101,8 +101,7 @@ def test_contributing_is_what_the_renderer_lets_through():
   np.testing.assert_array_equal(seen, [False, True, False, False])
   # a camera that none of the probes reaches is skipped, and changes nothing
   away = Camera.from_fov(look_at([0.0, 0.0, -3.0], [-10.0, 0.0, -3.0], up=(0.0, 1.0, 0.0)), 0.75, 24, 24)
-  assert not carrier._reaches_image(jax.tree.map(jnp.asarray, probes), away, OPTIONS)
-  assert carrier._reaches_image(jax.tree.map(jnp.asarray, probes), camera, OPTIONS)
+  assert not np.any(np.asarray(subsets.screen_radii(jax.tree.map(jnp.asarray, probes), away, OPTIONS)))
   np.testing.assert_array_equal(carrier.contributing(jax.tree.map(jnp.asarray, wall), jax.tree.map(jnp.asarray, probes),
                                                      [away, camera], OPTIONS), seen)
 

@@ -18,9 +18,9 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from conceal_jax.conceal import key as key_lib
+from conceal_jax.conceal import key as key_lib, subsets
 from conceal_jax.gs import similarity
-from conceal_jax.splat import binning, projection, sh as sh_lib
+from conceal_jax.splat import sh as sh_lib
 from conceal_jax.splat.camera import Camera
 from conceal_jax.splat.gaussians import Gaussians, concatenate, opacity_logit
 from conceal_jax.splat.render import RenderOptions, render
@@ -129,17 +129,9 @@ def contributing(scene: Gaussians, extra: Gaussians, cameras: Sequence[Camera], 
   its colour. A camera none of `extra` reaches (each splat culled or beside its image, as the render bins them) is
   skipped unrendered."""
   seen, grey = np.zeros(extra.num, bool), jnp.zeros_like(extra.sh[:, 0])
-  for camera in (camera for camera in cameras if bool(_reaches_image(extra, camera, options))):
+  for camera in (camera for camera in cameras if np.any(np.asarray(subsets.screen_radii(extra, camera, options)))):
     seen |= np.asarray(jnp.any(_colour_gradient(grey, scene, extra, camera, options) != 0, axis=-1))
   return seen
-
-
-@functools.partial(jax.jit, static_argnames="options")
-def _reaches_image(extra, camera, options):
-  """bool: whether any of `extra` has a splat on a tile of `camera`'s image (render.tile_layout's culling)."""
-  splats = projection.project(extra, camera, 0, options.near, options.antialiased)
-  grid = binning.tile_grid(camera.width, camera.height, options.tile_size)
-  return jnp.any(binning.on_tile_radii(splats.means2d, splats.radii, options.tile_size, grid) > 0)
 
 
 @functools.partial(jax.jit, static_argnames="options")
