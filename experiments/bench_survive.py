@@ -84,6 +84,8 @@ SCENES = {"demo": ("demo", "workdirs/demo/conceal", "in_scene"),
                                   "converter_mf35_rot5_scales_wm25"),
           "lego_thick": ("lego", "workdirs/survive_runs/lego_thick_mf20_wm25", "thick_mf20_wm25"),
           "lego_decoder_size": ("lego", "workdirs/bench/lego/conceal_recommended_decoder_size_w16", "decoder_size"),
+          "lego_decoder_size_near": ("lego", "workdirs/bench/lego/conceal_recommended_decoder_size_near_w16",
+                                     "decoder_size_near"),
           "lego_decoder_size_sparse": ("lego", "workdirs/bench/lego/conceal_recommended_decoder_size_sparse_w16",
                                        "decoder_size_sparse"),
           "lego_film": ("lego", "workdirs/survive_runs/lego_film", "film"),
@@ -167,6 +169,9 @@ RECIPE_NOTES = {
     "decoder_size": "thick_mf20_wm25 with the key and its decoys cameras of the decoder's input size, 64x64 "
                     "(conceal.carrier.at_decoder_size): bench-conceal's recommended_decoder_size "
                     "(workdirs/bench/lego/conceal_recommended_decoder_size_w16)",
+    "decoder_size_near": "decoder_size with its decoys moved 0.5-6% of the key's depth rather than 1-10%: "
+                         "bench-conceal's recommended_decoder_size_near "
+                         "(workdirs/bench/lego/conceal_recommended_decoder_size_near_w16)",
     "decoder_size_sparse": "decoder_size with a ninth of the film: a grid position every 18.75 pixels of the "
                            "200-pixel key (every 6 of the 64-pixel one) rather than every 6, its splats three times "
                            "as wide: bench-conceal's recommended_decoder_size_sparse "
