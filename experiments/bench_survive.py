@@ -86,6 +86,9 @@ SCENES = {"demo": ("demo", "workdirs/demo/conceal", "in_scene"),
           "lego_decoder_size": ("lego", "workdirs/bench/lego/conceal_recommended_decoder_size_w16", "decoder_size"),
           "lego_decoder_size_near": ("lego", "workdirs/bench/lego/conceal_recommended_decoder_size_near_w16",
                                      "decoder_size_near"),
+          "lego_decoder_size_more_decoys": ("lego",
+                                            "workdirs/bench/lego/conceal_recommended_decoder_size_more_decoys_w16",
+                                            "decoder_size_more_decoys"),
           "lego_decoder_size_sparse": ("lego", "workdirs/bench/lego/conceal_recommended_decoder_size_sparse_w16",
                                        "decoder_size_sparse"),
           "lego_film": ("lego", "workdirs/survive_runs/lego_film", "film"),
@@ -172,6 +175,9 @@ RECIPE_NOTES = {
     "decoder_size_near": "decoder_size with its decoys moved 0.5-6% of the key's depth rather than 1-10%: "
                          "bench-conceal's recommended_decoder_size_near "
                          "(workdirs/bench/lego/conceal_recommended_decoder_size_near_w16)",
+    "decoder_size_more_decoys": "decoder_size_near with twice the decoys, 1536: bench-conceal's "
+                                "recommended_decoder_size_more_decoys "
+                                "(workdirs/bench/lego/conceal_recommended_decoder_size_more_decoys_w16)",
     "decoder_size_sparse": "decoder_size with a ninth of the film: a grid position every 18.75 pixels of the "
                            "200-pixel key (every 6 of the 64-pixel one) rather than every 6, its splats three times "
                            "as wide: bench-conceal's recommended_decoder_size_sparse "
