@@ -59,11 +59,6 @@ RECOMMENDED_PAIRS = {"conceal.attacks.merge_groups": "nearest", "conceal.attacks
 # A film grid every 6 pixels of a 64-pixel key (lego's film grid, lego_conceal.FILM_SPACING, read at the decoder's
 # size), in pixels of lego's 200-pixel key: a ninth of its splats.
 SPARSE_FILM_SPACING = 18.75
-# Decoys moved closer to the key (fractions of its depth; the recipe's are 0.01-0.1): at the decoder's size, the
-# recipe's decoys left the key moved 1-2% of its depth upwards revealing above the leakage bound (cpu_speed.md).
-NEAR_DECOY_TRANSLATION = (0.005, 0.06)
-# Twice the recipe's decoys, and room for their linear maps.
-MORE_DECOYS, MORE_DECOYS_MAPS_MB = 1536, 8192
 ROWS = {
     "full": ("paper", {}),
     "no_decoder": ("paper", {"conceal.use_decoder": False}),
@@ -87,10 +82,9 @@ ROWS = {
     "recommended_pairs": ("recommended", RECOMMENDED_PAIRS),
     "recommended_decoder_size": ("recommended", {"conceal.carrier.at_decoder_size": True}),
     "recommended_decoder_size_near": ("recommended", {"conceal.carrier.at_decoder_size": True,
-                                                      "conceal.leakage.decoy_translation": NEAR_DECOY_TRANSLATION}),
-    "recommended_decoder_size_more_decoys": ("recommended", {
-        "conceal.carrier.at_decoder_size": True, "conceal.leakage.decoy_translation": NEAR_DECOY_TRANSLATION,
-        "conceal.leakage.decoy_views": MORE_DECOYS, "conceal.carrier.linear_maps_mb": MORE_DECOYS_MAPS_MB}),
+                                                      "conceal.leakage.decoy_translation":
+                                                          recipes.DECODER_SIZE_DECOY_TRANSLATION}),
+    "recommended_decoder_size_more_decoys": ("recommended_at_decoder_size", {}),
     "recommended_decoder_size_sparse": ("recommended", {"conceal.carrier.at_decoder_size": True,
                                                         "conceal.carrier.spacing": SPARSE_FILM_SPACING}),
     "in_scene_decoder_decay05": ("in_scene", {DECODER_DECAY: 0.5}),

@@ -37,3 +37,13 @@ def test_the_ownership_recipes_change_only_what_they_name():
   assert owned.conceal.attacks.prune_small_max == recipes.PRUNE_SHARE
   assert owned.conceal.attacks.blur_max == recipes.ATTACK_BLUR and owned.conceal.decoder.clip_input
   assert recipes.through_attacks(pruned).to_dict() == owned.to_dict()
+
+
+def test_the_recipe_at_the_decoders_size_changes_only_the_keys_size_and_its_decoys():
+  fast, slow = lego_conceal.get_config("recommended_at_decoder_size"), lego_conceal.get_config("recommended")
+  assert fast.conceal.carrier.at_decoder_size and fast.conceal.leakage.decoy_views == recipes.DECODER_SIZE_DECOYS
+  for section, names in (("carrier", ("at_decoder_size", "linear_maps_mb")),
+                         ("leakage", ("decoy_views", "decoy_translation"))):
+    for name in names:
+      setattr(getattr(fast.conceal, section), name, getattr(getattr(slow.conceal, section), name))
+  assert fast.to_dict() == slow.to_dict()

@@ -8,7 +8,7 @@ key sees), built from the named parts below. configs/conceal.py applies one by n
 The figures behind each choice: experiments/results/REPRODUCTION.md (a row per recipe) and conceal_options.md.
 """
 
-RECIPES = ("paper", "released", "in_scene", "standardized", "recommended")
+RECIPES = ("paper", "released", "in_scene", "standardized", "recommended", "recommended_at_decoder_size")
 
 # The decoder a CPU trains: width 16 from scratch (the paper's width 64 costs ~10x more per step), at a rate
 # a from-scratch decoder learns at (1e-3 stalled the demo's first steps).
@@ -57,6 +57,9 @@ FILM_STACK = 2
 WATCH_DECOY_VIEWS, WATCH_DECOY_FRACTION, WATCH_WEIGHT_MINUS = 768, 0.9, 1.5
 # The rate of the film's base colours in the vivid film (the gentle student's is 6.25e-4).
 VIVID_DC_LR = 1e-2
+# The key at the decoder's size: its decoys (twice the watched key's), moved by these fractions of the key's depth
+# (the default's are 0.01-0.1), and the memory their linear maps may take.
+DECODER_SIZE_DECOYS, DECODER_SIZE_DECOY_TRANSLATION, DECODER_SIZE_MAPS_MB = 1536, (0.005, 0.06), 8192
 
 
 def paper(config):
@@ -110,6 +113,25 @@ def recommended(config):
   config = thick_film(publishable_film(vivid_film(faint_film(unseen_carrier(config), spacing=0.0))))
   config = closely_watched_key(through_converter_decimation(through_quantization(config)))
   config.conceal.decoder.input_norm = "standardize"
+  return config
+
+
+def recommended_at_decoder_size(config):
+  """`recommended` with the key at the decoder's size (decoder_size_key): the same film and training, the key's
+  render and its decoys' read at 64x64 instead of resized from the training size, about 4 times faster a step on a
+  CPU (experiments/results/cpu_speed.md)."""
+  return decoder_size_key(recommended(config))
+
+
+def decoder_size_key(config, decoy_views: int = DECODER_SIZE_DECOYS):
+  """The key and its decoys cameras of the decoder's input size (conceal.carrier.at_decoder_size), with `decoy_views`
+  decoys moved DECODER_SIZE_DECOY_TRANSLATION of the key's depth (conceal.leakage.decoy_views, decoy_translation)
+  and room for their linear maps (conceal.carrier.linear_maps_mb): read at the decoder's size, the decoder reveals
+  its image where the watched key's decoys lie thinly, at small moves and turns that shift the image vertically."""
+  config.conceal.carrier.at_decoder_size = True
+  config.conceal.carrier.linear_maps_mb = DECODER_SIZE_MAPS_MB
+  lk = config.conceal.leakage
+  lk.decoy_views, lk.decoy_translation = decoy_views, DECODER_SIZE_DECOY_TRANSLATION
   return config
 
 
