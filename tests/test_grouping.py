@@ -160,3 +160,13 @@ def test_kept_neighbourhoods_walk_as_a_fresh_one_after_colours_change_and_are_re
   assert kept(moved, 1.0) is not before
   np.testing.assert_array_equal(grouping.candidate_edges(moved, kept(moved, 1.0))[1],
                                 grouping.candidate_edges(moved)[1])
+
+
+def test_several_sizes_merge_as_each_size_alone():
+  g = scene()
+  together = grouping.converter_merges(g, np.arange(g.num), (0.5,), scales=(0.5, 1.0, 2.0))
+  capacity = together[0].members.shape[0]
+  for merges, factor in zip(together, (0.5, 1.0, 2.0)):
+    alone = grouping.converter_merges(g, np.arange(g.num), (0.5,), capacity, scales=(factor,))[0]
+    for a, b in zip(jax.tree.leaves(merges), jax.tree.leaves(alone)):
+      np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

@@ -15,7 +15,7 @@ import jax
 import numpy as np
 
 from conceal_jax.conceal import decimate
-from conceal_jax.conceal.merge_costs import NEIGHBOURS, Neighbourhood, Neighbourhoods, colour_costs, neighbourhood
+from conceal_jax.conceal.merge_costs import Neighbourhood, Neighbourhoods, neighbour_colours, neighbourhood
 from conceal_jax.splat.gaussians import Gaussians
 
 CANDIDATES, COST_BUCKETS, GROUP_CAPS = 4, 1024, (3, 4)
@@ -24,14 +24,14 @@ MAX_GROUP = GROUP_CAPS[-1]
 CAPACITY_STEP = 1024
 
 
-def candidate_edges(g: Gaussians, around: Neighbourhood | None = None) -> tuple[np.ndarray, np.ndarray]:
+def candidate_edges(g: Gaussians, around: Neighbourhood | None = None,
+                    colour: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
   """The converter's walk over candidate merges of `g`: ([E] source, [E] target) rows, in the order it takes them
   (each Gaussian's CANDIDATES cheapest of its NEIGHBOURS nearest, by cost bucket, then by edge index). `around`:
-  g's Neighbourhood where known (a scene whose colours alone changed since it was computed)."""
-  n = g.num
+  g's Neighbourhood where known (a scene whose colours alone changed since it was computed); `colour`: the
+  neighbour_colours of g at around.near where known (a copy of another size has the same)."""
   near, shape = around if around is not None else neighbourhood(g)
-  cost = (shape + colour_costs(g, np.repeat(np.arange(n), NEIGHBOURS), near.ravel()).reshape(n, NEIGHBOURS))
-  cost = cost.astype(np.float32)
+  cost = (shape + (neighbour_colours(g, near) if colour is None else colour)).astype(np.float32)
   best = np.argsort(cost, axis=1, kind="stable")[:, :CANDIDATES]
   target = np.take_along_axis(near, best, 1).ravel()
   cost = np.take_along_axis(cost, best, 1).ravel()
@@ -106,10 +106,15 @@ def converter_merges(gaussians: Gaussians, rows: np.ndarray, keeps, capacity: in
   `capacity`, or the next multiple of CAPACITY_STEP above the most any level has, where that is more (a regrouped
   run keeps its capacity, so its step keeps its shapes). `neighbourhoods`: the copies' Neighbourhoods kept from
   an earlier call."""
-  levels = []
+  levels, colours = [], []  # colours: (neighbours, their colour costs); resizing changes neither colour
   for factor in scales:
     copy = scaled(gaussians, factor)
-    edges = candidate_edges(copy, neighbourhoods(copy, factor) if neighbourhoods is not None else None)
+    around = neighbourhoods(copy, factor) if neighbourhoods is not None else neighbourhood(copy)
+    colour = next((cost for near, cost in colours if np.array_equal(near, around.near)), None)
+    if colour is None:
+      colour = neighbour_colours(copy, around.near)
+      colours.append((around.near, colour))
+    edges = candidate_edges(copy, around, colour)
     levels += [(factor, copy, group_members(converter_groups(copy, keep, edges), rows)) for keep in keeps]
   most = max(len(members) for _, _, members in levels)
   capacity = max(capacity, -(-most // CAPACITY_STEP) * CAPACITY_STEP)

@@ -54,6 +54,12 @@ def colour_costs(g: Gaussians, first: np.ndarray, second: np.ndarray) -> np.ndar
   return np.sum((colours[first] - colours[second]) ** 2, axis=1)
 
 
+def neighbour_colours(g: Gaussians, near: np.ndarray) -> np.ndarray:
+  """[N, K] float64 the colour_costs of each Gaussian of `g` with each of its neighbours `near` [N, K]."""
+  n, k = near.shape
+  return colour_costs(g, np.repeat(np.arange(n), k), near.ravel()).reshape(n, k)
+
+
 def shape_costs(g: Gaussians, first: np.ndarray, second: np.ndarray) -> np.ndarray:
   """[E] float64 the geometric term of edge_costs (positions, sizes, turns and opacities alone): the pair's
   mixture's log-density at the converter's sample minus its moment-matched merge's."""
