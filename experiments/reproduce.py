@@ -56,7 +56,7 @@ PAPER_MILD_SSIM_DROP = 0.02  # the robustness figure: blur and JPEG, mean hidden
 BASELINES = ("LSB", "DeepStega", "StegaNeRF")
 # The tables' ConcealGS rows: the recipes a user chooses between, in this order, at the decoder width bench-conceal
 # trains on a CPU (a width-16 decoder from scratch; the width-64 runs are in the appendix).
-RECIPE_ORDER = ("recommended", "in_scene", "paper", "released")
+RECIPE_ORDER = ("recommended", "recommended_at_decoder_size", "in_scene", "paper", "released")
 RECIPE_WIDTH = recipes.NARROW_DECODER_WIDTH
 # The length every recipe runs (conceal.iterations); baseline runs of another length are in the appendix.
 RECIPE_STEPS = default.get_config().conceal.iterations

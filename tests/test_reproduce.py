@@ -38,7 +38,7 @@ def test_report_puts_ours_beside_the_paper_and_names_missing_rows(tmp_path):
   assert "| ConcealGS | |  | - | - | released: not run yet |" in table1
   for method in reproduce.BASELINES:
     assert f"| {method} | " in table1 and f"| - | - | {reproduce.NOT_RUN} |" in table1
-  assert table1.count(reproduce.NOT_RUN) == 6  # the three baselines, three recipes
+  assert table1.count(reproduce.NOT_RUN) == 7  # the three baselines, four recipes (the fifth, paper, ran)
   table3 = text[text.index("Table 3"):text.index("Leakage")]
   assert "| no_guidance | 26.93 / 0.9043 / 0.0812 | 37.43 / 0.9912 | 32.50 / 0.9700 / 0.0300 | 34.00 / 0.9950 | " \
       "16, 10000, 1 seed (0) |" in table3
@@ -204,7 +204,8 @@ def test_recipes_from_several_seeds_are_compared_on_their_means():
 def test_each_recipe_is_one_row_over_its_seeds_and_every_other_run_is_in_the_appendix(tmp_path):
   assert reproduce.recipe_of_row() == {"full": ("paper", 0), "released": ("released", 0),
                                        "released_seed1": ("released", 1),
-                                       "in_scene": ("in_scene", 0), "recommended": ("recommended", 0)}
+                                       "in_scene": ("in_scene", 0), "recommended": ("recommended", 0),
+                                       "recommended_decoder_size_more_decoys": ("recommended_at_decoder_size", 0)}
   conceal_rows = [_conceal_row("released", 16, 33.4, 42.5), _conceal_row("released_seed1", 16, 33.3, 39.0),
                   _conceal_row("recommended", 16, 33.0, 40.4),
                   _conceal_row("released_plus_weight2", 16, 33.3, 42.9),
