@@ -32,7 +32,8 @@ def test_the_sample_is_a_standard_normal_draw_and_costs_are_finite():
   z = merge_costs.mulberry32_normal(0)
   assert z.shape == (3,) and np.all(np.abs(z) < 5) and not np.allclose(z, merge_costs.mulberry32_normal(1))
   g = scene(50)
-  cost = merge_costs.edge_costs(g, np.arange(49), np.arange(1, 50))
+  first, second = np.arange(49), np.arange(1, 50)
+  cost = merge_costs.edge_costs(merge_costs.shape_costs(g, first, second), merge_costs.colour_costs(g, first, second))
   assert cost.dtype == np.float32 and np.all(np.isfinite(cost))
 
 

@@ -15,7 +15,7 @@ import jax
 import numpy as np
 
 from conceal_jax.conceal import decimate
-from conceal_jax.conceal.merge_costs import Neighbourhood, Neighbourhoods, neighbour_colours, neighbourhood
+from conceal_jax.conceal.merge_costs import Neighbourhood, Neighbourhoods, edge_costs, neighbour_colours, neighbourhood
 from conceal_jax.splat.gaussians import Gaussians
 
 CANDIDATES, COST_BUCKETS, GROUP_CAPS = 4, 1024, (3, 4)
@@ -31,7 +31,7 @@ def candidate_edges(g: Gaussians, around: Neighbourhood | None = None,
   g's Neighbourhood where known (a scene whose colours alone changed since it was computed); `colour`: the
   neighbour_colours of g at around.near where known (a copy of another size has the same)."""
   near, shape = around if around is not None else neighbourhood(g)
-  cost = (shape + (neighbour_colours(g, near) if colour is None else colour)).astype(np.float32)
+  cost = edge_costs(shape, neighbour_colours(g, near) if colour is None else colour)
   best = np.argsort(cost, axis=1, kind="stable")[:, :CANDIDATES]
   target = np.take_along_axis(near, best, 1).ravel()
   cost = np.take_along_axis(cost, best, 1).ravel()

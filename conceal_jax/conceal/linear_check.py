@@ -74,9 +74,10 @@ def normal_weights(student, cameras, rows, fixed, options: RenderOptions, budget
       return None, None
   if not maps:
     return None, None
-  weights = stacked(maps)
+  weights = host_stacked(maps)
   if map_bytes(weights) > budget:
     return None, None
+  weights = jax.tree.map(jnp.asarray, weights)
   index = np.full(len(cameras), -1, np.int32)
   index[rendering] = np.arange(len(rendering), dtype=np.int32)
   return weights, jnp.asarray(index)
@@ -94,16 +95,21 @@ def read_maps(views, options: RenderOptions):
 
 
 def stacked(maps, length: int = 0) -> linear.ColourWeights:
-  """linear.ColourWeights [len(maps)]: `maps` padded (linear.padded) to `length` entries or the next multiple of
-  LENGTH_STEP above the most any holds, where that is more."""
+  """linear.ColourWeights [len(maps)] on the device: `maps` padded (linear.stacked_maps) to `length` entries or the
+  next multiple of LENGTH_STEP above the most any holds, where that is more."""
+  return jax.tree.map(jnp.asarray, host_stacked(maps, length))
+
+
+def host_stacked(maps, length: int = 0) -> linear.ColourWeights:
+  """`stacked`, in host arrays."""
   longest = max(int(m.weights.size) for m in maps)
-  length = max(length, -(-max(longest, 1) // LENGTH_STEP) * LENGTH_STEP)
-  return jax.tree.map(jnp.asarray, linear.stacked_maps(maps, length))
+  return linear.stacked_maps(maps, max(length, -(-max(longest, 1) // LENGTH_STEP) * LENGTH_STEP))
 
 
 def lengthened(maps: linear.ColourWeights, length: int) -> linear.ColourWeights:
   """Stacked `maps` [R] padded to `length` entries each (at least theirs)."""
-  return jax.tree.map(jnp.asarray, linear.padded(maps, length))
+  host = jax.tree.map(np.asarray, maps)
+  return stacked([jax.tree.map(lambda x: x[r], host) for r in range(host.weights.shape[0])], length)
 
 
 def map_bytes(weights: linear.ColourWeights) -> int:

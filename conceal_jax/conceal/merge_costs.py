@@ -42,10 +42,10 @@ def masses(g: Gaussians) -> np.ndarray:
   return decimate.masses(g) + 1e-12
 
 
-def edge_costs(g: Gaussians, first: np.ndarray, second: np.ndarray) -> np.ndarray:
-  """[E] float32 the converter's cost of merging each pair (first[e], second[e]) of `g`: `shape_costs` plus the
-  squared difference of every colour coefficient."""
-  return (shape_costs(g, first, second) + colour_costs(g, first, second)).astype(np.float32)
+def edge_costs(shape: np.ndarray, colour: np.ndarray) -> np.ndarray:
+  """float32 the converter's cost of merging pairs from its two float64 terms of one shape: `shape_costs` plus
+  `colour_costs` (kept apart so that a run training colours alone recomputes only the second)."""
+  return (shape + colour).astype(np.float32)
 
 
 def colour_costs(g: Gaussians, first: np.ndarray, second: np.ndarray) -> np.ndarray:
@@ -56,8 +56,13 @@ def colour_costs(g: Gaussians, first: np.ndarray, second: np.ndarray) -> np.ndar
 
 def neighbour_colours(g: Gaussians, near: np.ndarray) -> np.ndarray:
   """[N, K] float64 the colour_costs of each Gaussian of `g` with each of its neighbours `near` [N, K]."""
+  return per_neighbour(colour_costs, g, near)
+
+
+def per_neighbour(costs, g: Gaussians, near: np.ndarray) -> np.ndarray:
+  """[N, K] `costs`(g, first, second) of each Gaussian of `g` (first) with each of its neighbours `near` [N, K]."""
   n, k = near.shape
-  return colour_costs(g, np.repeat(np.arange(n), k), near.ravel()).reshape(n, k)
+  return costs(g, np.repeat(np.arange(n), k), near.ravel()).reshape(n, k)
 
 
 def shape_costs(g: Gaussians, first: np.ndarray, second: np.ndarray) -> np.ndarray:
@@ -99,10 +104,8 @@ class Neighbourhood(NamedTuple):
 
 def neighbourhood(g: Gaussians) -> Neighbourhood:
   """The Neighbourhood of `g` (a k-d tree over its centres)."""
-  n = g.num
   _, near = cKDTree(np.asarray(g.means, np.float64)).query(np.asarray(g.means, np.float64), k=NEIGHBOURS + 1)
-  near = near[:, 1:]
-  return Neighbourhood(near, shape_costs(g, np.repeat(np.arange(n), NEIGHBOURS), near.ravel()).reshape(n, NEIGHBOURS))
+  return Neighbourhood(near[:, 1:], per_neighbour(shape_costs, g, near[:, 1:]))
 
 
 class Neighbourhoods:

@@ -29,8 +29,8 @@ from conceal_jax.splat.render import RenderOptions, sh_degree, tile_layout, unti
 @struct.dataclass
 class ColourWeights:
   """One view's image as a map of colours: pixels [K] int32 flat pixel index y * width + x, ascending; rows [K]
-  int32 the Gaussian of each weight; weights [K] alpha_i T_i, nonzero but for `padded`'s; transmittance [H, W] the
-  final T; num_pairs: int32, the splat-tile pairs the view's render composites."""
+  int32 the Gaussian of each weight; weights [K] alpha_i T_i, nonzero but for `stacked_maps`' padding;
+  transmittance [H, W] the final T; num_pairs: int32, the splat-tile pairs the view's render composites."""
   pixels: jax.Array
   rows: jax.Array
   weights: jax.Array
@@ -59,11 +59,11 @@ def colour_weights(gaussians: Gaussians, camera: Camera, options: RenderOptions 
   inside = flat >= 0
   flat = flat[inside]
   order = np.argsort(flat, kind="stable")
-  values = weights[seg, pixel, lane][inside][order]
-  covered = np.bincount(flat, weights=weights[seg, pixel, lane][inside].astype(np.float64), minlength=height * width)
-  pick = lambda a: jnp.asarray(a[inside][order])
+  values = weights[seg, pixel, lane][inside]
+  covered = np.bincount(flat, weights=values.astype(np.float64), minlength=height * width)
   return ColourWeights(pixels=jnp.asarray(flat[order].astype(np.int32)),
-                       rows=pick(splats[seg, lane].astype(np.int32)), weights=jnp.asarray(values),
+                       rows=jnp.asarray(splats[seg, lane][inside][order].astype(np.int32)),
+                       weights=jnp.asarray(values[order]),
                        transmittance=jnp.asarray((1.0 - covered).reshape(height, width).astype(values.dtype)),
                        num_pairs=out.num_pairs)
 
@@ -98,23 +98,10 @@ def _segment_weights(gaussians: Gaussians, camera: Camera, options: RenderOption
   return _Segments(weights, s.splats, s.tiles, s.count, view.num_pairs)
 
 
-def padded(weights: ColourWeights, length: int) -> ColourWeights:
-  """`weights` (one map [K] or a stack [R, K]) with zero weights appended to `length` entries (on the last pixel,
-  so pixels stay ascending, and row 0): the same image, in a shape several views' weights share. Host-side (numpy:
-  an eager jnp concatenate compiles anew for every length)."""
-  have = int(weights.weights.shape[-1])
-  if length < have:
-    raise ValueError(f"cannot pad {have} weights to {length}")
-  last = int(np.prod(weights.transmittance.shape[-2:])) - 1
-  extend = lambda x, value: np.concatenate(
-      [np.asarray(x), np.full(x.shape[:-1] + (length - have,), value, x.dtype)], axis=-1)
-  return weights.replace(pixels=extend(weights.pixels, last), rows=extend(weights.rows, 0),
-                         weights=extend(weights.weights, 0))
-
-
 def stacked_maps(maps, length: int) -> ColourWeights:
-  """ColourWeights [R] of `maps` (each [K_r] with K_r <= `length`), each `padded` to `length`, written into one
-  host array per field (no per-map copy)."""
+  """ColourWeights [R] of `maps` (each [K_r] with K_r <= `length`) in host arrays, each padded to `length` entries
+  with zero weights on its image's last pixel (pixels stay ascending) and row 0: the same images, in one shape.
+  Host-side (numpy: an eager jnp concatenate compiles anew for every length), each map copied once."""
   pixels = np.empty((len(maps), length), np.int32)
   rows = np.zeros((len(maps), length), np.int32)
   weights = np.zeros((len(maps), length), np.asarray(maps[0].weights).dtype)

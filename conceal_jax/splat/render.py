@@ -160,7 +160,7 @@ def render(gaussians: Gaussians, camera: Camera, options: RenderOptions = Render
   densification accumulates (the offsets do not move the tile binning).
   """
   return with_capacity(lambda opts: _render(gaussians, camera, opts, means2d_offset), options,
-                        (gaussians.num, camera.width, camera.height))
+                       (gaussians.num, camera.width, camera.height))
 
 
 def render_batch(gaussians: Gaussians, cameras: Camera,
