@@ -11,7 +11,7 @@ import pytest
 
 from conceal_jax import Camera, RenderOptions, render, render_batch
 from conceal_jax.splat import camera as camera_lib
-from conceal_jax.splat import projection, sh as sh_lib
+from conceal_jax.splat import binning, projection, sh as sh_lib
 from conceal_jax.splat import render as render_lib
 from tests.helpers import assert_finite_tree, make_camera, make_gaussians, random_gaussians, reference
 
@@ -360,3 +360,13 @@ def test_opacities_just_below_and_above_the_cull_threshold(relative):
   alone = render(behind, AXIS_CAMERA, EXACT)
   changed = float(jnp.max(jnp.abs(out.rgb - alone.rgb)))
   assert (changed > 0) == (relative > 0), "faint splats below 1/255 are culled, above it they show"
+
+
+@pytest.mark.parametrize("n", [1, 2, 300, 70_000])
+def test_depth_order_is_the_stable_argsort(n):
+  # Many exact ties (depths on a coarse grid) and culled splats; 70k splats need three radix passes.
+  rng = np.random.default_rng(n)
+  depths = jnp.asarray(rng.integers(1, 50, n).astype(np.float32) * 0.125)
+  radii = jnp.asarray(rng.integers(0, 3, n).astype(np.int32))
+  expected = np.argsort(np.where(np.asarray(radii) > 0, np.asarray(depths), np.inf), kind="stable")
+  np.testing.assert_array_equal(np.asarray(binning.depth_order(depths, radii)), expected)

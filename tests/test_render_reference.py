@@ -8,6 +8,7 @@ import pytest
 
 from conceal_jax import RenderOptions
 from conceal_jax import render
+from conceal_jax.splat import composite
 from tests.helpers import make_camera, random_gaussians, reference
 
 
@@ -102,3 +103,11 @@ def test_splats_beside_the_image_report_radius_zero_and_render_nothing(tile_size
   np.testing.assert_array_equal(np.asarray(together.radii[:-1]), np.asarray(alone.radii))
   assert int(jnp.sum(alone.radii > 0)) > 10
   np.testing.assert_allclose(np.asarray(together.rgb), np.asarray(alone.rgb), atol=1e-6)
+
+
+@pytest.mark.parametrize("length", [1, 8, 12, 32, 64])
+def test_running_sum_is_the_prefix_sum(length):
+  # Lengths that split into chunks take the two-level path; the others the single triangular product.
+  x = np.random.default_rng(length).normal(size=(3, 5, length)).astype(np.float32)
+  np.testing.assert_allclose(np.asarray(composite.running_sum(jnp.asarray(x))),
+                             np.cumsum(x.astype(np.float64), -1), rtol=1e-5, atol=1e-5)

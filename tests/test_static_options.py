@@ -64,9 +64,11 @@ def test_depth_composited_only_when_asked():
   plain = _jaxpr(RenderOptions(with_depth=False)).jaxpr
   with_depth = _jaxpr(RenderOptions(with_depth=True)).jaxpr
   assert _count_eqns(with_depth) > _count_eqns(plain)
-  # Colour is composited as [tiles, pixels, 3]; with depth the accumulated values gain a 4th channel.
-  assert any(s[-1:] == (4,) and len(s) == 3 for s in _shapes(with_depth))
-  assert not any(s[-1:] == (4,) and len(s) == 3 for s in _shapes(plain))
+  # Colour is composited as [tiles + 1, pixels, 3]; with depth the accumulated values gain a 4th channel.
+  cam, tile = make_camera(), RenderOptions().tile_size
+  accumulated = (-(-cam.width // tile) * -(-cam.height // tile) + 1, tile * tile, 4)
+  assert accumulated in _shapes(with_depth)
+  assert accumulated not in _shapes(plain)
 
 
 def test_default_is_exact_and_binning_never_builds_tiles_by_gaussians():

@@ -196,7 +196,7 @@ def bin_pairs(means2d: jax.Array, cov2d: jax.Array, depths: jax.Array, opacities
   n = depths.shape[0]
   tiles_x, tiles_y = grid
   num_tiles = tiles_x * tiles_y
-  order = jnp.argsort(jnp.where(radii > 0, depths, jnp.inf), stable=True).astype(jnp.int32)
+  order = depth_order(depths, radii)
   level = pair_test_level(opacities[order], radii[order])
   m2d, cov = means2d[order], cov2d[order]
   rect_min, rect_max = tile_rects(m2d, radii[order], tile_size, grid)
@@ -222,6 +222,38 @@ def bin_pairs(means2d: jax.Array, cov2d: jax.Array, depths: jax.Array, opacities
   tile_start = inclusive_sum(tile_count) - tile_count
   return Pairs(tiles=tile, splats=splats.astype(jnp.int32), tile_start=tile_start, tile_count=tile_count,
                num_pairs=num_pairs)
+
+
+def depth_order(depths: jax.Array, radii: jax.Array) -> jax.Array:
+  """[N] int32: the splats front to back, culled ones (radii 0) last, ties in index order, as
+  argsort(where(radii > 0, depths, inf), stable=True). Drawn depths are positive (beyond the near plane), so
+  their float bits order as unsigned integers (float32; other precisions take the argsort)."""
+  if depths.dtype != jnp.float32:
+    return jnp.argsort(jnp.where(radii > 0, depths, jnp.inf), stable=True).astype(jnp.int32)
+  bits = jax.lax.bitcast_convert_type(depths, jnp.uint32)
+  return stable_order(jnp.where(radii > 0, bits, jnp.uint32(0xFFFFFFFF)))
+
+
+def stable_order(keys: jax.Array) -> jax.Array:
+  """[N] uint32 keys -> [N] int32 indices that sort them stably (ties in index order).
+
+  A least-significant-digit radix sort whose passes are single-operand sorts (several times faster on CPU than
+  a sort carrying an index): with b = bits of N - 1, each pass sorts (digit << b) | position, the key's next
+  32 - b bits above each element's position in the previous pass's order, all distinct, so every pass is
+  stable and the last one orders by the whole key, then by index.
+  """
+  n = keys.shape[0]
+  index_bits = max(1, (n - 1).bit_length())
+  digit_bits = 32 - index_bits
+  if n == 0 or digit_bits < 8:  # beyond 16M keys: more than four passes
+    return jnp.argsort(keys, stable=True).astype(jnp.int32)
+  position = jnp.arange(n, dtype=jnp.uint32)
+  order = position
+  for shift in range(0, 32, digit_bits):
+    digit = (keys[order] >> shift) & jnp.uint32((1 << digit_bits) - 1)
+    passed = jnp.sort((digit << index_bits) | position)
+    order = order[passed & jnp.uint32((1 << index_bits) - 1)]
+  return order.astype(jnp.int32)
 
 
 def _sort_by_tile(tile: jax.Array, depth_rank: jax.Array, num_tiles: int, n: int):

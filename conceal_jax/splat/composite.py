@@ -26,6 +26,8 @@ ALPHA_MAX = 0.99
 ALPHA_MIN = 1.0 / 255.0
 T_MIN = 1e-4
 LOG_T_MIN = math.log(T_MIN)
+# Chunk length of `running_sum`'s two-level prefix sum.
+_CHUNK = 8
 
 
 def pair_alpha(pixels: jax.Array, means2d: jax.Array, conics: jax.Array,
@@ -48,10 +50,16 @@ def pair_alpha(pixels: jax.Array, means2d: jax.Array, conics: jax.Array,
 
 
 def running_sum(x: jax.Array) -> jax.Array:
-  """Inclusive prefix sum over the last axis (length L) as a matmul with a triangular matrix: on CPU a
-  small dense product is much faster than the reduce_window that jnp.cumsum lowers to."""
+  """Inclusive prefix sum over the last axis (length L) as products with triangular matrices: on CPU a small
+  dense product is much faster than the reduce_window that jnp.cumsum lowers to. Where L splits into chunks
+  of 8, the sums run within each chunk and the chunks' totals are carried over (two 8x8 products: 16
+  multiply-adds a value rather than L)."""
   n = x.shape[-1]
-  return x @ jnp.triu(jnp.ones((n, n), x.dtype))
+  if n % _CHUNK or n == _CHUNK:
+    return x @ jnp.triu(jnp.ones((n, n), x.dtype))
+  within = x.reshape(x.shape[:-1] + (n // _CHUNK, _CHUNK)) @ jnp.triu(jnp.ones((_CHUNK, _CHUNK), x.dtype))
+  before = within[..., -1] @ jnp.triu(jnp.ones((n // _CHUNK,) * 2, x.dtype), 1)
+  return (within + before[..., None]).reshape(x.shape)
 
 
 def chain_segments(totals: jax.Array, first: jax.Array, carry: jax.Array) -> tuple[jax.Array, jax.Array]:
@@ -226,7 +234,7 @@ def _composite_bwd(tile_size, grid, block, residuals, cotangents):
     t_before = jnp.exp(seen - log_1m)
     weights = jnp.where(keep, alpha * t_before, 0.0)
     g, g_t = g_values[tiles], g_log_t[tiles]  # [B, P, C], [B, P]
-    g_colour = jnp.sum(g[:, :, None, :] * val[:, None, :, :], -1)  # dL/dvalues . c_i per pixel and pair
+    g_colour = jnp.einsum("bpc,blc->bpl", g, val)  # dL/dvalues . c_i per pixel and pair
     # dL/dalpha_i = T_i g.c_i - (g.(colour behind i) + dL/dlogT) / (1 - alpha_i) (3D-GS backward), the colour
     # behind i being the tile's final colour minus everything composited up to and including i.
     after_front = jnp.sum(g * (out_values[tiles] - front_values), -1)
@@ -237,7 +245,8 @@ def _composite_bwd(tile_size, grid, block, residuals, cotangents):
     g_power = jnp.where(live, g_alpha * alpha, 0.0)
     g_opacity = jnp.sum(jnp.where(live, g_alpha * falloff, 0.0), 1)
     g_mean, g_conic = _power_gradients(g_power, pixels, m, con)
-    g_val = jnp.einsum("bpl,bpc->blc", weights, g)
+    # Sums over the tile's pixels one channel at a time: a batched [L, P] x [P, C] product is slow on CPU.
+    g_val = jnp.stack([jnp.sum(weights * g[:, :, None, k], 1) for k in range(g.shape[-1])], -1)
     gm, gc, go, gv = grads
     return gm.at[idx].add(g_mean), gc.at[idx].add(g_conic), go.at[idx].add(g_opacity), gv.at[idx].add(g_val)
 
