@@ -40,8 +40,11 @@ _MIN_CAPACITY = 1024
 # Images whose every splat-tile pair fits this many start at that capacity (initial_capacity): small buffers, and a
 # first eager render that never compiles a second program at a grown capacity.
 _SMALL_IMAGE_PAIRS = 1 << 16
-# Pixel-pairs evaluated per loop iteration of the compositor: intermediates of 128 kB stay in cache.
-_BLOCK_PIXEL_PAIRS = 1 << 15
+# Pixel-pairs evaluated per loop iteration of the compositor, at most: on CPU each iteration's few dozen operations
+# cost a fixed overhead, so few large iterations beat many cache-sized ones (experiments/results/cpu_speed.md).
+_BLOCK_PIXEL_PAIRS = 1 << 17
+# ... and at most this fraction of the image's segment slots, so that a small image's last block is mostly work.
+_BLOCKS_PER_IMAGE = 8
 # Last capacity that sufficed, per (options, number of Gaussians, image size), for eager calls.
 _capacity_cache: dict = {}
 
@@ -270,7 +273,8 @@ def segment_blocks(options: RenderOptions, num_tiles: int) -> tuple[int, int]:
   """(segments per compositing loop iteration, static segment slots) for `options` (with a pair capacity)
   on an image of `num_tiles` tiles."""
   length = options.segment_size
-  block = max(1, _BLOCK_PIXEL_PAIRS // (options.tile_size ** 2 * length))
+  slots = segments_lib.segment_capacity(options.pair_capacity, num_tiles, length, 1, options.max_per_tile)
+  block = max(1, min(_BLOCK_PIXEL_PAIRS // (options.tile_size ** 2 * length), -(-slots // _BLOCKS_PER_IMAGE)))
   return block, segments_lib.segment_capacity(options.pair_capacity, num_tiles, length, block, options.max_per_tile)
 
 
