@@ -36,8 +36,9 @@ def scene_config(name: str, iterations: int | None, eval_views: int = 0):
   return config
 
 
-# Targets of the teacher issue: mean test PSNR over every test view, and the training wall time.
-TARGETS = {"lego": dict(psnr=33.0, minutes=45.0), "beer": dict(psnr=24.0)}
+# Targets: mean test PSNR over every test view (the teacher issue), and the training wall time on a 2-core CPU (the
+# scale issue: 10k lego steps in at most 20 minutes).
+TARGETS = {"lego": dict(psnr=33.0, minutes=20.0), "beer": dict(psnr=24.0)}
 
 
 def run(names, iterations, eval_views, workdir: pathlib.Path, reuse: bool = False) -> list[dict]:
