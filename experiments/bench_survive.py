@@ -178,8 +178,8 @@ RECIPE_NOTES = {
     "decoder_size_more_decoys": "decoder_size_near with twice the decoys, 1536: bench-conceal's "
                                 "recommended_decoder_size_more_decoys "
                                 "(workdirs/bench/lego/conceal_recommended_decoder_size_more_decoys_w16; its rows are "
-                                "the run of 2026-11-29 morning, 38.24 dB untouched: the afternoon's rerun in that "
-                                "workdir read 36.89 and has no rows yet)",
+                                "the run of 2026-11-29 morning, not the rerun that workdir holds since: "
+                                "cpu_speed.md)",
     "decoder_size_sparse": "decoder_size with a ninth of the film: a grid position every 18.75 pixels of the "
                            "200-pixel key (every 6 of the 64-pixel one) rather than every 6, its splats three times "
                            "as wide: bench-conceal's recommended_decoder_size_sparse "
