@@ -89,18 +89,18 @@ def test_new_gaussians_escape_the_screen_size_prune():
 
 
 @pytest.mark.parametrize("count,current,expected", [
-    (10, 0, 1024), (1024, 0, 1024), (1025, 0, 2048), (3000, 0, 3072),
-    (1500, 2048, 2048), (2049, 2048, 3072), (300, 2048, 1024), (600, 2048, 2048)])
+    (10, 0, 1024), (1024, 0, 1024), (1025, 0, 2048), (3000, 0, 4096),
+    (1500, 2048, 2048), (2049, 2048, 4096), (300, 2048, 1024), (600, 2048, 2048)])
 def test_capacity_buckets(count, current, expected):
   assert densify.capacity_for(count, current) == expected
 
 
 @pytest.mark.parametrize("count,current,limit,expected", [
-    (3000, 0, 2500, 3072),       # above the cap (e.g. a large start): the cap does not apply
-    (2500, 0, 2500, 2500),       # the bucket would be 3072: the cap is the most ever needed
+    (3000, 0, 2500, 4096),       # above the cap (e.g. a large start): the cap does not apply
+    (2500, 0, 2500, 2500),       # the bucket would be 4096: the cap is the most ever needed
     (2049, 2048, 2500, 2500),
     (1500, 2048, 2500, 2048),    # fits the current buffer: kept
-    (30000, 143360, 40000, 40000)])  # a buffer above the cap shrinks once the count is under the cap
+    (36000, 131072, 40000, 40000)])  # a buffer above the cap shrinks once the count is under the cap
 def test_capacity_never_exceeds_the_gaussian_cap(count, current, limit, expected):
   assert densify.capacity_for(count, current, limit) == expected
 

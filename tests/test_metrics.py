@@ -68,6 +68,21 @@ def test_blur_matrix_is_the_zero_padded_same_convolution(n):
                              else np.convolve(x, w, mode="full")[5:5 + n], rtol=1e-12, atol=1e-15)
 
 
+@pytest.mark.parametrize("shape", [(3, 1, 4), (2, 37, 52), (5, 101, 149), (1, 200, 180)])
+def test_blur_is_the_banded_products_of_float64_reference(shape):
+  """The blocked filter (blocks of rows, padded at the end) equals M_H x M_W^T in float64, on images of one and
+  of several blocks; autodiff of this linear map is its transpose, so its gradient is exact too."""
+  w = metrics.gaussian_window_1d()
+  x = np.random.default_rng(shape[1]).uniform(size=shape)
+  expected = np.einsum("ij,bjk,lk->bil", metrics.blur_matrix(shape[1], w), x, metrics.blur_matrix(shape[2], w))
+  np.testing.assert_allclose(np.asarray(metrics._blur(jnp.asarray(x, jnp.float32), w)), expected, atol=2e-6)
+  cotangent = np.random.default_rng(1).normal(size=shape)
+  _, vjp = jax.vjp(lambda v: metrics._blur(v, w), jnp.asarray(x, jnp.float32))
+  expected_grad = np.einsum("ij,bil,lk->bjk", metrics.blur_matrix(shape[1], w), cotangent,
+                            metrics.blur_matrix(shape[2], w))
+  np.testing.assert_allclose(np.asarray(vjp(jnp.asarray(cotangent, jnp.float32))[0]), expected_grad, atol=2e-5)
+
+
 @pytest.mark.parametrize("sigma", [0.02, 0.1, 0.3])
 def test_ssim_matches_float64_zero_padded_reference(sigma):
   a = smooth_image(37, 52)

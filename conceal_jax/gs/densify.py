@@ -2,7 +2,9 @@
 
 The train step is compiled for a buffer of `capacity` Gaussians with an `alive` mask, so clone, split
 and prune only rewrite the buffer's contents; the capacity (and so the compiled step) changes only
-when the live count leaves the current size bucket, which grows by a factor 1.5 at a time. Everything
+when the live count leaves the current size bucket, which doubles at a time: a compile costs seconds, a
+dead row of the buffer a fraction of a microsecond a step, and a growing scene leaves a bucket within a
+few densification rounds. Everything
 here runs on the host in numpy, once every few hundred steps.
 
 Rows are tracked by `source`: for every row of the new buffer, the row of the old buffer it continues
@@ -22,7 +24,7 @@ from conceal_jax.splat.gaussians import Gaussians, opacity_logit
 
 FRESH = -1
 CAPACITY_QUANTUM = 1024
-CAPACITY_GROWTH = 1.5
+CAPACITY_GROWTH = 2.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -58,7 +60,7 @@ def within_budget(selected: np.ndarray, mean_grads: np.ndarray, budget: int) -> 
 
 def capacity_for(count: int, current: int = 0, limit: int = 0) -> int:
   """Buffer size for `count` live Gaussians: keeps `current` while count fits and is above a quarter
-  of it, else the smallest bucket quantum * 1.5^k (rounded up to the quantum) that holds count. With a
+  of it, else the smallest bucket quantum * 2^k that holds count. With a
   Gaussian cap `limit` (max_gaussians) that count respects, no bucket exceeds it: the buffer's rows cost
   time in every step whether they are alive or not."""
   capped = 0 < count <= limit

@@ -47,13 +47,34 @@ def gaussian_window_1d(size: int = SSIM_WINDOW, sigma: float = SSIM_SIGMA) -> np
 def blur_matrix(n: int, window: np.ndarray) -> np.ndarray:
   """[n, n] banded matrix M with (M x)_i = sum_k w_k x_{i + k - size // 2}, out-of-range x taken as 0.
 
-  The zero-padded 'same' convolution of 3D-GS along one axis, written as a matrix: on CPU one dense
-  product per axis is several times faster (forward and backward) than XLA's single-channel convolution.
+  The zero-padded 'same' convolution of 3D-GS along one axis, written as a matrix (the reference of `_blur`).
   """
   pad = window.shape[0] // 2
   offsets = np.arange(n)[None, :] - np.arange(n)[:, None] + pad  # column j - row i, shifted into the window
   inside = (offsets >= 0) & (offsets < window.shape[0])
   return np.where(inside, window[np.clip(offsets, 0, window.shape[0] - 1)], 0.0)
+
+
+# Rows a block of the banded product covers at most: the band of blur_matrix is 11 wide, so one dense [n, n]
+# product spends most of its work on zeros; blocks of ~50 rows, each a product with a [block, block + 10] band,
+# do a fifth of it, and on CPU still run as matrix products (several times faster, forward and backward, than
+# XLA's single-channel convolution or shifted sums).
+_BLUR_BLOCK = 50
+
+
+def _blur_rows(x: jax.Array, window: np.ndarray) -> jax.Array:
+  """[B, n, k] -> [B, n, k]: blur_matrix(n) applied along axis 1, by blocks of rows of the band."""
+  batch, n, k = x.shape
+  pad = window.shape[0] // 2
+  num_blocks = -(-n // _BLUR_BLOCK)
+  block = -(-n // num_blocks)  # blocks of equal size, the last padded with at most num_blocks - 1 rows
+  band = jnp.asarray(blur_matrix(block + 2 * pad, window)[pad:pad + block], x.dtype)  # [block, block + 2 pad]
+  padded = jnp.pad(x, ((0, 0), (pad, pad + num_blocks * block - n), (0, 0)))
+  rows = np.arange(num_blocks)[:, None] * block + np.arange(block + 2 * pad)[None, :]
+  windows = padded[:, rows, :]  # [B, blocks, block + 2 pad, k]
+  # HIGHEST precision: on GPUs the default float32 product may run in TF32 (10-bit mantissa).
+  out = jnp.einsum("ij,bnjk->bnik", band, windows, precision=jax.lax.Precision.HIGHEST)
+  return out.reshape(batch, num_blocks * block, k)[:, :n]
 
 
 def _blur(x: jax.Array, window: np.ndarray) -> jax.Array:
@@ -62,21 +83,20 @@ def _blur(x: jax.Array, window: np.ndarray) -> jax.Array:
   3D-GS convolves with the 2D outer-product window and padding size // 2; a separable pass with the same
   zero padding is the same linear map, since the padded zeros contribute nothing in either order.
   """
-  rows = jnp.asarray(blur_matrix(x.shape[1], window), x.dtype)
-  cols = jnp.asarray(blur_matrix(x.shape[2], window), x.dtype)
-  # HIGHEST precision: on GPUs the default float32 product may run in TF32 (10-bit mantissa).
-  x = jnp.einsum("ij,bjk->bik", rows, x, precision=jax.lax.Precision.HIGHEST)
-  return jnp.einsum("bik,jk->bij", x, cols, precision=jax.lax.Precision.HIGHEST)
+  x = _blur_rows(x, window)
+  return jnp.swapaxes(_blur_rows(jnp.swapaxes(x, 1, 2), window), 1, 2)
 
 
 def ssim_map(a: jax.Array, b: jax.Array) -> jax.Array:
   """[H, W, C] x2 -> [H, W, C] SSIM map of 3D-GS's `_ssim` (11x11 window, sigma 1.5, zero padding 5)."""
   window = gaussian_window_1d()
-  # Channels become the batch: 3D-GS filters each channel separately (grouped convolution). The five
-  # filtered maps are one batch, so each axis is one product.
+  # Channels become the batch: 3D-GS filters each channel separately (grouped convolution). The maps of each
+  # image are one batch, so each axis is one product; those of b alone are filtered apart, so that a loss's
+  # gradient with respect to a (b a fixed target) does not go back through b's filtering.
   x = jnp.moveaxis(a.astype(jnp.float32), -1, 0)
   y = jnp.moveaxis(b.astype(jnp.float32), -1, 0)
-  mu_x, mu_y, xx, yy, xy = jnp.split(_blur(jnp.concatenate([x, y, x * x, y * y, x * y]), window), 5)
+  mu_x, xx, xy = jnp.split(_blur(jnp.concatenate([x, x * x, x * y]), window), 3)
+  mu_y, yy = jnp.split(_blur(jnp.concatenate([y, y * y]), window), 2)
   var_x = xx - mu_x**2
   var_y = yy - mu_y**2
   cov = xy - mu_x * mu_y
