@@ -177,9 +177,8 @@ RECIPE_NOTES = {
                          "(workdirs/bench/lego/conceal_recommended_decoder_size_near_w16)",
     "decoder_size_more_decoys": "decoder_size_near with twice the decoys, 1536: bench-conceal's "
                                 "recommended_decoder_size_more_decoys "
-                                "(workdirs/bench/lego/conceal_recommended_decoder_size_more_decoys_w16; its rows are "
-                                "the run of 2026-11-29 morning, not the rerun that workdir holds since: "
-                                "cpu_speed.md)",
+                                "(workdirs/bench/lego/conceal_recommended_decoder_size_more_decoys_w16: its rerun on "
+                                "the faster renderer, cpu_speed.md)",
     "decoder_size_sparse": "decoder_size with a ninth of the film: a grid position every 18.75 pixels of the "
                            "200-pixel key (every 6 of the 64-pixel one) rather than every 6, its splats three times "
                            "as wide: bench-conceal's recommended_decoder_size_sparse "
