@@ -4,8 +4,7 @@ The train step is compiled for a buffer of `capacity` Gaussians with an `alive` 
 and prune only rewrite the buffer's contents; the capacity (and so the compiled step) changes only
 when the live count leaves the current size bucket, which doubles at a time: a compile costs seconds, a
 dead row of the buffer a fraction of a microsecond a step, and a growing scene leaves a bucket within a
-few densification rounds. Everything
-here runs on the host in numpy, once every few hundred steps.
+few densification rounds. Everything here runs on the host in numpy, once every few hundred steps.
 
 Rows are tracked by `source`: for every row of the new buffer, the row of the old buffer it continues
 (its optimizer moments carry over), or -1 for a new Gaussian (fresh, zero moments), as 3D-GS does.
@@ -60,9 +59,9 @@ def within_budget(selected: np.ndarray, mean_grads: np.ndarray, budget: int) -> 
 
 def capacity_for(count: int, current: int = 0, limit: int = 0) -> int:
   """Buffer size for `count` live Gaussians: keeps `current` while count fits and is above a quarter
-  of it, else the smallest bucket quantum * 2^k that holds count. With a
-  Gaussian cap `limit` (max_gaussians) that count respects, no bucket exceeds it: the buffer's rows cost
-  time in every step whether they are alive or not."""
+  of it, else the smallest bucket quantum * 2^k that holds count. With a Gaussian cap `limit` (max_gaussians)
+  that count respects, no bucket exceeds it: the buffer's rows cost time in every step whether they are alive
+  or not."""
   capped = 0 < count <= limit
   if 0 < current and current // 4 <= count <= current and not (capped and current > limit):
     return current

@@ -55,7 +55,7 @@ def blur_matrix(n: int, window: np.ndarray) -> np.ndarray:
   return np.where(inside, window[np.clip(offsets, 0, window.shape[0] - 1)], 0.0)
 
 
-# Rows a block of the banded product covers at most: the band of blur_matrix is 11 wide, so one dense [n, n]
+# Rows of one block of the banded product (at most): the band of blur_matrix is 11 wide, so one dense [n, n]
 # product spends most of its work on zeros; blocks of ~50 rows, each a product with a [block, block + 10] band,
 # do a fifth of it, and on CPU still run as matrix products (several times faster, forward and backward, than
 # XLA's single-channel convolution or shifted sums).
