@@ -7,7 +7,9 @@ scene on the test views, hidden PSNR / SSIM at the key, and the ownership decisi
   make bench-survive BENCH_ARGS="--extraction --extraction-views=200 --extraction-steps=10000"
 
 Scenes are finished conceal workdirs (student.ply, decoder.msgpack, key.json, config.json); one that is missing
-is skipped with a note. Attacks (`level` in brackets):
+is skipped with a note; `label=workdir+layered_workdir` reads workdir's mark from the student of layered_workdir, a
+conceal run on workdir's student (two marks in one shared scene, each scored by its own rows). Attacks (`level` in
+brackets):
 - none: the student as shared;
 - rotate (degrees about the up axis through the centroid), translate (fraction of the RMS radius), scale
   (factor), each with the Gaussians shuffled (robust.scene_attacks): hidden_* are revealed after re-alignment
@@ -83,6 +85,7 @@ SCENES = {"demo": ("demo", "workdirs/demo/conceal", "in_scene"),
           "lego_converter_wm25": ("lego", "workdirs/survive_runs/lego_converter_mf35_rot5_scales_wm25",
                                   "converter_mf35_rot5_scales_wm25"),
           "lego_thick": ("lego", "workdirs/survive_runs/lego_thick_mf20_wm25", "thick_mf20_wm25"),
+          "lego_recommended": ("lego", "workdirs/bench/lego/conceal_recommended_w16", "recommended"),
           "lego_decoder_size": ("lego", "workdirs/bench/lego/conceal_recommended_decoder_size_w16", "decoder_size"),
           "lego_decoder_size_near": ("lego", "workdirs/bench/lego/conceal_recommended_decoder_size_near_w16",
                                      "decoder_size_near"),
@@ -93,6 +96,15 @@ SCENES = {"demo": ("demo", "workdirs/demo/conceal", "in_scene"),
                                        "decoder_size_sparse"),
           "lego_film": ("lego", "workdirs/survive_runs/lego_film", "film"),
           "lego_film_reset": ("lego", "workdirs/survive_runs/lego_film_reset", "film_reset")}
+# Scene labels beyond the scenes' own names: runs given by path (label=workdir[@recipe][+layered_workdir]).
+SCENE_NOTES = {
+    "demo_in_scene": "make demo's in_scene student as concealed 2026-11-29 (workdirs/demo/conceal); the demo rows of "
+                     "in_scene are an earlier make demo's",
+    "demo_layered_film": "one demo scene carrying two marks: survive-runs' demo_thick_mf20 (thick_mf20_6k, concealed "
+                         "2026-11-29), then demo.py's in_scene recipe concealed on its student "
+                         "(workdirs/survive_runs/demo_thick_mf20_in_scene); the film's mark, read from that scene",
+    "demo_layered_in_scene": "the same scene (demo_layered_film's); the in_scene mark, read at its own key with its "
+                             "own decoder"}
 TRANSFORMS = ([("rotate", d) for d in (1.0, 5.0, 45.0, 180.0)] + [("translate", f) for f in (0.026, 1.0)]
               + [("scale", f) for f in (0.5, 1.1, 2.0)])
 # attack, level -> converter.round_trip's arguments
@@ -108,7 +120,8 @@ RECIPE_NOTES = {
     "in_scene": "the mark in the teacher's Gaussians, refined (recipes.in_scene; configs/demo.py; bench-conceal's "
                 "in_scene lego row)",
     "recommended": "recipes.recommended: the carrier film (configs/conceal.py's default; the label of a run given by "
-                   "path)",
+                   "path); lego: bench-conceal's recommended row (lego_conceal.py:recommended, thick_mf20_wm25's "
+                   "settings, workdirs/bench/lego/conceal_recommended_w16, concealed 2026-11-29)",
     "recommended_6k": "recipes.recommended as it was before 2026-11-28 (bench-conceal's recommended_pairs) on the "
                       "demo for 6000 steps (make survive-runs' demo_recommended: conceal.py with data.path=demo; its "
                       "film grid every 4 pixels, where conceal.carrier.spacing 0 places it at 128 pixels), fine-tuned "
@@ -222,7 +235,7 @@ class Scene:
   may take."""
   name: str
   recipe: str
-  run: pathlib.Path
+  run: pathlib.Path  # the conceal workdir whose student is under test (load_scene's `layered` when given)
   config: ml_collections.ConfigDict
   student: object
   owner: robustness.Owner
@@ -247,15 +260,27 @@ class Scene:
 
 
 def load_scene(name: str, run: pathlib.Path, recipe: str, test_views: int, calibration: dict,
-               cache: pathlib.Path, alpha: float, null_views: int) -> Scene:
+               cache: pathlib.Path, alpha: float, null_views: int, layered: pathlib.Path | None = None) -> Scene:
   """The conceal run in `run` under test, its attacked scenes cached in `cache` (claimed for this run: ValueError if
-  another run's attacks are there)."""
-  claim_cache(cache, run)
-  config, student, owner = bench_robust.load_run(run)
+  another run's attacks are there). `layered`: a conceal run that hid a second mark in run's student (its
+  mark.teacher); run's mark is then read from layered's student, the scene shared."""
+  student_run = run if layered is None else layered_on(run, layered)
+  claim_cache(cache, student_run)
+  config, _, owner = bench_robust.load_run(run)
+  student = ply.load_ply(str(student_run / "student.ply"))
   cameras, targets, _ = evaluate.held_out_views(evaluate.load_scene_data(config), test_views)
   summary = json.loads((run / "conceal.json").read_text()) if (run / "conceal.json").is_file() else {}
-  return Scene(name, recipe, run, config, jax.tree.map(np.asarray, student), owner, cameras, targets, calibration,
-               cache, alpha, null_views, int(summary.get("num_carrier", 0)))
+  return Scene(name, recipe, student_run, config, jax.tree.map(np.asarray, student), owner, cameras, targets,
+               calibration, cache, alpha, null_views, int(summary.get("num_carrier", 0)))
+
+
+def layered_on(run: pathlib.Path, layered: pathlib.Path) -> pathlib.Path:
+  """`layered`, checked to be a conceal run whose teacher (config mark.teacher) is run's student: ValueError naming
+  both otherwise, so that a mark is never read from a scene that does not carry it."""
+  teacher = json.loads((layered / "config.json").read_text())["mark"]["teacher"]
+  if pathlib.Path(teacher).resolve() != (run / "student.ply").resolve():
+    raise ValueError(f"{layered} was not concealed on {run / 'student.ply'} (its mark.teacher is {teacher})")
+  return layered
 
 
 def render_loss(run: pathlib.Path) -> float | None:
@@ -584,7 +609,8 @@ def table(rows: list[dict]) -> str:
            "SSIM, before largest z; from 2026-11-27 evening: the tone at the key, over the scene's views, or none; "
            "before: the tone at the key).", "", "Recipes:", "",
            *[f"- {name}: {note}" for name, note in RECIPE_NOTES.items()
-             if any(r["recipe"] == name for r in rows)], "",
+             if any(r["recipe"] == name for r in rows)], "", "Scenes by label:", "",
+           *[f"- {name}: {note}" for name, note in SCENE_NOTES.items() if any(r["scene"] == name for r in rows)], "",
            *true_positive_lines(rows),
            "| scene | recipe | attack | level | render PSNR | hidden PSNR | hidden SSIM | z | owned (log10 p) "
            "| decided | unaligned SSIM | aligned SSIM | moved SSIM | registration |",
@@ -638,15 +664,34 @@ def plot(rows: list[dict], path: pathlib.Path) -> None:
   plot_curves(rows, path.with_name(CURVES_FIGURE))
 
 
+def extraction_curves(rows: list[dict]) -> dict[tuple, list[tuple[int, float, bool]]]:
+  """(scene, recipe, attack, views) -> [(training steps, hidden SSIM, owned)] of the model-extraction rows, by
+  steps: the curves of issue 39's extraction target."""
+  curves = {}
+  for r in rows:
+    if r["attack"].startswith("extraction"):
+      owned = r["decided"] if r.get("owned") is None else r["owned"]
+      curves.setdefault((r["scene"], r["recipe"], r["attack"], r["level"]), []).append(
+          (r["steps"], r["hidden_ssim"], owned))
+  return {key: sorted(points) for key, points in sorted(curves.items())}
+
+
 def plot_curves(rows: list[dict], path: pathlib.Path) -> None:
   """Left: hidden SSIM against fine-tuning steps, one line per scene, recipe and schedule (dashed: with
-  densification); right: the frontier, hidden SSIM after FRONTIER_STEPS steps of fine-tuning against what the
-  recipe costs the render (the untouched student's test PSNR below its teacher's)."""
+  densification); middle: against the training steps of a model extraction, one line per scene, recipe and number
+  of rendered views (filled: owned); right: the frontier, hidden SSIM after FRONTIER_STEPS steps of fine-tuning
+  against what the recipe costs the render (the untouched student's test PSNR below its teacher's)."""
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
-  fig, (curves, frontier) = plt.subplots(1, 2, figsize=(13, 4.8))
+  fig, (curves, extracted, frontier) = plt.subplots(1, 3, figsize=(19, 4.8))
   groups = list(dict.fromkeys((r["scene"], r["recipe"]) for r in rows))
+  for index, ((scene, recipe, attack, views), points) in enumerate(extraction_curves(rows).items()):
+    steps, ssim, owned = zip(*points)
+    line, = extracted.plot(steps, ssim, "-", color=f"C{index % 10}",
+                           label=f"{scene} {recipe}: {views} views{' (sphere)' if attack != 'extraction' else ''}")
+    extracted.scatter(steps, ssim, color=[line.get_color() if o else "white" for o in owned],
+                      edgecolors=line.get_color(), zorder=3)
   for index, (scene, recipe) in enumerate(groups):
     mine = [r for r in rows if (r["scene"], r["recipe"]) == (scene, recipe)]
     untouched = next((r for r in mine if r["attack"] == "none"), None)
@@ -662,7 +707,7 @@ def plot_curves(rows: list[dict], path: pathlib.Path) -> None:
       frontier.plot(untouched["render_loss_db"], tuned["hidden_ssim"], "o", color=f"C{index}")
       frontier.annotate(f"{scene} {recipe}", (untouched["render_loss_db"], tuned["hidden_ssim"]), fontsize=7)
   threshold = next((r.get("threshold") for r in rows if r.get("threshold") is not None), None)
-  for ax in (curves, frontier):
+  for ax in (curves, extracted, frontier):
     if threshold is not None:
       ax.axhline(threshold, color="k", linestyle=":", linewidth=0.8, label="ownership threshold")
     ax.set_ylim(0, 1.02)
@@ -671,6 +716,11 @@ def plot_curves(rows: list[dict], path: pathlib.Path) -> None:
   curves.set_xscale("log")
   curves.set_xlabel("fine-tuning steps on the training views (untouched at the left edge)")
   curves.legend(fontsize=7)
+  extracted.set_xscale("log")
+  extracted.set_xlabel("training steps of a fresh 3D-GS on the marked scene's renders (model extraction)")
+  extracted.set_title("model extraction: filled points owned by verify", fontsize=9)
+  if extracted.lines:
+    extracted.legend(fontsize=7)
   frontier.set_xlabel("render loss of the recipe, dB (teacher's test PSNR minus the student's)")
   frontier.set_title(f"hidden SSIM after {FRONTIER_STEPS} fine-tuning steps", fontsize=9)
   fileio.save_figure(fig, path)
@@ -681,7 +731,8 @@ def main(argv=None):
   parser.add_argument("--out", default="experiments/results")
   parser.add_argument("--workdir", default="workdirs/survive", help="each attack's files, per scene")
   parser.add_argument("--scenes", default=",".join(SCENES), help=f"comma-separated labels of {sorted(SCENES)}, "
-                      "or scene=conceal_workdir[@recipe] (recipe: recommended unless given)")
+                      "or scene=conceal_workdir[@recipe][+layered_workdir] (recipe: recommended unless given; "
+                      "layered_workdir: a second mark concealed on conceal_workdir's student, read from its student)")
   parser.add_argument("--attacks", default=",".join(CHEAP_ATTACKS),
                       help=f"comma-separated groups of "
                            f"{CHEAP_ATTACKS + ('finetune_gentle', 'decimate_scaled', 'extraction')}, or round "
@@ -719,22 +770,25 @@ def main(argv=None):
 
   for spec in (s for s in args.scenes.split(",") if s):
     label, _, path = spec.partition("=")
+    path, _, layered = path.partition("+")
     if path:
       path, _, recipe = path.partition("@")
       name, run, recipe = label, pathlib.Path(path), recipe or "recommended"
     else:
       name, run, recipe = SCENES[label][0], pathlib.Path(SCENES[label][1]), SCENES[label][2]
-    if not all((run / f).is_file() for f in ("student.ply", "decoder.msgpack", "key.json", "config.json")):
-      print(f"skipping {label}: no finished conceal run in {run}")
+    runs = [run] + ([pathlib.Path(layered)] if layered else [])
+    if not all((r / f).is_file() for r in runs for f in ("student.ply", "decoder.msgpack", "key.json", "config.json")):
+      print(f"skipping {label}: no finished conceal run in {' or '.join(map(str, runs))}")
       continue
     # a run given by path caches under its own folder's name: a label alone would share a named scene's cache
-    cache = workdir / (f"{label}_{run.name}" if path else label)
-    scene = load_scene(name, run, recipe, args.test_views, calibration, cache, args.alpha, args.null_views)
+    cache = workdir / (f"{label}_{runs[-1].name}" if path else label)
+    scene = load_scene(name, run, recipe, args.test_views, calibration, cache, args.alpha, args.null_views,
+                       runs[1] if layered else None)
     scene.converter_timeout_s = args.converter_timeout_s
     missing = lambda attack, level, steps=None: (name, recipe, attack, json.dumps(level), steps) not in done
     if "none" in groups and missing("none", None):
       save([scene.row("none", None, scores_of(scene, scene.student), aligned(scene, scene.student)["test"],
-                      render_loss_db=render_loss(run))])
+                      render_loss_db=render_loss(scene.run))])
     if "transforms" in groups:
       save(transform_rows(scene, [(a, l) for a, l in TRANSFORMS if missing(a, l)]))
     conversions = [c for c in CONVERSIONS if "converter" in groups or c[0] in groups]

@@ -386,6 +386,25 @@ def survival_table(survive_bench: dict) -> list[str]:
                   "[survive_bench.md](survive_bench.md)." + verified, "", *tested]
 
 
+def extraction_table(survive_bench: dict) -> list[str]:
+  """Model extraction (bench-survive --extraction): hidden SSIM at the key of a fresh 3D-GS trained on `views`
+  renders of the marked scene, per scene, recipe, poses and views, at each length of its training (*: owned by
+  verify given the owner's copy)."""
+  curves = bench_survive.extraction_curves(survive_bench.get("rows", []))
+  lengths = sorted({steps for points in curves.values() for steps, _, _ in points})
+  lines = ["### Model extraction: is the mark in a copy trained on the scene's renders? (hidden SSIM at the key of a "
+           "fresh 3D-GS trained from random points on renders of the marked scene: its training cameras, then poses "
+           "on their orbit or over the sphere; * owned by verify given the owner's copy)", "",
+           "| scene | recipe | poses | views | " + " | ".join(f"{n} steps" for n in lengths) + " |",
+           "|---|---|---|---|" + "---|" * len(lengths)]
+  for (scene, recipe, attack, views), points in curves.items():
+    by_steps = {steps: f"{ssim:.3f}{'*' if owned else ''}" for steps, ssim, owned in points}
+    poses = attack.removeprefix("extraction").removeprefix("_") or "orbit"
+    lines.append(f"| {scene} | {recipe} | {poses} | {views} | " + " | ".join(by_steps.get(n, "-") for n in lengths)
+                 + " |")
+  return lines + ([] if curves else [f"| {NOT_RUN} | | | |"]) + [""]
+
+
 def full_resolution_section(full_bench: dict) -> list[str]:
   """bench-full's rows: lego at the full size of the shared copy with the unmodified 3D-GS recipe, on the
   accelerator each row names."""
@@ -511,6 +530,7 @@ def report(results: pathlib.Path, workdir: pathlib.Path) -> str:
   lines += ownership_table(load(results, "ownership_calibration.json"))
   lines += ownership_test_table(load(results, "ownership_bench.json"))
   lines += survival_table(load(results, "survive_bench.json"))
+  lines += extraction_table(load(results, "survive_bench.json"))
   lines += ["### Figures", ""]
   for scene in ("lego", "beer"):
     name = figure_grid(scene, conceal_bench, baseline_bench, results, workdir)

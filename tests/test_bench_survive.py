@@ -243,3 +243,41 @@ def test_true_positives_count_the_attacked_rows_verify_decided():
           dict(scene="lego", recipe="recommended", attack="sog", decided=True)]
   assert bench_survive.true_positive_lines(rows) == ["- demo (film): owned at alpha in 1 of 2 attacked rows", ""]
   assert bench_survive.true_positive_lines(rows[-1:]) == []
+
+
+def test_a_mark_is_read_from_the_student_of_a_run_layered_on_it(run, tmp_path):
+  """scene=workdir+layered: workdir's owner and key, layered's student (a run concealed on workdir's student); a
+  run concealed on another scene is refused by name."""
+  layered = tmp_path / "layered"
+  fileio.write_json(layered / "config.json", dict(mark=dict(teacher=str(run / "run" / "student.ply"))))
+  student = jax.tree.map(np.asarray, ply.load_ply(run / "run" / "student.ply"))
+  second = student.replace(sh=student.sh + 0.01)  # the second mark: the scene's colours changed
+  ply.save_ply(layered / "student.ply", second)
+  scene = bench_survive.load_scene("tiny", run / "run", "recommended", 1, dict(threshold=0.5), tmp_path / "cache",
+                                   1e-3, 4, layered=layered)
+  np.testing.assert_allclose(scene.student.sh, second.sh, rtol=1e-6)
+  assert scene.run == layered and scene.owner.check_camera is not None
+  other = tmp_path / "other"
+  fileio.write_json(other / "config.json", dict(mark=dict(teacher=str(tmp_path / "elsewhere.ply"))))
+  with pytest.raises(ValueError, match="was not concealed on .*run/student.ply"):
+    bench_survive.load_scene("tiny", run / "run", "recommended", 1, dict(threshold=0.5), tmp_path / "cache2",
+                             1e-3, 4, layered=other)
+
+
+def test_extraction_rows_form_one_curve_per_scene_recipe_and_views():
+  """The extraction target's curves: hidden SSIM by training steps per (scene, recipe, poses, views), owned by
+  verify's decision where it was made; REPRODUCTION's extraction table reads them."""
+  from experiments import reproduce
+  row = lambda attack, views, steps, ssim, owned: dict(scene="demo", recipe="in_scene", attack=attack, level=views,
+                                                      steps=steps, hidden_ssim=ssim, owned=owned, decided=False)
+  rows = [row("extraction", 200, 3000, 0.97, True), row("extraction", 200, 1000, 0.83, True),
+          row("extraction", 50, 1000, 0.2, False), row("extraction_sphere", 200, 1000, 0.5, None),
+          dict(row("finetune", 30, None, 0.1, False), steps=None)]
+  curves = bench_survive.extraction_curves(rows)
+  assert curves == {("demo", "in_scene", "extraction", 50): [(1000, 0.2, False)],
+                    ("demo", "in_scene", "extraction", 200): [(1000, 0.83, True), (3000, 0.97, True)],
+                    ("demo", "in_scene", "extraction_sphere", 200): [(1000, 0.5, False)]}
+  table = "\n".join(reproduce.extraction_table(dict(rows=rows)))
+  assert "| demo | in_scene | orbit | 200 | 0.830* | 0.970* |" in table
+  assert "| demo | in_scene | sphere | 200 | 0.500 | - |" in table
+  assert reproduce.NOT_RUN in "\n".join(reproduce.extraction_table(dict(rows=[])))
