@@ -104,7 +104,10 @@ SCENE_NOTES = {
                          "2026-11-29), then demo.py's in_scene recipe concealed on its student "
                          "(workdirs/survive_runs/demo_thick_mf20_in_scene); the film's mark, read from that scene",
     "demo_layered_in_scene": "the same scene (demo_layered_film's); the in_scene mark, read at its own key with its "
-                             "own decoder"}
+                             "own decoder",
+    "demo_layered_pruned": "demo_layered_in_scene with demo.py:pruned as the second mark "
+                           "(workdirs/survive_runs/demo_thick_mf20_pruned): its key watched closely",
+    "demo_layered_pruned_film": "demo_layered_pruned's scene; the film's mark, read from it"}
 TRANSFORMS = ([("rotate", d) for d in (1.0, 5.0, 45.0, 180.0)] + [("translate", f) for f in (0.026, 1.0)]
               + [("scale", f) for f in (0.5, 1.1, 2.0)])
 # attack, level -> converter.round_trip's arguments
@@ -128,7 +131,9 @@ RECIPE_NOTES = {
                       "with its config's training recipe, 3D-GS's defaults",
     "thick_mf20_6k": "recipes.recommended (since 2026-11-28 evening: the thick film through the converter's own "
                      "groups, thick_mf20_wm25's settings) on the demo for 6000 steps (make survive-runs' "
-                     "demo_thick_mf20)",
+                     "demo_thick_mf20, concealed again 2026-11-29 on the current renderer: hidden 35.64 dB / 0.986)",
+    "thick_mf20_6k_1128": "thick_mf20_6k's first run (concealed 2026-11-28, its student since gone: hidden 33.41 dB / "
+                          "0.974)",
     "film": "the faint carrier film (demo.py:film; the film recipe before it became film_watch's): the key looks "
             "where no camera looks, one camera distance out from their orbit target, and the film 0.1 camera distances "
             "before it, 22 grids of splats at opacity 0.01 (the opacity reset's ceiling); its base colours trained at "
@@ -215,6 +220,8 @@ RECIPE_NOTES = {
     "drift": "in_scene, the check render drawn from students noised by up to 0.15 of each field's spread "
              "(demo.py:drift)",
     "orbit": "in_scene with the key a secret pose on the training orbit (demo.py:orbit)",
+    "pruned": "in_scene trained through size pruning with the key watched closely (768 decoys, one the normal view "
+              "on 90% of the steps, L_d^- weighted 1.5), for 2600 steps (demo.py:pruned)",
 }
 # The second figure: fine-tuning curves and the survival-against-render-loss frontier at this many steps.
 CURVES_FIGURE, FRONTIER_STEPS = "survive_curves.png", 1000
