@@ -576,6 +576,11 @@ def level_label(row: dict) -> str:
   return text + (f" x{row['steps']}" if row.get("steps") is not None else "")
 
 
+def owned(row: dict) -> bool:
+  """The row's decision: verify's given the owner's copy, or the calibrated threshold's in rows measured before it."""
+  return row["decided"] if row.get("owned") is None else row["owned"]
+
+
 def owned_cell(row: dict) -> str:
   if row.get("owned") is None:
     return ""
@@ -592,6 +597,11 @@ def true_positive_lines(rows: list[dict]) -> list[str]:
       lines.append(f"- {name} ({recipe}): owned at alpha in {sum(r['owned'] for r in tested)} of {len(tested)} "
                    f"attacked rows")
   return lines + [""] if lines else []
+
+
+def note_lines(notes: dict[str, str], field: str, rows: list[dict]) -> list[str]:
+  """'- name: note' for each of `notes` that some row's `field` names."""
+  return [f"- {name}: {note}" for name, note in notes.items() if any(r[field] == name for r in rows)]
 
 
 def table(rows: list[dict]) -> str:
@@ -615,9 +625,8 @@ def table(rows: list[dict]) -> str:
            "the strongest reading's (as verify reports them: smallest p-value, then from 2026-11-27 night largest "
            "SSIM, before largest z; from 2026-11-27 evening: the tone at the key, over the scene's views, or none; "
            "before: the tone at the key).", "", "Recipes:", "",
-           *[f"- {name}: {note}" for name, note in RECIPE_NOTES.items()
-             if any(r["recipe"] == name for r in rows)], "", "Scenes by label:", "",
-           *[f"- {name}: {note}" for name, note in SCENE_NOTES.items() if any(r["scene"] == name for r in rows)], "",
+           *note_lines(RECIPE_NOTES, "recipe", rows), "", "Scenes by label:", "",
+           *note_lines(SCENE_NOTES, "scene", rows), "",
            *true_positive_lines(rows),
            "| scene | recipe | attack | level | render PSNR | hidden PSNR | hidden SSIM | z | owned (log10 p) "
            "| decided | unaligned SSIM | aligned SSIM | moved SSIM | registration |",
@@ -651,7 +660,7 @@ def plot(rows: list[dict], path: pathlib.Path) -> None:
     mine = [r for r in rows if (r["scene"], r["recipe"]) == (name, recipe)]
     x = np.arange(len(mine))
     ax.bar(x, [r["hidden_ssim"] for r in mine],
-           color=["C0" if (r["decided"] if r.get("owned") is None else r["owned"]) else "C3" for r in mine])
+           color=["C0" if owned(r) else "C3" for r in mine])
     for field, marker, label in (("unaligned", "kx", "without re-alignment"),
                                  ("moved", "g^", "moved first, re-aligned")):
       points = [(i, r[field]["hidden_ssim"]) for i, r in enumerate(mine) if r.get(field)]
@@ -672,14 +681,14 @@ def plot(rows: list[dict], path: pathlib.Path) -> None:
 
 
 def extraction_curves(rows: list[dict]) -> dict[tuple, list[tuple[int, float, bool]]]:
-  """(scene, recipe, attack, views) -> [(training steps, hidden SSIM, owned)] of the model-extraction rows, by
-  steps: the curves of issue 39's extraction target."""
+  """(scene, recipe, poses, views) -> [(training steps, hidden SSIM, owned)] of the model-extraction rows
+  (attack extraction: poses orbit; extraction_<poses>), by steps: the curves of issue 39's extraction target."""
   curves = {}
   for r in rows:
     if r["attack"].startswith("extraction"):
-      owned = r["decided"] if r.get("owned") is None else r["owned"]
-      curves.setdefault((r["scene"], r["recipe"], r["attack"], r["level"]), []).append(
-          (r["steps"], r["hidden_ssim"], owned))
+      poses = r["attack"].removeprefix("extraction").removeprefix("_") or "orbit"
+      curves.setdefault((r["scene"], r["recipe"], poses, r["level"]), []).append(
+          (r["steps"], r["hidden_ssim"], owned(r)))
   return {key: sorted(points) for key, points in sorted(curves.items())}
 
 
@@ -693,11 +702,10 @@ def plot_curves(rows: list[dict], path: pathlib.Path) -> None:
   import matplotlib.pyplot as plt
   fig, (curves, extracted, frontier) = plt.subplots(1, 3, figsize=(19, 4.8))
   groups = list(dict.fromkeys((r["scene"], r["recipe"]) for r in rows))
-  for index, ((scene, recipe, attack, views), points) in enumerate(extraction_curves(rows).items()):
-    steps, ssim, owned = zip(*points)
-    line, = extracted.plot(steps, ssim, "-", color=f"C{index % 10}",
-                           label=f"{scene} {recipe}: {views} views{' (sphere)' if attack != 'extraction' else ''}")
-    extracted.scatter(steps, ssim, color=[line.get_color() if o else "white" for o in owned],
+  for index, ((scene, recipe, poses, views), points) in enumerate(extraction_curves(rows).items()):
+    steps, ssim, decided = zip(*points)
+    line, = extracted.plot(steps, ssim, "-", color=f"C{index % 10}", label=f"{scene} {recipe}: {views} {poses} views")
+    extracted.scatter(steps, ssim, color=[line.get_color() if o else "white" for o in decided],
                       edgecolors=line.get_color(), zorder=3)
   for index, (scene, recipe) in enumerate(groups):
     mine = [r for r in rows if (r["scene"], r["recipe"]) == (scene, recipe)]
@@ -783,14 +791,14 @@ def main(argv=None):
       name, run, recipe = label, pathlib.Path(path), recipe or "recommended"
     else:
       name, run, recipe = SCENES[label][0], pathlib.Path(SCENES[label][1]), SCENES[label][2]
-    runs = [run] + ([pathlib.Path(layered)] if layered else [])
+    layered = pathlib.Path(layered) if layered else None
+    runs = [run] + ([layered] if layered else [])
     if not all((r / f).is_file() for r in runs for f in ("student.ply", "decoder.msgpack", "key.json", "config.json")):
       print(f"skipping {label}: no finished conceal run in {' or '.join(map(str, runs))}")
       continue
     # a run given by path caches under its own folder's name: a label alone would share a named scene's cache
     cache = workdir / (f"{label}_{runs[-1].name}" if path else label)
-    scene = load_scene(name, run, recipe, args.test_views, calibration, cache, args.alpha, args.null_views,
-                       runs[1] if layered else None)
+    scene = load_scene(name, run, recipe, args.test_views, calibration, cache, args.alpha, args.null_views, layered)
     scene.converter_timeout_s = args.converter_timeout_s
     missing = lambda attack, level, steps=None: (name, recipe, attack, json.dumps(level), steps) not in done
     if "none" in groups and missing("none", None):

@@ -365,8 +365,7 @@ def survival_table(survive_bench: dict) -> list[str]:
            "| scene | recipe | render loss (dB) | attack | untouched | "
            + " | ".join(f"{n} steps" for n in SURVIVAL_STEPS) + " |",
            "|---|---|---|---|---|" + "---|" * len(SURVIVAL_STEPS)]
-  owned = lambda r: r["decided"] if r.get("owned") is None else r["owned"]
-  cell = lambda r: f"{r['hidden_ssim']:.3f}{'*' if owned(r) else ''}" if r else "-"
+  cell = lambda r: f"{r['hidden_ssim']:.3f}{'*' if bench_survive.owned(r) else ''}" if r else "-"
   groups = sorted({(r["scene"], r["recipe"]) for r in rows})
   for scene, recipe in groups:
     mine = [r for r in rows if (r["scene"], r["recipe"]) == (scene, recipe)]
@@ -397,9 +396,8 @@ def extraction_table(survive_bench: dict) -> list[str]:
            "on their orbit or over the sphere; * owned by verify given the owner's copy)", "",
            "| scene | recipe | poses | views | " + " | ".join(f"{n} steps" for n in lengths) + " |",
            "|---|---|---|---|" + "---|" * len(lengths)]
-  for (scene, recipe, attack, views), points in curves.items():
+  for (scene, recipe, poses, views), points in curves.items():
     by_steps = {steps: f"{ssim:.3f}{'*' if owned else ''}" for steps, ssim, owned in points}
-    poses = attack.removeprefix("extraction").removeprefix("_") or "orbit"
     lines.append(f"| {scene} | {recipe} | {poses} | {views} | " + " | ".join(by_steps.get(n, "-") for n in lengths)
                  + " |")
   return lines + ([] if curves else [f"| {NOT_RUN} | | | |"]) + [""]
