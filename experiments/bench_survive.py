@@ -730,12 +730,12 @@ def plot_curves(rows: list[dict], path: pathlib.Path) -> None:
     ax.grid(alpha=0.3)
   curves.set_xscale("log")
   curves.set_xlabel("fine-tuning steps on the training views (untouched at the left edge)")
-  curves.legend(fontsize=7)
+  curves.legend(fontsize=7, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.14))  # below: one entry a line
   extracted.set_xscale("log")
   extracted.set_xlabel("training steps of a fresh 3D-GS on the marked scene's renders (model extraction)")
   extracted.set_title("model extraction: filled points owned by verify", fontsize=9)
   if extracted.lines:
-    extracted.legend(fontsize=7)
+    extracted.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14))
   frontier.set_xlabel("render loss of the recipe, dB (teacher's test PSNR minus the student's)")
   frontier.set_title(f"hidden SSIM after {FRONTIER_STEPS} fine-tuning steps", fontsize=9)
   fileio.save_figure(fig, path)

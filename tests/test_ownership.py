@@ -3,6 +3,7 @@ and the optional calibration threshold chosen from measured scores."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import jax
 import numpy as np
@@ -105,6 +106,33 @@ def test_verify_decides_at_alpha_with_the_evidence(tmp_path):
   other = main_lib.run(config, str(tmp_path / "other"))
   assert not other["owned"] and other["log10_p"] > -3
   assert other["calibration"]["threshold"] == pytest.approx(0.6) and not other["calibration"]["owned"]
+
+
+@pytest.mark.job
+def test_verify_decides_on_the_best_of_the_scenes_marks(tmp_path):
+  """A scene with two marks (verify.marks): reveal's hidden image is another picture, the further mark's is the
+  key's own view; owned on the better, its p-value twice its own (two readings in all), reported with its key."""
+  config = write_scene(tmp_path, uses_decoder=False)
+  config.verify.alpha = 1e-3  # the unrelated pictures' null draws alone suffice: no more turned views to render
+  second = tmp_path / "second"
+  second.mkdir()
+  shutil.copy(tmp_path / "key.json", second / "key.json")
+  shutil.copy(tmp_path / "mine.png", second / "hidden.png")
+  alone = main_lib.run(config, str(tmp_path / "alone"))
+  config.reveal.hidden, config.verify.marks = "astronaut", str(second)
+  result = main_lib.run(config, str(tmp_path / "out"))
+  assert result["owned"] and result["key"] == str(second / "key.json")
+  assert [m["hidden"] for m in result["marks"]] == ["astronaut", str(second / "hidden.png")]
+  assert result["log10_p"] == pytest.approx(min(m["log10_p"] for m in result["marks"]) + np.log10(2))
+  assert result["marks"][1]["ssim"] == pytest.approx(alone["ssim"]) and result["marks"][0]["log10_p"] > -2
+  assert result["marks"][1]["log10_p"] == pytest.approx(alone["log10_p"])
+
+
+def test_verify_refuses_a_mark_folder_without_its_key(tmp_path):
+  config = write_scene(tmp_path, uses_decoder=False)
+  config.verify.marks = str(tmp_path / "nowhere")
+  with pytest.raises(ValueError, match="nowhere is not the folder of a conceal run"):
+    ownership.validate(config)
 
 
 @pytest.mark.slow

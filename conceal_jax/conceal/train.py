@@ -32,6 +32,7 @@ from conceal_jax.splat.gaussians import concatenate
 STUDENT_FILE = "student.ply"
 DECODER_FILE = "decoder.msgpack"
 KEY_FILE = "key.json"
+HIDDEN_FILE = "hidden.png"  # the key's hidden image; an extra key k's is hidden_key{k}.png
 SUMMARY_FILE = "conceal.json"
 MESSAGE_FILE = "message.json"
 
@@ -160,7 +161,7 @@ def save_outputs(run: Run, workdir: str, state) -> None:
                    [(camera, dict(more, number=k, hidden=source))
                     for k, ((camera, more), source) in enumerate(zip(extra, run.plan.sources[1:]), 1)])
   for k, image in enumerate(run.hiddens):
-    fileio.write_image(os.path.join(workdir, f"hidden_key{k}.png" if k else "hidden.png"), image)
+    fileio.write_image(os.path.join(workdir, f"hidden_key{k}.png" if k else HIDDEN_FILE), image)
 
 
 def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_steps: int | None = None) -> dict:

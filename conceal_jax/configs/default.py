@@ -402,4 +402,8 @@ def verify_section() -> ml_collections.ConfigDict:
   # where a small hidden image would leave too few draws for a p-value at most alpha, robust.ownership)
   c.null_views = 32
   c.calibration = ""  # optional: e.g. experiments/results/ownership_calibration.json (make bench-robust)
+  # optional: the folders of conceal runs that hid further marks in the same scene (comma-separated; each a run
+  # made on the student of the one before, its mark.teacher), each read with its key.json, decoder.msgpack and
+  # hidden.png beside reveal's mark: owned on the best of all their readings (robust.ownership.verify)
+  c.marks = ""
   return c

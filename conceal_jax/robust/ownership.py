@@ -13,6 +13,9 @@ With reveal.owner set (the owner's copy of the marked scene), the suspect is fir
 the key moved into its frame, its renders, the key's and the null views', mapped onto the owner's tone), tested
 after each tone map and as rendered and decided on k times the smallest p-value of its k readings
 (combined_log10_p); verify.json reports the transform, the tone maps and each reading's figures.
+A scene may carry several of the owner's marks (verify.marks: conceal runs made one on the other's student, e.g. a
+film that fine-tuning cannot reach beside a mark in the scene's own Gaussians that an extraction copies): each
+is read, and the decision is on the best of all their readings, by the same correction.
 """
 from __future__ import annotations
 
@@ -27,6 +30,7 @@ import ml_collections
 import numpy as np
 
 from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, message as message_lib, near, reveal
+from conceal_jax.conceal import train as conceal_train
 from conceal_jax.core import fileio, settings
 from conceal_jax.gs import evaluate, metrics
 from conceal_jax.robust import phase_statistic
@@ -249,6 +253,24 @@ def ownership_test(reading: Reading, hidden: np.ndarray, alpha: float) -> dict:
                         sources={name: int(images.shape[0]) for name, images in reading.nulls.items()}))
 
 
+def mark_sections(config: ml_collections.ConfigDict) -> list[ml_collections.ConfigDict]:
+  """The reveal section of each mark verify tests the scene for: config.reveal's, then one per conceal run folder of
+  verify.marks (comma-separated), reveal's with that run's key.json, decoder.msgpack (where it has one) and
+  hidden.png. ValueError naming a folder without its key or hidden image."""
+  sections = [config.reveal]
+  for folder in filter(None, (name.strip() for name in config.verify.marks.split(","))):
+    r = ml_collections.ConfigDict(config.reveal.to_dict())
+    r.key, r.hidden, r.key_number = (os.path.join(folder, conceal_train.KEY_FILE),
+                                     os.path.join(folder, conceal_train.HIDDEN_FILE), 0)
+    missing = [path for path in (r.key, r.hidden) if not os.path.isfile(path)]
+    if missing:
+      raise ValueError(f"verify.marks: {folder} is not the folder of a conceal run (no {' or '.join(missing)})")
+    decoder = os.path.join(folder, conceal_train.DECODER_FILE)
+    r.decoder = decoder if os.path.isfile(decoder) else ""
+    sections.append(r)
+  return sections
+
+
 def validate(config: ml_collections.ConfigDict) -> None:
   for name in ("ply", "key", "hidden"):
     if not config.reveal[name]:
@@ -257,36 +279,79 @@ def validate(config: ml_collections.ConfigDict) -> None:
   if isinstance(alpha, bool) or not isinstance(alpha, (int, float)) or not 0.0 < alpha < 1.0:
     raise ValueError(f"verify.alpha must be a probability strictly between 0 and 1, got {alpha!r}")
   settings.check_count("verify.null_views", config.verify.null_views, minimum=0)
+  if not isinstance(config.verify.marks, str):
+    raise ValueError(f"verify.marks must be comma-separated folders of conceal runs, got {config.verify.marks!r}")
+  mark_sections(config)
+
+
+@dataclasses.dataclass(frozen=True)
+class MarkTest:
+  """One mark's test (decide_mark): its reveal section, the keyed scene (reveal.KeyedScene), the hidden image
+  [S, S, 3], each reading's Reading by name and their combination (decide_readings)."""
+  section: ml_collections.ConfigDict
+  scene: reveal.KeyedScene
+  hidden: np.ndarray
+  by_name: dict
+  both: dict
+
+  @property
+  def log10_p(self) -> float:
+    """The p-value of a decision on this mark alone (its readings combined), log10."""
+    return float(self.both["log10_p"][0, 0])
+
+  @property
+  def strongest(self) -> Reading:
+    return self.by_name[strongest(self.by_name, self.hidden)]
+
+  @property
+  def ssim(self) -> float:
+    """SSIM of the strongest reading's revealed image to the hidden image."""
+    return float(metrics.ssim(self.strongest.revealed[0], self.hidden))
+
+
+def decide_mark(section: ml_collections.ConfigDict, scene, alpha: float, null_views: int, readings: int) -> MarkTest:
+  """The ownership test of one mark (its reveal `section`, its keyed `scene`): its check render revealed in each
+  reading and decided against the hidden image with null outputs enough for a decision on the best of `readings`
+  readings in all (turned_views_needed)."""
+  check = render(scene.gaussians, scene.camera, scene.options).rgb[None]
+  size = jax.eval_shape(scene.reveal_fn, check).shape[1]  # the decoder's output size, without decoding
+  hidden = hidden_lib.load_hidden_image(section.hidden, size)
+  views = turned_views_needed(alpha, size, len(unrelated_images(hidden)), null_views, readings)
+  renders = null_renders(scene.gaussians, scene.camera, scene.options, views, hidden)
+  by_name, both = decide_readings(scene.readings, check, hidden[None], renders, alpha)
+  return MarkTest(section, scene, hidden, by_name, both)
 
 
 def verify(config: ml_collections.ConfigDict, workdir: str) -> dict:
   """The verify job: reveal at the key, test against the hidden image at verify.alpha (ownership_test), and
   the SSIM, with the calibrated threshold's decision when verify.calibration names a file; with a key of
   message mode, the message read back (bit accuracy, binomial p-value, the corrected message). A scene re-aligned
-  in tone is tested in every reading (reveal.KeyedScene.readings), decided on combined_log10_p, and reported with
-  the images and figures of the reading of smaller p-value."""
+  in tone is tested in every reading (reveal.KeyedScene.readings); with verify.marks, every mark is tested
+  (mark_sections, decide_mark). The decision is on combined_log10_p of all the readings of all the marks, reported
+  with the images and figures of the mark and reading of smallest p-value (then largest SSIM), and with each
+  mark's own figures under `marks` where there are several."""
   validate(config)
-  r = config.reveal
-  scene = reveal.load_keyed_scene(r)
-  check = render(scene.gaussians, scene.camera, scene.options).rgb[None]
-  size = jax.eval_shape(scene.reveal_fn, check).shape[1]  # the decoder's output size, without decoding
-  hidden = hidden_lib.load_hidden_image(r.hidden, size)
-  views = turned_views_needed(config.verify.alpha, size, len(unrelated_images(hidden)), config.verify.null_views,
-                              len(scene.readings))
-  renders = null_renders(scene.gaussians, scene.camera, scene.options, views, hidden)
-  by_name, both = decide_readings(scene.readings, check, hidden[None], renders, config.verify.alpha)
-  best = by_name[strongest(by_name, hidden)]
-  revealed, nulls, test = best.revealed[0], best.nulls, ownership_test(best, hidden, config.verify.alpha)
-  log10_p = float(both["log10_p"][0, 0])
-  test.update(log10_p=log10_p, p_value=10.0 ** log10_p, owned=bool(both["owned"][0, 0]),
-              readings={name: summary(reading.result) for name, reading in by_name.items()})
-  score = float(metrics.ssim(revealed, hidden))
+  alpha = config.verify.alpha
+  sections = mark_sections(config)
+  scenes = [reveal.load_keyed_scene(r) for r in sections]
+  count = sum(len(scene.readings) for scene in scenes)
+  tests = [decide_mark(r, scene, alpha, config.verify.null_views, count) for r, scene in zip(sections, scenes)]
+  mark = min(tests, key=lambda t: (t.log10_p, -t.ssim))
+  r, best, hidden = mark.section, mark.strongest, mark.hidden
+  revealed, nulls, test = best.revealed[0], best.nulls, ownership_test(best, hidden, alpha)
+  log10_p = float(combined_log10_p([reading.result["log10_p"][0, 0] for t in tests for reading in t.by_name.values()]))
+  test.update(log10_p=log10_p, p_value=10.0 ** log10_p, owned=log10_p <= np.log10(alpha),
+              readings={name: summary(reading.result) for name, reading in mark.by_name.items()})
+  score = mark.ssim
   result = dict(ply=r.ply, key=r.key, decoder=r.decoder, hidden=r.hidden, **test, ssim=score)
+  if len(tests) > 1:
+    result["marks"] = [dict(key=t.section.key, decoder=t.section.decoder, hidden=t.section.hidden,
+                            log10_p=t.log10_p, ssim=t.ssim) for t in tests]
   if config.verify.calibration:
     calibration = load_calibration(config.verify.calibration)
     result["calibration"] = dict(calibration, owned=decide(score, calibration))
-  if scene.alignment is not None:
-    result["alignment"] = scene.alignment
+  if mark.scene.alignment is not None:
+    result["alignment"] = mark.scene.alignment
   hidden_message = message_lib.message_of_key(key_lib.load_key(r.key, r.key_number)[1])
   if hidden_message is not None:  # message mode: the bits read back, beside the test of their image
     result["message"] = message_lib.read_message(revealed, hidden_message)
