@@ -81,6 +81,8 @@ SCENES = {"demo": ("demo", "workdirs/demo/conceal", "in_scene"),
           "demo_orbit": ("demo", "workdirs/survive_runs/demo_orbit", "orbit"),
           "demo_recommended": ("demo", "workdirs/survive_runs/demo_recommended", "recommended_6k"),
           "demo_thick": ("demo", "workdirs/survive_runs/demo_thick_mf20", "thick_mf20_6k"),
+          "demo_thick_mf35": ("demo", "workdirs/survive_runs/demo_thick_mf35", "thick_mf35_6k"),
+          "demo_thick_k50": ("demo", "workdirs/survive_runs/demo_thick_k50", "thick_k50_6k"),
           "lego": ("lego", "workdirs/bench/lego/conceal_in_scene_w16", "in_scene"),
           "lego_converter_wm25": ("lego", "workdirs/survive_runs/lego_converter_mf35_rot5_scales_wm25",
                                   "converter_mf35_rot5_scales_wm25"),
@@ -132,6 +134,11 @@ RECIPE_NOTES = {
     "thick_mf20_6k": "recipes.recommended (since 2026-11-28 evening: the thick film through the converter's own "
                      "groups, thick_mf20_wm25's settings) on the demo for 6000 steps (make survive-runs' "
                      "demo_thick_mf20, concealed again 2026-11-29 on the current renderer: hidden 35.64 dB / 0.986)",
+    "thick_mf35_6k": "thick_mf20_6k with 35% of the check renders merged in the converter's groups rather than 20% "
+                     "(conceal.attacks.merge_fraction 0.35; workdirs/survive_runs/demo_thick_mf35, 2026-11-29)",
+    "thick_k50_6k": "thick_mf20_6k with every merging check render the converter's decimation to 50% (conceal.attacks."
+                    "merge_keep (0.5,), not also 80%: twice the steps at each size of the 50% decimation; "
+                    "workdirs/survive_runs/demo_thick_k50, 2026-11-29)",
     "thick_mf20_6k_1128": "thick_mf20_6k's first run (concealed 2026-11-28, its student since gone: hidden 33.41 dB / "
                           "0.974)",
     "film": "the faint carrier film (demo.py:film; the film recipe before it became film_watch's): the key looks "
