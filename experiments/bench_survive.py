@@ -699,6 +699,9 @@ def extraction_curves(rows: list[dict]) -> dict[tuple, list[tuple[int, float, bo
   return {key: sorted(points) for key, points in sorted(curves.items())}
 
 
+PANEL_HEIGHT, LEGEND_LINE = 4.8, 0.16  # inches: survive_curves.png's panels, a line of their legends
+
+
 def plot_curves(rows: list[dict], path: pathlib.Path) -> None:
   """Left: hidden SSIM against fine-tuning steps, one line per scene, recipe and schedule (dashed: with
   densification); middle: against the training steps of a model extraction, one line per scene, recipe and number
@@ -707,7 +710,9 @@ def plot_curves(rows: list[dict], path: pathlib.Path) -> None:
   import matplotlib
   matplotlib.use("Agg")
   import matplotlib.pyplot as plt
-  fig, (curves, extracted, frontier) = plt.subplots(1, 3, figsize=(19, 4.8))
+  fig = plt.figure(figsize=(19, PANEL_HEIGHT))
+  grid = fig.add_gridspec(2, 3)  # the panels, and their legends below them (one entry a line: many)
+  curves, extracted, frontier = (fig.add_subplot(grid[0, k]) for k in range(3))
   groups = list(dict.fromkeys((r["scene"], r["recipe"]) for r in rows))
   for index, ((scene, recipe, poses, views), points) in enumerate(extraction_curves(rows).items()):
     steps, ssim, decided = zip(*points)
@@ -737,14 +742,21 @@ def plot_curves(rows: list[dict], path: pathlib.Path) -> None:
     ax.grid(alpha=0.3)
   curves.set_xscale("log")
   curves.set_xlabel("fine-tuning steps on the training views (untouched at the left edge)")
-  curves.legend(fontsize=7, ncol=2, loc="upper center", bbox_to_anchor=(0.5, -0.14))  # below: one entry a line
   extracted.set_xscale("log")
   extracted.set_xlabel("training steps of a fresh 3D-GS on the marked scene's renders (model extraction)")
   extracted.set_title("model extraction: filled points owned by verify", fontsize=9)
-  if extracted.lines:
-    extracted.legend(fontsize=7, loc="upper center", bbox_to_anchor=(0.5, -0.14))
   frontier.set_xlabel("render loss of the recipe, dB (teacher's test PSNR minus the student's)")
   frontier.set_title(f"hidden SSIM after {FRONTIER_STEPS} fine-tuning steps", fontsize=9)
+  lines = 0
+  for k, (panel, columns) in enumerate(((curves, 2), (extracted, 1))):
+    handles, labels = panel.get_legend_handles_labels()
+    key = fig.add_subplot(grid[1, k])
+    key.axis("off")
+    if len(handles) > 1:  # more than the threshold's line
+      key.legend(handles, labels, fontsize=7, ncol=columns, loc="upper center", frameon=False)
+      lines = max(lines, -(-len(handles) // columns))
+  grid.set_height_ratios([PANEL_HEIGHT, LEGEND_LINE * lines + 0.01])
+  fig.set_size_inches(19, PANEL_HEIGHT + LEGEND_LINE * lines)
   fileio.save_figure(fig, path)
 
 
