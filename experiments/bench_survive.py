@@ -83,6 +83,7 @@ SCENES = {"demo": ("demo", "workdirs/demo/conceal", "in_scene"),
           "demo_thick": ("demo", "workdirs/survive_runs/demo_thick_mf20", "thick_mf20_6k"),
           "demo_thick_mf35": ("demo", "workdirs/survive_runs/demo_thick_mf35", "thick_mf35_6k"),
           "demo_thick_k50": ("demo", "workdirs/survive_runs/demo_thick_k50", "thick_k50_6k"),
+          "demo_thick_10k": ("demo", "workdirs/survive_runs/demo_thick_mf20_10k", "thick_mf20_10k"),
           "lego": ("lego", "workdirs/bench/lego/conceal_in_scene_w16", "in_scene"),
           "lego_converter_wm25": ("lego", "workdirs/survive_runs/lego_converter_mf35_rot5_scales_wm25",
                                   "converter_mf35_rot5_scales_wm25"),
@@ -136,6 +137,8 @@ RECIPE_NOTES = {
                      "demo_thick_mf20, concealed again 2026-11-29 on the current renderer: hidden 35.64 dB / 0.986)",
     "thick_mf35_6k": "thick_mf20_6k with 35% of the check renders merged in the converter's groups rather than 20% "
                      "(conceal.attacks.merge_fraction 0.35; workdirs/survive_runs/demo_thick_mf35, 2026-11-29)",
+    "thick_mf20_10k": "thick_mf20_6k at the recipe's full 10000 steps (workdirs/survive_runs/demo_thick_mf20_10k, "
+                      "2026-11-29: hidden 38.92 dB / 0.992)",
     "thick_k50_6k": "thick_mf20_6k with every merging check render the converter's decimation to 50% (conceal.attacks."
                     "merge_keep (0.5,), not also 80%: twice the steps at each size of the 50% decimation; "
                     "workdirs/survive_runs/demo_thick_k50, 2026-11-29)",
