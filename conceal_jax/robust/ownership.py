@@ -340,7 +340,7 @@ def verify(config: ml_collections.ConfigDict, workdir: str) -> dict:
   r, best, hidden = mark.section, mark.strongest, mark.hidden
   revealed, nulls, test = best.revealed[0], best.nulls, ownership_test(best, hidden, alpha)
   log10_p = float(combined_log10_p([reading.result["log10_p"][0, 0] for t in tests for reading in t.by_name.values()]))
-  test.update(log10_p=log10_p, p_value=10.0 ** log10_p, owned=log10_p <= np.log10(alpha),
+  test.update(log10_p=log10_p, p_value=10.0 ** log10_p, owned=bool(log10_p <= np.log10(alpha)),
               readings={name: summary(reading.result) for name, reading in mark.by_name.items()})
   score = mark.ssim
   result = dict(ply=r.ply, key=r.key, decoder=r.decoder, hidden=r.hidden, **test, ssim=score)
