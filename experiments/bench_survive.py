@@ -657,6 +657,10 @@ def table(rows: list[dict]) -> str:
   return "\n".join(lines) + "\n"
 
 
+# survive_bench.png: a panel per scene and recipe, stacked (dozens of them), kept under the repository's 2 MB a file
+BAR_PANEL_HEIGHT, BAR_DPI = 3.2, 80
+
+
 def plot(rows: list[dict], path: pathlib.Path) -> None:
   """Hidden SSIM per attack and level, one panel per scene: bars as the table's hidden SSIM, dots without
   re-alignment (transforms) and moved first (round trips); the decision threshold dashed."""
@@ -665,7 +669,7 @@ def plot(rows: list[dict], path: pathlib.Path) -> None:
   import matplotlib.pyplot as plt
   scenes = list(dict.fromkeys((r["scene"], r["recipe"]) for r in rows))
   fig, axes = plt.subplots(len(scenes), 1, figsize=(max(8, 0.45 * len(rows) / max(1, len(scenes)) + 3),
-                                                    4.5 * len(scenes)), squeeze=False)
+                                                    BAR_PANEL_HEIGHT * len(scenes)), squeeze=False)
   for ax, (name, recipe) in zip(axes[:, 0], scenes):
     mine = [r for r in rows if (r["scene"], r["recipe"]) == (name, recipe)]
     x = np.arange(len(mine))
@@ -686,7 +690,7 @@ def plot(rows: list[dict], path: pathlib.Path) -> None:
                  "measured before verify's test", fontsize=9)
     ax.grid(axis="y", alpha=0.3)
     ax.legend(fontsize=7, loc="lower left")
-  fileio.save_figure(fig, path)
+  fileio.save_figure(fig, path, dpi=BAR_DPI)
   plot_curves(rows, path.with_name(CURVES_FIGURE))
 
 
