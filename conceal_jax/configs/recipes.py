@@ -8,7 +8,8 @@ key sees), built from the named parts below. configs/conceal.py applies one by n
 The figures behind each choice: experiments/results/REPRODUCTION.md (a row per recipe) and conceal_options.md.
 """
 
-RECIPES = ("paper", "released", "in_scene", "standardized", "recommended", "recommended_at_decoder_size")
+RECIPES = ("paper", "released", "in_scene", "standardized", "recommended", "recommended_at_decoder_size",
+           "in_scene_watched")
 
 # The decoder a CPU trains: width 16 from scratch (the paper's width 64 costs ~10x more per step), at a rate
 # a from-scratch decoder learns at (1e-3 stalled the demo's first steps).
@@ -121,6 +122,14 @@ def recommended_at_decoder_size(config):
   render and its decoys' read at 64x64 instead of resized from the training size, about 4 times faster a step on a
   CPU (experiments/results/cpu_speed.md)."""
   return decoder_size_key(recommended(config))
+
+
+def in_scene_watched(config):
+  """in_scene with the recommended recipe's closely watched key (closely_watched_key): a second mark, concealed in
+  the Gaussians of a recommended student (mark.teacher: its student.ply) beside the film's, that a model extraction
+  carries over where the film (no training view sees it) is lost; verify reads both (verify.marks). In the scene's
+  own Gaussians every view sees the mark's texture, so the decoder is watched near its key as the film's is."""
+  return closely_watched_key(in_scene(config))
 
 
 def decoder_size_key(config, decoy_views: int = DECODER_SIZE_DECOYS):
