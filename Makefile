@@ -6,7 +6,7 @@ STAMP := $(VENV)/.installed
 WORKDIR ?= workdirs/demo
 JOBS ?= 2
 
-.PHONY: venv demo own-scene chromium test test-jobs test-slow bench-render bench-train bench-start bench-full profile-train bench-conceal profile-conceal \
+.PHONY: venv demo own-scene chromium webgpu-cpu test test-jobs test-slow bench-render bench-train bench-start bench-full profile-train bench-conceal profile-conceal \
         bench-baselines bench-robust bench-survive converter-decimation bench-falloff survive-runs bench-ownership \
         reproduce clean
 
@@ -72,6 +72,17 @@ own-scene: $(STAMP)
 chromium:
 	command -v chromium >/dev/null || { apt-get update && DEBIAN_FRONTEND=noninteractive apt-get install -y \
 	  --no-install-recommends chromium; }
+
+# a WebGPU adapter for the converter's floater filtering (splat-transform voxelises only on one) on a machine without
+# a GPU: mesa's lavapipe, a Vulkan device on the CPU (Debian bookworm's own lavapipe lacks a feature Dawn needs; its
+# backports' has it). Root, Debian bookworm; the floater tests and bench rows skip without an adapter.
+webgpu-cpu:
+	node_modules/.bin/splat-transform --list-gpus 2>/dev/null | grep -q '^\[0\]' || { \
+	  printf 'Types: deb\nURIs: http://deb.debian.org/debian\nSuites: bookworm-backports\nComponents: main\nSigned-By: %s\n' \
+	    /usr/share/keyrings/debian-archive-keyring.gpg > /etc/apt/sources.list.d/bookworm-backports.sources && \
+	  apt-get update && DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends libvulkan1 && \
+	  DEBIAN_FRONTEND=noninteractive apt-get install -y --no-install-recommends -t bookworm-backports \
+	    mesa-vulkan-drivers; }
 
 test: $(STAMP)
 	$(PY) -m pytest -n $(JOBS) -q

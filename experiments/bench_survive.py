@@ -15,11 +15,12 @@ brackets):
   (factor), each with the Gaussians shuffled (robust.scene_attacks): hidden_* are revealed after re-alignment
   against the owner's copy (align.realign: registration, key moved with the similarity found),
   `unaligned` without it; `registration` reports the transform found and its error against the applied one;
-- sog, spz, compressed_ply (the format), decimate (fraction kept), sh_bands (bands kept): round trips through
-  @playcanvas/splat-transform (robust.converter; skipped without `make node_modules`), revealed as they come back
-  (hidden_*) and after re-alignment (`aligned`); `moved`: the same round trip of the student moved by a random
-  similarity first (any rotation, translation up to 10 radii, scale in [1/10, 10]), revealed after re-alignment
-  (floater filtering, `-F`, is not among them: splat-transform 3.7.0 runs its voxelisation only on a GPU device);
+- sog, spz, compressed_ply (the format), decimate (fraction kept), sh_bands (bands kept), floaters (floater
+  filtering at the converter's defaults): round trips through @playcanvas/splat-transform (robust.converter;
+  skipped without `make node_modules`, floaters without a WebGPU adapter: `make webgpu-cpu`), revealed as they
+  come back (hidden_*) and after re-alignment (`aligned`); `moved`: the same round trip of the student moved by a
+  random similarity first (any rotation, translation up to 10 radii, scale in [1/10, 10]), revealed after
+  re-alignment;
 - decimate_scaled (factor): the student resized by the factor about its centroid (Gaussians shuffled), then
   decimated to 50% by the converter, revealed after re-alignment: the converter's merges are not scale-free
   (conceal/grouping.py), so this is how a decimation survives at every size someone may give the scene;
@@ -117,7 +118,8 @@ TRANSFORMS = ([("rotate", d) for d in (1.0, 5.0, 45.0, 180.0)] + [("translate", 
 CONVERSIONS = ([("sog", None, dict(fmt="sog")), ("spz", None, dict(fmt="spz")),
                 ("compressed_ply", None, dict(fmt="compressed.ply"))]
                + [("decimate", k, dict(fmt="ply", decimate=k)) for k in (0.8, 0.5)]
-               + [("sh_bands", d, dict(fmt="ply", sh_degree=d)) for d in (2, 1, 0)])
+               + [("sh_bands", d, dict(fmt="ply", sh_degree=d)) for d in (2, 1, 0)]
+               + [("floaters", None, dict(fmt="ply", floaters=True))])
 # the factors the student is resized by before a converter's decimation to SCALED_KEEP (decimate_scaled)
 SCALED_FACTORS, SCALED_KEEP = (0.1, 0.15, 0.4, 1.6, 4.0), 0.5
 CONVERTER_TIMEOUT_S = 3600  # per converter call: .sog clusters a lego scene for many minutes on a CPU

@@ -16,6 +16,7 @@ from conceal_jax.robust import converter as cv
 from conceal_jax.data import ply
 
 needs_converter = pytest.mark.skipif(not cv.available(), reason="splat-transform not installed (make node_modules)")
+needs_adapter = pytest.mark.skipif(not cv.adapters(), reason="no WebGPU adapter for floater filtering (make webgpu-cpu)")
 
 
 @pytest.fixture(scope="module")
@@ -67,6 +68,38 @@ def test_decimation_and_sh_cut(scene):
   cut = cv.round_trip(scene, "ply", sh_degree=1)
   assert cut.num == scene.num and cut.sh_degree == 1
   np.testing.assert_array_equal(np.asarray(cut.sh), np.asarray(scene.sh)[:, :4])
+
+
+@needs_adapter
+def test_floater_filtering_drops_faint_specks_far_from_the_scene_and_keeps_the_scene(scene):
+  """20 faint, tiny Gaussians 3-13 units beyond the scene's corner (each alone in its voxel, too faint to make it
+  solid) are removed; every other Gaussian comes back where it was."""
+  means = np.asarray(scene.means).copy()
+  means[:20] = means.max(axis=0) + 3.0 + 0.5 * np.arange(20)[:, None]
+  specks = scene.replace(means=jnp.asarray(means), opacity_logits=scene.opacity_logits.at[:20].set(-4.0),
+                         log_scales=scene.log_scales.at[:20].set(np.log(0.01)))
+  back = cv.round_trip(specks, "ply", floaters=True)
+  assert back.num == scene.num - 20
+  distances, _ = cKDTree(np.asarray(back.means)).query(means[20:])
+  assert distances.max() < 1e-6
+
+
+def test_floater_filtering_without_an_adapter_is_one_clear_error(scene, monkeypatch):
+  monkeypatch.setattr(cv, "adapters", lambda: [])
+  with pytest.raises(cv.ConverterError, match="make webgpu-cpu"):
+    cv.round_trip(scene, "ply", floaters=True)
+
+
+def test_adapters_are_read_from_the_converters_listing(monkeypatch, tmp_path):
+  fake = tmp_path / "splat-transform"
+  fake.write_text("#!/bin/sh\necho 'Detecting GPU adapters...'\necho '[0] llvmpipe (LLVM 15.0.6, 256 bits)'\n"
+                  "echo '[1] NVIDIA H200'\necho 'Use -g <index> to select a specific GPU adapter.'\n")
+  fake.chmod(0o755)
+  monkeypatch.setenv(cv.ENV_VAR, str(fake))
+  assert cv.adapters() == ["llvmpipe (LLVM 15.0.6, 256 bits)", "NVIDIA H200"]
+  monkeypatch.setenv(cv.ENV_VAR, str(tmp_path / "missing"))
+  monkeypatch.setattr(cv, "_REPO_ROOT", tmp_path)
+  assert cv.adapters() == []
 
 
 @pytest.mark.parametrize("kwargs, fragment", [(dict(fmt="splat"), "unknown format"),
