@@ -15,6 +15,7 @@ from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, reveal, un
 from conceal_jax.configs import default
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
+from conceal_jax.gs import register as register_lib
 from conceal_jax.robust import ownership
 from tests.helpers import make_camera, random_gaussians
 
@@ -126,6 +127,25 @@ def test_verify_decides_on_the_best_of_the_scenes_marks(tmp_path):
   assert result["log10_p"] == pytest.approx(min(m["log10_p"] for m in result["marks"]) + np.log10(2))
   assert result["marks"][1]["ssim"] == pytest.approx(alone["ssim"]) and result["marks"][0]["log10_p"] > -2
   assert result["marks"][1]["log10_p"] == pytest.approx(alone["log10_p"])
+
+
+@pytest.mark.job
+def test_verify_registers_the_suspect_once_for_all_its_marks(tmp_path, monkeypatch):
+  """Re-aligned onto the owner's copy (here the scene itself), a scene tested for two marks is registered once and
+  both keys are read through that registration."""
+  config = write_scene(tmp_path, uses_decoder=False)
+  config.verify.alpha = 1e-3
+  second = tmp_path / "second"
+  second.mkdir()
+  shutil.copy(tmp_path / "key.json", second / "key.json")
+  shutil.copy(tmp_path / "mine.png", second / "hidden.png")
+  config.reveal.owner, config.verify.marks = config.reveal.ply, str(second)
+  calls, register = [], register_lib.register
+  monkeypatch.setattr(register_lib, "register", lambda *args, **kwargs: calls.append(1) or register(*args, **kwargs))
+  result = main_lib.run(config, str(tmp_path / "out"))
+  assert len(calls) == 1
+  assert result["owned"] and result["alignment"]["residual"] < 1e-3
+  assert [m["ssim"] for m in result["marks"]] == pytest.approx([result["ssim"]] * 2)
 
 
 def test_verify_refuses_a_mark_folder_without_its_key(tmp_path):

@@ -142,16 +142,17 @@ class Realignment:
     return dict(registration_report(self.registration), refinement=self.refinement.report())
 
 
-def realign(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions,
-            seed: int = 0) -> Realignment:
+def realign(owner: Gaussians, suspect: Gaussians, camera: Camera, options: RenderOptions, seed: int = 0,
+            registration: register_lib.Registration | None = None) -> Realignment:
   """The key moved into the suspect scene's frame: registers `suspect` onto the owner's copy `owner` (the scene
   the key was made for; any order, size or count of Gaussians in either), moves `camera` and `options` at the SH
   degree key_options finds with the similarity found (moved_key), refines the moved key's pose on the owner's render
   at the key (key_refine.refine_key, the suspect's renders through their fit_tone onto it) and fits the suspect's
-  tone maps onto the owner's (tone_at_key at the refined key, scene_tone). ValueError from register for scenes too
-  small or not finite."""
+  tone maps onto the owner's (tone_at_key at the refined key, scene_tone). `registration`: these two scenes'
+  registration where already found (a suspect read at several keys registers once). ValueError from register for
+  scenes too small or not finite."""
   owner, suspect = jax.tree.map(jnp.asarray, owner), jax.tree.map(jnp.asarray, suspect)
-  registration = register_lib.register(owner, suspect, seed=seed)
+  registration = registration or register_lib.register(owner, suspect, seed=seed)
   options = key_options(owner, [camera], options)
   moved, moved_options = moved_key(camera, options, registration.similarity)
   moved, refinement = key_refine.refine_key(owner, suspect, camera, options, moved, moved_options,

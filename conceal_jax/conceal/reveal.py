@@ -155,14 +155,15 @@ def readings(reveal_fn, tones: dict[str, align.Tone] | None = None) -> dict[str,
 class KeyedScene:
   """A suspect scene with what reveals it (load_keyed_scene): the Gaussians, the key camera and render options
   (moved into the scene's frame when re-aligned), `decoder_fn` (decoder_reveal: renders [V, H, W, 3] -> revealed
-  [V, S, S, 3]), the alignment report or None, and the tone maps onto the owner's copy by name
-  (align.Realignment.tones) or None."""
+  [V, S, S, 3]), the alignment report or None, the tone maps onto the owner's copy by name
+  (align.Realignment.tones) or None, and the registration onto the owner's copy or None."""
   gaussians: Gaussians
   camera: Camera
   options: RenderOptions
   decoder_fn: Any
   alignment: dict | None
   tones: dict[str, align.Tone] | None = None
+  registration: align.register_lib.Registration | None = None
 
   @property
   def readings(self) -> dict[str, Any]:
@@ -179,11 +180,12 @@ class KeyedScene:
     return np.asarray(self.reveal_fn(renders))
 
 
-def load_keyed_scene(r: ml_collections.ConfigDict) -> KeyedScene:
+def load_keyed_scene(r: ml_collections.ConfigDict,
+                     registration: align.register_lib.Registration | None = None) -> KeyedScene:
   """The scene r.ply, key number r.key_number of the key file r.key (0: its check view, k: its k-th extra key)
   and the decoder r.decoder (a `reveal` config section). With r.owner set, the suspect is re-aligned onto the
-  owner's copy r.owner (align.realign) and the alignment report is
-  align.Realignment.report's with the tone maps."""
+  owner's copy r.owner (align.realign; `registration`: r.ply's onto r.owner where already found, another key's
+  KeyedScene.registration) and the alignment report is align.Realignment.report's with the tone maps."""
   camera, info = key_lib.load_key(r.key, r.key_number)
   if info.get("uses_decoder", True) and not r.decoder:
     raise ValueError("reveal.decoder is required: this key was made with a decoder")
@@ -194,14 +196,15 @@ def load_keyed_scene(r: ml_collections.ConfigDict) -> KeyedScene:
   alignment = tones = None
   if r.get("owner", ""):
     owner = ply.load_ply(r.owner)
-    realigned = align.realign(owner, suspect, camera, options)
+    realigned = align.realign(owner, suspect, camera, options, registration=registration)
     camera, options, registration, tones = realigned.camera, realigned.options, realigned.registration, realigned.tones
     alignment = dict(owner=r.owner, **realigned.report(), tones={name: tone.report() for name, tone in tones.items()})
     if registration.matched_fraction < MIN_MATCHED_FRACTION:
       logging.warning("re-alignment of %s onto %s matched only %.0f%% of its Gaussians (residual %.2g radii): the "
                       "transform found is doubtful", r.ply, r.owner, 100 * registration.matched_fraction,
                       registration.residual)
-  return KeyedScene(jax.tree.map(jnp.asarray, suspect), camera, options, reveal_fn, alignment, tones)
+  return KeyedScene(jax.tree.map(jnp.asarray, suspect), camera, options, reveal_fn, alignment, tones,
+                    registration if alignment is not None else None)
 
 
 def reveal_with_alignment(r: ml_collections.ConfigDict) -> tuple[np.ndarray, dict | None]:

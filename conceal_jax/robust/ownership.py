@@ -333,7 +333,9 @@ def verify(config: ml_collections.ConfigDict, workdir: str) -> dict:
   validate(config)
   alpha = config.verify.alpha
   sections = mark_sections(config)
-  scenes = [reveal.load_keyed_scene(r) for r in sections]
+  scenes = []
+  for r in sections:  # every section reads reveal's ply with reveal's owner: one registration serves every key
+    scenes.append(reveal.load_keyed_scene(r, scenes[0].registration if scenes else None))
   count = sum(len(scene.readings) for scene in scenes)
   tests = [decide_mark(r, scene, alpha, config.verify.null_views, count) for r, scene in zip(sections, scenes)]
   mark = min(tests, key=lambda t: (t.log10_p, -t.ssim))
