@@ -16,7 +16,8 @@ from conceal_jax.robust import converter as cv
 from conceal_jax.data import ply
 
 needs_converter = pytest.mark.skipif(not cv.available(), reason="splat-transform not installed (make node_modules)")
-needs_adapter = pytest.mark.skipif(not cv.adapters(), reason="no WebGPU adapter for floater filtering (make webgpu-cpu)")
+needs_adapter = pytest.mark.skipif(not cv.adapters(),
+                                   reason="no WebGPU adapter for floater filtering (make webgpu-cpu)")
 
 
 @pytest.fixture(scope="module")
