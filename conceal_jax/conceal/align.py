@@ -152,7 +152,8 @@ def realign(owner: Gaussians, suspect: Gaussians, camera: Camera, options: Rende
   registration where already found (a suspect read at several keys registers once). ValueError from register for
   scenes too small or not finite."""
   owner, suspect = jax.tree.map(jnp.asarray, owner), jax.tree.map(jnp.asarray, suspect)
-  registration = registration or register_lib.register(owner, suspect, seed=seed)
+  if registration is None:
+    registration = register_lib.register(owner, suspect, seed=seed)
   options = key_options(owner, [camera], options)
   moved, moved_options = moved_key(camera, options, registration.similarity)
   moved, refinement = key_refine.refine_key(owner, suspect, camera, options, moved, moved_options,
