@@ -127,10 +127,10 @@ def round_trip(gaussians: Gaussians, fmt: str = "ply", *, decimate: float | None
     with tempfile.TemporaryDirectory(prefix="splat_transform_") as tmp:
       return round_trip(gaussians, fmt, decimate=decimate, sh_degree=sh_degree, floaters=floaters, workdir=tmp,
                         timeout_s=timeout_s)
+  device = gpu_device() if floaters else "cpu"  # before anything is written: no adapter, no folder
   folder = pathlib.Path(workdir)
   folder.mkdir(parents=True, exist_ok=True)
   source, converted = folder / "in.ply", folder / f"out.{fmt}"
-  device = gpu_device() if floaters else "cpu"
   ply.save_ply(source, gaussians)
   run([source, *steps, converted], timeout_s, device)
   if fmt == "ply":
