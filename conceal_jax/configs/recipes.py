@@ -9,7 +9,7 @@ The figures behind each choice: experiments/results/REPRODUCTION.md (a row per r
 """
 
 RECIPES = ("paper", "released", "in_scene", "standardized", "recommended", "recommended_at_decoder_size",
-           "in_scene_watched")
+           "in_scene_watched", "in_scene_close")
 
 # The decoder a CPU trains: width 16 from scratch (the paper's width 64 costs ~10x more per step), at a rate
 # a from-scratch decoder learns at (1e-3 stalled the demo's first steps).
@@ -18,8 +18,8 @@ NARROW_DECODER_WIDTH, NARROW_DECODER_LR = 16, 5e-4
 MIN_WARMUP_STEPS, WARMUP_FRACTION = 200, 0.1
 # Training through attacks: blur and noise maxima of the check render.
 ATTACK_BLUR, ATTACK_NOISE = 1.5, 0.02
-# Decoys around the key in the in_scene recipe.
-DECOY_VIEWS = 64
+# Decoys around the key in the in_scene recipe, and the share of the steps one is the normal view.
+DECOY_VIEWS, DECOY_FRACTION = 64, 0.25
 # Training through drift: the largest relative parameter noise of the perturbed student, about what the first
 # hundred steps of 3D-GS fine-tuning move a student's opacities (experiments/results/survive_bench.md).
 DRIFT_NOISE = 0.15
@@ -83,7 +83,7 @@ def in_scene(config):
   rate. Fine-tuning on the training views reaches those Gaussians and erases the mark; `recommended` moves it into a
   carrier film no training view sees."""
   config = paper(config)
-  config = leakage_control(config, DECOY_VIEWS, decoy_fraction=0.25)
+  config = leakage_control(config, DECOY_VIEWS, DECOY_FRACTION)
   config = gentle_student(config)
   config = through_attacks(config)
   config = narrow_decoder(config)
@@ -130,6 +130,15 @@ def in_scene_watched(config):
   carries over where the film (no training view sees it) is lost; verify reads both (verify.marks). In the scene's
   own Gaussians every view sees the mark's texture, so the decoder is watched near its key as the film's is."""
   return closely_watched_key(in_scene(config))
+
+
+def in_scene_close(config):
+  """in_scene_watched with a decoy the normal view on in_scene's share of the steps (DECOY_FRACTION), not the
+  watched key's: a layer in the scene's own Gaussians needs the training views on most steps, or those Gaussians
+  drift in every view while L_d^- and the check render move them (conceal.leakage.decoy_fraction)."""
+  config = in_scene_watched(config)
+  config.conceal.leakage.decoy_fraction = DECOY_FRACTION
+  return config
 
 
 def decoder_size_key(config, decoy_views: int = DECODER_SIZE_DECOYS):
