@@ -94,6 +94,17 @@ def test_floater_filtering_without_an_adapter_is_one_clear_error(scene, monkeypa
   assert not (tmp_path / "work").exists()
 
 
+def test_an_adapter_index_not_listed_is_one_clear_error(scene, monkeypatch, tmp_path):
+  monkeypatch.setattr(cv, "adapters", lambda: ["llvmpipe"])
+  monkeypatch.setenv(cv.GPU_ENV_VAR, "0")
+  assert cv.gpu_device() == "0"
+  for device in ("1", "cpu", "-1"):
+    monkeypatch.setenv(cv.GPU_ENV_VAR, device)
+    with pytest.raises(cv.ConverterError, match=f"{cv.GPU_ENV_VAR}='{device}'.*0: llvmpipe"):
+      cv.round_trip(scene, "ply", floaters=True, workdir=tmp_path / "work")
+  assert not (tmp_path / "work").exists()
+
+
 def test_adapters_are_read_from_the_converters_listing(monkeypatch, tmp_path):
   fake = tmp_path / "splat-transform"
   fake.write_text("#!/bin/sh\necho 'Detecting GPU adapters...'\necho '[0] llvmpipe (LLVM 15.0.6, 256 bits)'\n"

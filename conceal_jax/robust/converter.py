@@ -87,12 +87,17 @@ def adapters(timeout_s: float = 120) -> list[str]:
 
 
 def gpu_device() -> str:
-  """The adapter of the GPU-only actions: $CONCEAL_JAX_SPLAT_TRANSFORM_GPU, else "0". ConverterError where
-  splat-transform lists no adapter."""
-  if not adapters():
+  """The adapter index of the GPU-only actions: $CONCEAL_JAX_SPLAT_TRANSFORM_GPU, else "0". ConverterError where
+  splat-transform lists no adapter, or none at that index."""
+  found = adapters()
+  if not found:
     raise ConverterError("floater filtering needs a WebGPU adapter and splat-transform lists none: on a machine "
                          "without a GPU, `make webgpu-cpu` installs mesa's lavapipe (a Vulkan device on the CPU)")
-  return os.environ.get(GPU_ENV_VAR, "0")
+  device = os.environ.get(GPU_ENV_VAR, "0")
+  if not (device.isdigit() and int(device) < len(found)):
+    listing = ", ".join(f"{i}: {name}" for i, name in enumerate(found))
+    raise ConverterError(f"${GPU_ENV_VAR}={device!r} is not an adapter index splat-transform lists ({listing})")
+  return device
 
 
 def actions(decimate: float | None = None, sh_degree: int | None = None, floaters: bool = False) -> list[str]:
