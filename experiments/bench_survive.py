@@ -112,10 +112,10 @@ SCENE_NOTES = {
     "demo_layered_pruned": "demo_layered_in_scene with demo.py:pruned as the second mark "
                            "(workdirs/survive_runs/demo_thick_mf20_pruned): its key watched closely",
     "demo_layered_pruned_film": "demo_layered_pruned's scene; the film's mark, read from it",
-    "lego_layered_in_scene": "lego's recommended student (bench-conceal's, workdirs/bench/lego/conceal_recommended_w16) "
-                             "with lego_conceal.py:in_scene concealed on it as a second mark "
-                             "(workdirs/survive_runs/lego_recommended_in_scene, 2026-11-29): the in_scene mark, read at "
-                             "its own key with its own decoder",
+    "lego_layered_in_scene": "lego's recommended student (bench-conceal's, "
+                             "workdirs/bench/lego/conceal_recommended_w16) with lego_conceal.py:in_scene concealed on "
+                             "it as a second mark (workdirs/survive_runs/lego_recommended_in_scene, 2026-11-29): the "
+                             "in_scene mark, read at its own key with its own decoder",
     "lego_layered_film": "lego_layered_in_scene's scene; the film's mark, read from it"}
 TRANSFORMS = ([("rotate", d) for d in (1.0, 5.0, 45.0, 180.0)] + [("translate", f) for f in (0.026, 1.0)]
               + [("scale", f) for f in (0.5, 1.1, 2.0)])
