@@ -136,9 +136,7 @@ def in_scene_close(config):
   """in_scene_watched with a decoy the normal view on in_scene's share of the steps (DECOY_FRACTION), not the
   watched key's: a layer in the scene's own Gaussians needs the training views on most steps, or those Gaussians
   drift in every view while L_d^- and the check render move them (conceal.leakage.decoy_fraction)."""
-  config = in_scene_watched(config)
-  config.conceal.leakage.decoy_fraction = DECOY_FRACTION
-  return config
+  return closely_watched_key(in_scene(config), decoy_fraction=DECOY_FRACTION)
 
 
 def decoder_size_key(config, decoy_views: int = DECODER_SIZE_DECOYS):
@@ -220,22 +218,22 @@ def stacked_film(config, stack: int = FILM_STACK):
   return config
 
 
-def watched_key(config, decoy_views: int = WATCH_DECOY_VIEWS):
-  """Decoys near the key (`decoy_views` of them) as the normal view on WATCH_DECOY_FRACTION of the steps, and
+def watched_key(config, decoy_views: int = WATCH_DECOY_VIEWS, decoy_fraction: float = WATCH_DECOY_FRACTION):
+  """Decoys near the key (`decoy_views` of them) as the normal view on `decoy_fraction` of the steps, and
   L_d^- weighted WATCH_WEIGHT_MINUS: a decoder that reads a texture it is not watched closely on learns to read it
   wherever it lies, and reveals the image shifted when the key is turned a degree or two. A film's normal views
   teach little else (no training view sees the film)."""
-  config = leakage_control(config, decoy_views, WATCH_DECOY_FRACTION)
+  config = leakage_control(config, decoy_views, decoy_fraction)
   config.conceal.weight_minus = WATCH_WEIGHT_MINUS
   return config
 
 
-def closely_watched_key(config):
+def closely_watched_key(config, decoy_fraction: float = WATCH_DECOY_FRACTION):
   """watched_key with its decoys turned at most CLOSE_DECOY_ROTATION_DEG and L_d^- weighted CLOSE_WEIGHT_MINUS
   (conceal.leakage.decoy_rotation_deg, conceal.weight_minus): a decoder trained through the converter's merges
   learns a film read in many groupings, and without a closer watch it reads that film from a key turned two
   degrees too."""
-  config = watched_key(config)
+  config = watched_key(config, decoy_fraction=decoy_fraction)
   config.conceal.leakage.decoy_rotation_deg = CLOSE_DECOY_ROTATION_DEG
   config.conceal.weight_minus = CLOSE_WEIGHT_MINUS
   return config
