@@ -27,9 +27,10 @@ brackets):
 - finetune, finetune_densify, finetune_gentle (steps): 3D-GS training continued from the student on the training
   views with the run's own training recipe, without and with densification, and at gentle rates without it
   (gentle_rates); snapshots of one run per schedule;
-- extraction, extraction_sphere (views; `steps` in the row), with --extraction only: renders of the student at its
-  training cameras and random poses on their orbit (or, --extraction-poses=sphere, poses spread over the whole
-  sphere around it), a fresh 3D-GS trained on them from random points.
+- extraction, extraction_sphere, extraction_unseen (views; `steps` in the row), with --extraction only: renders of
+  the student at its training cameras and random poses on their orbit (or, --extraction-poses=sphere, poses spread
+  over the whole sphere around it; unseen: random orbit poses only, none of the training cameras), a fresh 3D-GS
+  trained on them from random points; `key_nearest_deg` how close to the key's pose the rendered views come.
 
 `owned` and `log10_p` are verify's decision given the owner's copy (robust.ownership: the suspect re-aligned in
 frame and tone, read after each tone map and as rendered, at --alpha; hidden_* of the strongest reading, as
@@ -59,7 +60,7 @@ from conceal_jax.core import fileio
 from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, similarity as sim, train
 from conceal_jax.robust import converter, ownership, robustness, scene_attacks
-from conceal_jax.splat.camera import opengl_camera_to_world
+from conceal_jax.splat.camera import camera_centers, opengl_camera_to_world
 from experiments import bench_robust, results_io
 
 NAME = "survive_bench"
@@ -242,6 +243,7 @@ RECIPE_NOTES = {
 }
 # The second figure: fine-tuning curves and the survival-against-render-loss frontier at this many steps.
 CURVES_FIGURE, FRONTIER_STEPS = "survive_curves.png", 1000
+EXTRACTION_POSES = ("orbit", "sphere", "unseen")  # extraction_cameras
 CHEAP_ATTACKS = ("none", "transforms", "converter", "finetune", "finetune_densify")
 # the random similarity that moves the student before a round trip (scene_attacks.random_similarity)
 MOVED_MAX_SCALE, MOVED_SEED = 10.0, 7
@@ -540,18 +542,28 @@ def change_profile(before, after, carrier: int = 0) -> dict | None:
 def extraction_cameras(scene: Scene, views: int, poses: str = "orbit", seed: int = 0) -> list:
   """`views` cameras: the scene's training cameras, then `poses`: random poses on their orbit (key.orbit_camera),
   or ("sphere") poses spread evenly over the whole sphere at the orbit's distance (similarity.fibonacci_sphere),
-  every one looking at the orbit's target, below the training cameras and where the key lies included."""
-  scene_data = evaluate.load_scene_data(scene.config)
-  cameras = list(scene_data.train_cameras)[:views]
+  every one looking at the orbit's target, below the training cameras and where the key lies included; or
+  ("unseen") random poses on the orbit only, none of the training cameras: an attacker without the owner's."""
+  if poses not in EXTRACTION_POSES:
+    raise ValueError(f"unknown extraction poses {poses!r} ({', '.join(EXTRACTION_POSES)})")
+  orbit = evaluate.load_scene_data(scene.config).train_cameras
+  cameras = [] if poses == "unseen" else list(orbit)[:views]
   extra = views - len(cameras)
-  if poses == "orbit":
-    return cameras + [key_lib.orbit_camera(scene_data.train_cameras, 10_000 + seed * 100_000 + i) for i in range(extra)]
-  if poses != "sphere":
-    raise ValueError(f"unknown extraction poses {poses!r} (orbit or sphere)")
-  orbit = scene_data.train_cameras
+  if poses in ("orbit", "unseen"):
+    return cameras + [key_lib.orbit_camera(orbit, 10_000 + seed * 100_000 + i) for i in range(extra)]
   target, distance, up = key_lib.orbit_target(orbit), key_lib.camera_distance(orbit), key_lib.orbit_up(orbit)
   return cameras + [key_lib.looking_at(orbit, target + distance * d, target, up)
                     for d in sim.fibonacci_sphere(max(extra, 0))]
+
+
+def key_nearest_deg(scene: Scene, cameras: list) -> float:
+  """The smallest angle, seen from the training orbit's target, between the key's centre and a camera's centre
+  of `cameras`: how close to the key an extraction's views come (0 when they include the key's pose)."""
+  target = key_lib.orbit_target(evaluate.load_scene_data(scene.config).train_cameras)
+  offsets = camera_centers(cameras) - target
+  key = camera_centers([scene.owner.check_camera])[0] - target
+  cosines = offsets @ key / (np.linalg.norm(offsets, axis=1) * np.linalg.norm(key))
+  return float(np.degrees(np.arccos(np.clip(cosines.max(), -1.0, 1.0))))
 
 
 def write_blender_views(folder: pathlib.Path, gaussians, cameras, test_cameras, options) -> None:
@@ -575,15 +587,16 @@ def extraction_rows(scene: Scene, views: int, steps: list[int], test_views: int,
   student at extraction_cameras(poses), scored at each of `steps` (attack extraction, or extraction_<poses>)."""
   suffix = "" if poses == "orbit" else f"_{poses}"
   folder = scene.cache / f"extraction{suffix}_{views}"
+  cameras = extraction_cameras(scene, views, poses)
   if not (folder / "views" / "transforms_test.json").is_file():
-    write_blender_views(folder / "views", scene.student, extraction_cameras(scene, views, poses), scene.cameras,
-                        scene.owner.options)
+    write_blender_views(folder / "views", scene.student, cameras, scene.cameras, scene.owner.options)
   config = ml_collections.ConfigDict(scene.config.to_dict())
   config.mode = "train"
   config.data.path = str(folder / "views")
   config.data.downscale = 1
   config.init.kind = "random"
-  return [scene.row(f"extraction{suffix}", views, scores, test, steps=length)
+  nearest = key_nearest_deg(scene, cameras)
+  return [scene.row(f"extraction{suffix}", views, scores, test, steps=length, key_nearest_deg=nearest)
           for length, scores, test in snapshot_scores(scene, config, folder / f"train_{max(steps)}", steps, test_views)]
 
 
@@ -790,7 +803,8 @@ def main(argv=None):
   parser.add_argument("--extraction-views", default="200", help="comma-separated numbers of rendered views")
   parser.add_argument("--extraction-steps", default="10000", help="comma-separated training lengths")
   parser.add_argument("--extraction-poses", default="orbit", help="comma-separated sets of rendered poses beyond "
-                      "the training cameras: orbit (attack extraction), sphere (attack extraction_sphere)")
+                      "the training cameras: orbit (attack extraction), sphere (attack extraction_sphere); or unseen: "
+                      "orbit poses without the training cameras (attack extraction_unseen)")
   parser.add_argument("--test-views", type=int, default=10, help="test views of render_psnr")
   parser.add_argument("--calibration", default="experiments/results/ownership_calibration.json")
   verify = default.get_config().verify
@@ -809,6 +823,10 @@ def main(argv=None):
     done = set()
   done = set() if args.redo else done
   finetune_steps = [int(n) for n in args.finetune_steps.split(",") if n]
+  extraction_poses = [p for p in args.extraction_poses.split(",") if p]
+  unknown = sorted(set(extraction_poses) - set(EXTRACTION_POSES))
+  if unknown:
+    parser.error(f"unknown --extraction-poses {', '.join(unknown)} (of {', '.join(EXTRACTION_POSES)})")
 
   def save(rows):
     if rows:
@@ -857,7 +875,7 @@ def main(argv=None):
         save(finetune_rows(scene, todo, attack, args.test_views))
     if "extraction" in groups:
       steps = [int(n) for n in args.extraction_steps.split(",") if n]
-      for poses, views in itertools.product(args.extraction_poses.split(","), args.extraction_views.split(",")):
+      for poses, views in itertools.product(extraction_poses, args.extraction_views.split(",")):
         attack = "extraction" if poses == "orbit" else f"extraction_{poses}"
         todo = [n for n in steps if missing(attack, int(views), n)]
         if todo:

@@ -4,6 +4,7 @@ skip cleanly without splat-transform (make node_modules)."""
 from __future__ import annotations
 
 import json
+import math
 
 import jax
 import numpy as np
@@ -105,6 +106,7 @@ def test_finetune_and_extraction_rows_at_each_length(run, monkeypatch):
                "--extraction-views=6", "--extraction-steps=2,4")
   extracted = [r for r in rows if r["attack"] == "extraction"]
   assert [(r["level"], r["steps"]) for r in extracted] == [(6, 2), (6, 4)] and all(FIELDS <= set(r) for r in extracted)
+  assert all(r["key_nearest_deg"] == pytest.approx(0.0, abs=1e-3) for r in extracted)  # the key: training camera 1
   tuned = [r for r in rows if r["attack"] == "finetune"]
   assert [r["level"] for r in tuned] == [2, 4] and all(FIELDS <= set(r) for r in tuned)
   cache = run / "work" / "tiny_run"  # a scene given by path caches under label_folder
@@ -148,6 +150,36 @@ def test_sphere_extraction_poses_cover_the_sphere_and_look_at_the_target(run, tm
   assert directions.mean(0) == pytest.approx(np.zeros(3), abs=0.05)  # evenly spread: no hemisphere favoured
   with pytest.raises(ValueError, match="unknown extraction poses"):
     bench_survive.extraction_cameras(scene, 6, "ring")
+
+
+def test_unseen_extraction_poses_leave_out_the_training_cameras_and_the_key(run, tmp_path):
+  """unseen: random poses on the orbit, none a training camera; key_nearest_deg is 0 for views that include the
+  key's pose (a training camera here) and the angle, from the orbit's target, to the nearest view otherwise."""
+  from conceal_jax.splat.camera import camera_centers
+  scene = bench_survive.load_scene("tiny", run / "run", "recommended", 1,
+                                   dict(threshold=0.5), tmp_path, 1e-3, 4)
+  train_cameras = bench_survive.extraction_cameras(scene, 4)
+  unseen = bench_survive.extraction_cameras(scene, 5, "unseen")
+  assert len(unseen) == 5
+  gaps = np.linalg.norm(camera_centers(unseen)[:, None] - camera_centers(train_cameras)[None], axis=-1)
+  assert gaps.min() > 1e-3
+  assert bench_survive.key_nearest_deg(scene, train_cameras) == pytest.approx(0.0, abs=1e-3)
+  target = key_lib.orbit_target(train_cameras)
+  key = camera_centers([scene.owner.check_camera])[0] - target
+  offsets = camera_centers(unseen) - target
+  angles = [math.degrees(math.acos(np.clip(o @ key / np.linalg.norm(o) / np.linalg.norm(key), -1, 1)))
+            for o in offsets]
+  assert bench_survive.key_nearest_deg(scene, unseen) == pytest.approx(min(angles), abs=1e-4)
+  assert min(angles) > 0.1
+
+
+def test_unknown_extraction_poses_are_refused_before_any_work(run, tmp_path, capsys):
+  with pytest.raises(SystemExit) as exit_info:
+    bench_survive.main([f"--out={tmp_path / 'out'}", f"--workdir={tmp_path / 'work'}",
+                        f"--scenes=tiny={run / 'run'}", f"--calibration={run / 'cal.json'}", "--attacks=none",
+                        "--extraction", "--extraction-poses=orbit,ring"])
+  assert exit_info.value.code != 0 and "unknown --extraction-poses ring" in capsys.readouterr().err
+  assert not (tmp_path / "out").exists() and not (tmp_path / "work").exists()
 
 
 def test_gentle_fine_tuning_moves_every_field_less_than_the_3dgs_recipe():
