@@ -54,13 +54,13 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from conceal_jax.conceal import align, key as key_lib
+from conceal_jax.conceal import align, key as key_lib, tolerance
 from conceal_jax.configs import default, recipes
 from conceal_jax.core import fileio
 from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, similarity as sim, train
 from conceal_jax.robust import converter, ownership, robustness, scene_attacks
-from conceal_jax.splat.camera import camera_centers, opengl_camera_to_world
+from conceal_jax.splat.camera import opengl_camera_to_world
 from experiments import bench_robust, results_io
 
 NAME = "survive_bench"
@@ -257,8 +257,8 @@ def row_key(row: dict) -> tuple:
 class Scene:
   """A marked scene under test: its name and recipe label, conceal workdir, run config, student (numpy), owner
   (robustness.Owner), test cameras and images, the decision's calibration, its cache folder, and how many
-  Gaussians of the student are a carrier film (the last ones; conceal.carrier), and the longest a converter call
-  may take."""
+  Gaussians of the student are a carrier film (the last ones; conceal.carrier), the key's near_length, and the
+  longest a converter call may take."""
   name: str
   recipe: str
   run: pathlib.Path  # the conceal workdir whose student is under test (load_scene's `layered` when given)
@@ -272,6 +272,7 @@ class Scene:
   alpha: float
   null_views: int
   carrier: int = 0
+  key_length: float | None = None  # the key's near_length (key.json; None in runs from before it was recorded)
 
   converter_timeout_s: float = CONVERTER_TIMEOUT_S
 
@@ -296,8 +297,9 @@ def load_scene(name: str, run: pathlib.Path, recipe: str, test_views: int, calib
   student = ply.load_ply(str(student_run / "student.ply"))
   cameras, targets, _ = evaluate.held_out_views(evaluate.load_scene_data(config), test_views)
   summary = json.loads((run / "conceal.json").read_text()) if (run / "conceal.json").is_file() else {}
+  key_length = key_lib.load_key(str(run / "key.json"))[1].get("near_length")
   return Scene(name, recipe, student_run, config, jax.tree.map(np.asarray, student), owner, cameras, targets,
-               calibration, cache, alpha, null_views, int(summary.get("num_carrier", 0)))
+               calibration, cache, alpha, null_views, int(summary.get("num_carrier", 0)), key_length)
 
 
 def layered_on(run: pathlib.Path, layered: pathlib.Path) -> pathlib.Path:
@@ -557,13 +559,11 @@ def extraction_cameras(scene: Scene, views: int, poses: str = "orbit", seed: int
 
 
 def key_nearest_deg(scene: Scene, cameras: list) -> float:
-  """The smallest angle, seen from the training orbit's target, between the key's centre and a camera's centre
-  of `cameras`: how close to the key an extraction's views come (0 when they include the key's pose)."""
-  target = key_lib.orbit_target(evaluate.load_scene_data(scene.config).train_cameras)
-  offsets = camera_centers(cameras) - target
-  key = camera_centers([scene.owner.check_camera])[0] - target
-  cosines = offsets @ key / (np.linalg.norm(offsets, axis=1) * np.linalg.norm(key))
-  return float(np.degrees(np.arccos(np.clip(cosines.max(), -1.0, 1.0))))
+  """How close to the key `cameras` come, in degrees of a turn about the point the key looks at: the least
+  tolerance.angle_from_key_deg (at Scene.key_length, else the training orbit's distance); 0 where they include the
+  key's pose; a key tolerance radius (conceal.leakage.tolerance_deg) in the same measure."""
+  length = scene.key_length or key_lib.camera_distance(evaluate.load_scene_data(scene.config).train_cameras)
+  return min(tolerance.angle_from_key_deg(camera, scene.owner.check_camera, length) for camera in cameras)
 
 
 def write_blender_views(folder: pathlib.Path, gaussians, cameras, test_cameras, options) -> None:

@@ -164,11 +164,15 @@ def test_unseen_extraction_poses_leave_out_the_training_cameras_and_the_key(run,
   gaps = np.linalg.norm(camera_centers(unseen)[:, None] - camera_centers(train_cameras)[None], axis=-1)
   assert gaps.min() > 1e-3
   assert bench_survive.key_nearest_deg(scene, train_cameras) == pytest.approx(0.0, abs=1e-3)
-  target = key_lib.orbit_target(train_cameras)
-  key = camera_centers([scene.owner.check_camera])[0] - target
-  offsets = camera_centers(unseen) - target
-  angles = [math.degrees(math.acos(np.clip(o @ key / np.linalg.norm(o) / np.linalg.norm(key), -1, 1)))
-            for o in offsets]
+  # the run's key.json records no near_length: the key's turns are about the point the orbit's distance ahead
+  length = key_lib.camera_distance(train_cameras)
+  key = np.asarray(scene.owner.check_camera.world_to_camera, np.float64)
+  angles = []
+  for camera in unseen:
+    w2c = np.asarray(camera.world_to_camera, np.float64)
+    chord = np.linalg.norm(camera_centers([camera])[0] - camera_centers([scene.owner.check_camera])[0])
+    rotation = math.acos(np.clip((np.trace(key[:3, :3] @ w2c[:3, :3].T) - 1) / 2, -1, 1))
+    angles.append(math.degrees(max(2 * math.asin(chord / (2 * length)), rotation)))
   assert bench_survive.key_nearest_deg(scene, unseen) == pytest.approx(min(angles), abs=1e-4)
   assert min(angles) > 0.1
 

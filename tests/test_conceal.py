@@ -37,7 +37,8 @@ PATHS = dict(**{name: f"mark.{name}" for name in ("teacher", "hidden", "hidden_s
                                                   "key_seed", "extra_hidden")},
              **{name: f"conceal.leakage.{name}" for name in ("identity_on_student", "identity_on_teacher_check",
                                                              "decoy_views", "decoy_fraction", "decoy_translation",
-                                                             "decoy_rotation_deg")},
+                                                             "decoy_rotation_deg", "tolerance_deg",
+                                                             "tolerance_views", "tolerance_fraction")},
              **{f"decoder_{name}": f"conceal.decoder.{name}" for name in ("width", "input_norm", "clip_input")},
              **{f"decoder_{name}": f"conceal.decoder_opt.{name}" for name in ("lr_final_ratio", "update_clip",
                                                                               "polish_steps", "adam_eps")},
@@ -405,6 +406,8 @@ def test_two_hidden_images_each_at_its_own_key(tiny, tmp_path):
     pytest.param(dict(variant="released", granularity="tensor", key_kind="orbit"), marks=pytest.mark.slow),
     pytest.param(dict(identity_on_student=True, identity_on_teacher_check=True, decoy_views=3, decoy_fraction=0.5),
                  marks=pytest.mark.slow),
+    pytest.param(dict(identity_on_student=True, tolerance_deg=20.0, tolerance_views=2, tolerance_fraction=0.9),
+                 marks=pytest.mark.slow),
     pytest.param(dict(decoder_input_norm="center", decoder_clip_input=True, decoder_lr_final_ratio=0.3,
                       decoder_update_clip=1.0), marks=pytest.mark.slow)])
 def test_ablations_and_variants_run(tiny, tmp_path, overrides):
@@ -444,6 +447,7 @@ def test_resized_camera_keeps_the_field_of_view():
     (dict(decoy_views=4), "decoy_fraction"), (dict(decoy_views=4, decoy_fraction=1.0), "decoy_fraction"),
     (dict(decoy_views=4, decoy_fraction=0.2, variant="released"), "decoy_fraction"),
     (dict(decoy_translation=(0.2, 0.1)), "decoy_translation"), (dict(eval_views=0), "eval_views"),
+    (dict(tolerance_views=4), "tolerance_deg, tolerance_views and tolerance_fraction"),
     (dict(decoder_lr_final_ratio=2.0), "decoder_opt.lr_final_ratio"),
     (dict(decoder_update_clip=-1.0), "decoder_opt.update_clip"),
     (dict(decoder_polish_steps=-1), "polish_steps must be"),

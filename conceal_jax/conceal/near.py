@@ -130,3 +130,11 @@ def decoy_cameras(camera: Camera, length: float, count: int, translation: Sequen
     axis = KEY_AXES[(k // 3) % len(KEY_AXES)] if key_axes and kind in (0, 1) else None
     cameras.append(nearby_camera(camera, moved, turned, DECOY_SEED_BASE + seed * count + k, key_axis=axis))
   return cameras
+
+
+def keys_decoys(keys: list, count: int, translation: Sequence[float], rotation_deg: Sequence[float], seed: int,
+                key_axes: bool = False) -> list[Camera]:
+  """decoy_cameras around each key of `keys` [(camera, info)] in turn, at its near_length, from its own seed
+  seed + k: `count` per key."""
+  return [decoy for k, (camera, info) in enumerate(keys)
+          for decoy in decoy_cameras(camera, info["near_length"], count, translation, rotation_deg, seed + k, key_axes)]

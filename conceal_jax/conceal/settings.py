@@ -109,7 +109,8 @@ class RunPlan:
   """What a concealment job reads from its config, checked: the step's settings, the loop (the joint
   iterations then conceal.decoder_opt.polish_steps decoder-only steps), the sources of the hidden images
   (mark.hidden then mark.extra_hidden), the key's kind, the decoys' (count, ranges, whether the moved ones go
-  along the key's axes) and the carrier film's (None: the student is the teacher's Gaussians)."""
+  along the key's axes), the carrier film's (None: the student is the teacher's Gaussians) and the key tolerance
+  radius (None: the key alone)."""
   settings: ConcealSettings
   loop: loop.LoopSettings
   iterations: int
@@ -124,6 +125,29 @@ class RunPlan:
   decoy_rotation_deg: tuple[float, float]
   film: carrier.Film | None = None
   decoy_key_axes: bool = False
+  tolerance: Tolerance | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Tolerance:
+  """The key tolerance radius (conceal.leakage.tolerance_*): `views` poses within `deg` of each key that reveal its
+  image, one of them the step's check view with probability `fraction`."""
+  deg: float
+  views: int
+  fraction: float
+
+
+def tolerance(leakage: ml_collections.ConfigDict) -> Tolerance | None:
+  """conceal.leakage.tolerance_* checked: all three set (a radius in (0, 90) degrees, a positive number of poses, a
+  share of the steps in (0, 1)) or none (None)."""
+  deg, views, fraction = leakage.tolerance_deg, leakage.tolerance_views, leakage.tolerance_fraction
+  if not deg and not views and not fraction:
+    return None
+  if not (0 < deg < 90 and isinstance(views, int) and views > 0 and 0 < fraction < 1):
+    raise ValueError("conceal.leakage.tolerance_deg, tolerance_views and tolerance_fraction are set together: a "
+                     "radius in (0, 90) degrees, a positive number of poses and a share of the steps in (0, 1), got "
+                     f"{deg}, {views} and {fraction}")
+  return Tolerance(float(deg), views, float(fraction))
 
 
 def key_offset(config: ml_collections.ConfigDict) -> float:
@@ -182,7 +206,7 @@ def plan(config: ml_collections.ConfigDict) -> RunPlan:
   return RunPlan(settings, dataclasses.replace(joint, iterations=joint.iterations + polish), c.iterations, polish,
                  sources, m.key_kind, m.key_index, m.key_seed, key_offset(config), lk.decoy_views,
                  ranges["decoy_translation"], ranges["decoy_rotation_deg"], carrier.film_plan(config),
-                 bool(lk.decoy_key_axes))
+                 bool(lk.decoy_key_axes), tolerance(lk))
 
 
 def extra_hidden(extra, use_decoder: bool) -> tuple[str, ...]:

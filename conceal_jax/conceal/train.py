@@ -21,7 +21,7 @@ import numpy as np
 
 from conceal_jax.conceal import augment, hidden as hidden_lib, key as key_lib, reveal, scoring, settings as settings_lib
 from conceal_jax.conceal import align, carrier, grouping, linear_check, merge_costs, message as message_lib, near, unet
-from conceal_jax.conceal import views as views_lib
+from conceal_jax.conceal import tolerance as tolerance_lib, views as views_lib
 from conceal_jax.conceal.step import create_state, make_step
 from conceal_jax.core import fileio, loop, parallel
 from conceal_jax.data import ply
@@ -91,12 +91,11 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
   teacher, rendered."""
   s = plan.settings
   teacher, scene, hiddens, keys, options, message = marking(config, plan)
-  decoys = [decoy for k, (camera, info) in enumerate(keys)
-            for decoy in near.decoy_cameras(camera, info["near_length"], plan.decoy_views, plan.decoy_translation,
-                                               plan.decoy_rotation_deg, plan.key_seed + k, plan.decoy_key_axes)]
-  # the released variant's check-view L1 target: the training image at a training-camera key, else the
-  # teacher's render (an orbit pose has no image)
-  key_images = ([scene.train_images[info["index"]] for _, info in keys] if plan.key_kind == "train_index" else None)
+  decoys = near.keys_decoys(keys, plan.decoy_views, plan.decoy_translation, plan.decoy_rotation_deg, plan.key_seed,
+                            plan.decoy_key_axes)
+  check_cameras, check_hiddens = tolerance_lib.check_views(plan.tolerance, plan.key_seed, keys, hiddens)
+  # the released variant's check-view L1 target: a training-camera key's image (elsewhere the teacher's render)
+  key_images = [scene.train_images[info["index"]] for _, info in keys] if plan.key_kind == "train_index" else None
   start, colour_rows, merges, ties, neighbourhoods = teacher, None, None, None, merge_costs.Neighbourhoods()
   if plan.film is not None:
     film = carrier.planned_film(plan.film, teacher, keys[0][0], scene.train_cameras, scene.test_cameras, options,
@@ -110,10 +109,11 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
   reach = (dict(student=start, check_states=linear_check.states(s.augmentation),
                 linear_maps_mb=config.conceal.carrier.linear_maps_mb)
            if plan.film is not None and s.augmentation.param_noise_max == 0 else {})
-  data = views_lib.build_data(scene.train_images, teacher, options, list(scene.train_cameras) + decoys,
-                              [camera for camera, _ in keys], hiddens, s.hidden_size, s.reading.clip, key_images,
-                              colour_rows, merges, ties, plan.film is not None and plan.film.at_decoder_size,
-                              **reach)
+  normal_cameras = list(scene.train_cameras) + decoys
+  data = views_lib.build_data(scene.train_images, teacher, options, normal_cameras, check_cameras, check_hiddens,
+                              s.hidden_size, s.reading.clip, key_images, colour_rows, merges, ties,
+                              plan.film is not None and plan.film.at_decoder_size,
+                              tolerance_lib.held_to_identity(plan.tolerance, keys, normal_cameras), **reach)
   return Run(plan, teacher, start, scene, hiddens, keys, decoys, options, data, message, neighbourhoods)
 
 
@@ -196,7 +196,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
     views = [views_lib.draw_normal_view(rng, num_views, len(run.decoys), s.decoy_fraction) for _ in range(2)]
     distortion = augment.draw(rng, s.augmentation) if s.augmentation.draws else None
     return steps(iteration <= plan.iterations, parallel.replicate(state, mesh), data, *views,
-                 (iteration - 1) % num_keys, distortion)
+                 views_lib.draw_key(rng, iteration, num_keys, plan.tolerance), distortion)
 
   eval_views = evaluate.held_out_views(run.scene, c.eval_views)[:2]
   def after_window(state, iteration):

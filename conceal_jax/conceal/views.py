@@ -46,7 +46,9 @@ class ConcealData:
   read through; normal_weights: None or the renders of the normal views that are not fixed as linear maps
   (linear_check.normal_weights: linear.ColourWeights [R]), with normal_maps int32 [V + D]: each normal view's index
   among them (-1: fixed), which those views are read through. The two stacks hold maps of one length, so that a
-  step's two views stack whichever they read."""
+  step's two views stack whichever they read. held: None (every normal view) or bool [V + D]: the normal views whose
+  student render L_d^- holds to F's identity (beyond the key tolerance radius; train.held_to_identity). keys: the
+  run's keys, then the poses within the key tolerance radius of each (train.tolerance_keys), key by key."""
   images: jax.Array
   teacher: jax.Array
   teacher_small: jax.Array
@@ -60,16 +62,18 @@ class ConcealData:
   check_weights: Any = None
   normal_weights: Any = None
   normal_maps: Any = None
+  held: Any = None
 
 
 def build_data(train_images, teacher, options: RenderOptions, normal_cameras: list[Camera], key_cameras, hiddens,
                size: int, clip: bool = False, key_images=None, colour_rows=None, merges=None,
-               ties=None, at_decoder_size: bool = False, student=None, check_states: int = 0,
-               linear_maps_mb: float = 0.0) -> ConcealData:
+               ties=None, at_decoder_size: bool = False, held_to_identity=None, student=None,
+               check_states: int = 0, linear_maps_mb: float = 0.0) -> ConcealData:
   """The device-resident inputs of the concealment step. `normal_cameras`: the training cameras then the
-  decoys; `key_cameras` and `hiddens` [S, S, 3]: one of each per key; `key_images` [H, W, 3] per key: the
-  released variant's check-view targets (None: the teacher's renders there); `colour_rows`, `merges`, `ties`:
-  ConcealData's. The teacher renders at the decoder size are clipped to [0, 1] first with `clip` (reveal.Reading).
+  decoys; `key_cameras` and `hiddens` [S, S, 3]: one of each per key; `key_images` [H, W, 3]: the released
+  variant's check-view targets of the first len(key_images) keys (None: of none; the teacher's renders at the
+  others); `colour_rows`, `merges`, `ties`, `held_to_identity` (held): ConcealData's. The teacher renders at the
+  decoder size are clipped to [0, 1] first with `clip` (reveal.Reading).
   With `at_decoder_size` (conceal.carrier.at_decoder_size: the decoys and keys are S x S cameras), the training
   views' renders are the teacher's resized as the decoder reads them, their cameras the same views at S x S.
   With `student` (where only colour_rows train), ConcealData's rows and fixed: every render reads colour_rows; and
@@ -85,8 +89,8 @@ def build_data(train_images, teacher, options: RenderOptions, normal_cameras: li
     teacher_renders = evaluate.render_images(teacher, normal_cameras, options)
   key_stack = camera_lib.stack(list(key_cameras))
   teacher_keys = render_batch(teacher, key_stack, options).rgb
-  keys = key_lib.stack_keys(key_cameras, hiddens, teacher_keys if key_images is None else key_images,
-                            reveal.resize_for_decoder(teacher_keys, size, clip))
+  check_images = list(key_images or []) + list(teacher_keys[len(key_images or []):])
+  keys = key_lib.stack_keys(key_cameras, hiddens, check_images, reveal.resize_for_decoder(teacher_keys, size, clip))
   rows = fixed = normal_weights = normal_maps = None
   if student is not None:
     fixed = np.arange(len(normal_cameras)) < len(train_images)
@@ -100,7 +104,8 @@ def build_data(train_images, teacher, options: RenderOptions, normal_cameras: li
                    teacher_small=reveal.resize_for_decoder(teacher_renders, size, clip),
                    cameras=camera_lib.stack(list(normal_cameras)), keys=keys, colour_rows=colour_rows, merges=merges,
                    ties=ties, rows=rows, fixed=None if fixed is None else jnp.asarray(fixed),
-                   normal_weights=normal_weights, normal_maps=normal_maps)
+                   normal_weights=normal_weights, normal_maps=normal_maps,
+                   held=None if held_to_identity is None else jnp.asarray(held_to_identity))
   return regrouped(data, student, merges, options, check_states) if student is not None and check_states else data
 
 
@@ -149,7 +154,8 @@ def step_views(data: ConcealData, view, normal_view, key_number, distortion, set
                 target=data.teacher[view] if s.distill else data.images[view],
                 l1_weight=f32(s.weight_kd if s.distill else 0.0), photometric_weight=f32(0.0 if s.distill else 1.0),
                 model=NO_DISTORTION, image=distortion if s.identity_distorted else NO_DISTORTION, hidden=key.hidden,
-                plus_weight=f32(0.0), own_minus_weight=f32(w["student"]), teacher_small=data.teacher_small[normal_view],
+                plus_weight=f32(0.0), teacher_small=data.teacher_small[normal_view],
+                own_minus_weight=f32(w["student"]) * (1.0 if data.held is None else data.held[view].astype(f32)),
                 teacher_minus_weight=f32(w["teacher_normal"]), rows=rows(view),
                 fixed=None if data.fixed is None else data.fixed[view], fixed_rgb=data.teacher[view],
                 weights=normal_map, linear=normal_linear)
@@ -191,3 +197,13 @@ def draw_normal_view(rng: np.random.Generator, num_views: int, num_decoys: int, 
   if num_decoys and rng.random() < decoy_fraction:
     return num_views + int(rng.integers(num_decoys))
   return int(rng.integers(num_views))
+
+
+def draw_key(rng: np.random.Generator, iteration: int, num_keys: int, tolerance=None) -> int:
+  """A step's check view among ConcealData.keys: the run's keys in turn (key (iteration - 1) % num_keys); with a key
+  tolerance radius (settings.Tolerance), one of that key's poses within it instead with probability
+  tolerance.fraction, each uniformly (index num_keys + key * tolerance.views + j)."""
+  key = (iteration - 1) % num_keys
+  if tolerance is not None and rng.random() < tolerance.fraction:
+    return num_keys + key * tolerance.views + int(rng.integers(tolerance.views))
+  return key

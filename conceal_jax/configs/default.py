@@ -246,7 +246,12 @@ def conceal_leakage_section() -> ml_collections.ConfigDict:
   a fraction means about the same pixel motion on an object-centred orbit and on a forward-facing capture, where
   the 3D-GS extent (the spread of the camera centres) is small against the depth. decoy_key_axes: the decoys that
   are only moved go along, and those only turned turn about, the key's own axes in turn (a zoom and a roll among
-  them) rather than random ones."""
+  them) rather than random ones. A key tolerance radius (issue 39's trade of the leakage radius for robustness):
+  tolerance_views poses within tolerance_deg of every key (the key turned about the point it looks at, as a camera
+  on its orbit sees the scene) reveal the key's image too, one of them the check view with probability
+  tolerance_fraction, and the training views within the radius are not held to F's identity on the student's
+  render; the decoys belong beyond it (decoy_rotation_deg, decoy_translation), so that a copy trained on views
+  that come near the key, not onto it, can carry the mark (0: off, the key alone)."""
   c = ml_collections.ConfigDict()
   c.identity_on_student = False
   c.identity_on_teacher_check = False
@@ -255,6 +260,9 @@ def conceal_leakage_section() -> ml_collections.ConfigDict:
   c.decoy_translation = (0.01, 0.1)
   c.decoy_rotation_deg = (1.0, 10.0)
   c.decoy_key_axes = False
+  c.tolerance_deg = 0.0
+  c.tolerance_views = 0
+  c.tolerance_fraction = 0.0
   return c
 
 

@@ -9,7 +9,7 @@ The figures behind each choice: experiments/results/REPRODUCTION.md (a row per r
 """
 
 RECIPES = ("paper", "released", "in_scene", "standardized", "recommended", "recommended_at_decoder_size",
-           "in_scene_watched", "in_scene_close")
+           "in_scene_watched", "in_scene_close", "in_scene_tolerant")
 
 # The decoder a CPU trains: width 16 from scratch (the paper's width 64 costs ~10x more per step), at a rate
 # a from-scratch decoder learns at (1e-3 stalled the demo's first steps).
@@ -58,6 +58,11 @@ FILM_STACK = 2
 WATCH_DECOY_VIEWS, WATCH_DECOY_FRACTION, WATCH_WEIGHT_MINUS = 768, 0.9, 1.5
 # The rate of the film's base colours in the vivid film (the gentle student's is 6.25e-4).
 VIVID_DC_LR = 1e-2
+# The key tolerance radius: poses within TOLERANCE_DEG of the key (turned about what it looks at, as an orbit camera)
+# reveal its image on TOLERANCE_FRACTION of the steps; its decoys beyond the radius, turned TOLERANT_DECOY_ROTATION_DEG
+# or moved TOLERANT_DECOY_TRANSLATION of the key's depth (an orbit turn of TOLERANCE_DEG moves the key about 0.17).
+TOLERANCE_DEG, TOLERANCE_VIEWS, TOLERANCE_FRACTION = 10.0, 64, 0.5
+TOLERANT_DECOY_ROTATION_DEG, TOLERANT_DECOY_TRANSLATION = (15.0, 30.0), (0.25, 0.5)
 # The key at the decoder's size: its decoys (twice the watched key's), moved by these fractions of the key's depth
 # (the default's are 0.01-0.1), and the memory their linear maps may take.
 DECODER_SIZE_DECOYS, DECODER_SIZE_DECOY_TRANSLATION, DECODER_SIZE_MAPS_MB = 1536, (0.005, 0.06), 8192
@@ -137,6 +142,23 @@ def in_scene_close(config):
   watched key's: a layer in the scene's own Gaussians needs the training views on most steps, or those Gaussians
   drift in every view while L_d^- and the check render move them (conceal.leakage.decoy_fraction)."""
   return closely_watched_key(in_scene(config), decoy_fraction=DECOY_FRACTION)
+
+
+def in_scene_tolerant(config):
+  """in_scene with a key tolerance radius (tolerant_key): a mark in the scene's own Gaussians that views near the
+  key, not only the key, reveal, so that a copy trained on an attacker's views, which come near the key but not onto
+  it, can carry it; the leakage radius grows to TOLERANCE_DEG (the trade issue 39 names)."""
+  return tolerant_key(in_scene(config))
+
+
+def tolerant_key(config, radius_deg: float = TOLERANCE_DEG):
+  """TOLERANCE_VIEWS poses within `radius_deg` of the key reveal its image on TOLERANCE_FRACTION of the steps, the
+  training views within it are not held to F's identity, and the decoys lie beyond it (conceal.leakage.tolerance_*,
+  decoy_rotation_deg, decoy_translation)."""
+  lk = config.conceal.leakage
+  lk.tolerance_deg, lk.tolerance_views, lk.tolerance_fraction = radius_deg, TOLERANCE_VIEWS, TOLERANCE_FRACTION
+  lk.decoy_rotation_deg, lk.decoy_translation = TOLERANT_DECOY_ROTATION_DEG, TOLERANT_DECOY_TRANSLATION
+  return config
 
 
 def decoder_size_key(config, decoy_views: int = DECODER_SIZE_DECOYS):

@@ -1,0 +1,79 @@
+"""The key tolerance radius (conceal.leakage.tolerance_*; issue 39's trade of the leakage radius for robustness):
+poses within the radius of a key, the key turned about the point it looks at as a camera on its orbit sees the
+scene, reveal the key's image too, and the training views within it are not held to F's identity, so that a copy
+trained on views that come near the key, not onto it, can carry the mark."""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from conceal_jax.conceal.key import rotation_about
+from conceal_jax.conceal.settings import Tolerance
+from conceal_jax.splat.camera import Camera, camera_centers
+
+
+TOLERANCE_SEED_BASE = 3_000_000  # seeds of the tolerance poses, apart from leakage's, the decoys' and the nulls'
+
+
+def orbited_camera(camera: Camera, pivot: np.ndarray, axis: np.ndarray, angle: float) -> Camera:
+  """`camera` turned rigidly by `angle` radians about the world `axis` through the world point `pivot` [3]: where
+  it stands moves about the pivot and it turns with it, looking at the pivot as before. Same intrinsics."""
+  rotation = rotation_about(axis, angle)
+  w2c = np.asarray(camera.world_to_camera, np.float64)
+  center = pivot + rotation @ (camera_centers([camera])[0] - pivot)
+  moved = np.eye(4)
+  moved[:3, :3] = w2c[:3, :3] @ rotation.T
+  moved[:3, 3] = -moved[:3, :3] @ center
+  return Camera.from_intrinsics(moved, float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy),
+                                camera.width, camera.height)
+
+
+def tolerance_cameras(camera: Camera, length: float, count: int, radius_deg: float, seed: int = 0) -> list[Camera]:
+  """`count` poses within `radius_deg` of the key (conceal.leakage.tolerance_*): the key turned about the point
+  `length` ahead on its optical axis (near_length: the scene's depth as the key sees it) by an angle drawn uniformly
+  over the cap of that radius, about a random axis across its optical axis: the poses a camera on the key's orbit
+  takes near it, which reveal the key's image too."""
+  w2c = np.asarray(camera.world_to_camera, np.float64)
+  forward = w2c[2, :3]
+  pivot = camera_centers([camera])[0] + length * forward
+  cameras = []
+  for k in range(count):
+    rng = np.random.default_rng([TOLERANCE_SEED_BASE + seed, k])
+    axis = np.cross(forward, rng.normal(size=3))
+    angle = math.acos(1.0 - rng.uniform() * (1.0 - math.cos(math.radians(radius_deg))))
+    cameras.append(orbited_camera(camera, pivot, axis / np.linalg.norm(axis), angle))
+  return cameras
+
+
+def angle_from_key_deg(camera: Camera, key: Camera, length: float) -> float:
+  """How far (degrees) `camera` stands from the key, in the turns of tolerance_cameras about the point `length`
+  ahead on the key's optical axis: the larger of the turn that moves the key's centre as far as `camera`'s is from
+  it (2 asin(d / 2 length), d the distance between the centres) and the angle of the rotation between their
+  orientations. A pose turned by t degrees about that point is t away; a camera at the key's place turned or rolled,
+  or moved towards the scene, is as far as its turn or its move."""
+  w2c, other = np.asarray(key.world_to_camera, np.float64), np.asarray(camera.world_to_camera, np.float64)
+  moved = np.linalg.norm(camera_centers([camera])[0] - camera_centers([key])[0]) / (2.0 * length)
+  turned = float(np.clip((np.trace(w2c[:3, :3] @ other[:3, :3].T) - 1.0) / 2.0, -1.0, 1.0))
+  return math.degrees(max(2.0 * math.asin(min(moved, 1.0)), math.acos(turned)))
+
+
+def check_views(tolerance: Tolerance | None, key_seed: int, keys: list, hiddens: list) -> tuple[list, list]:
+  """The cameras a run's check view is drawn from and their hidden images: the keys `keys` [(camera, info)] with
+  `hiddens`, then the poses within the key tolerance radius of each (tolerance_cameras, from the key's own seed
+  key_seed + k), key by key, tolerance.views each, hiding their key's image."""
+  cameras, images = [camera for camera, _ in keys], list(hiddens)
+  for k, ((key, info), hidden) in enumerate(zip(keys, hiddens)):
+    if tolerance is not None:
+      cameras += tolerance_cameras(key, info["near_length"], tolerance.views, tolerance.deg, key_seed + k)
+      images += [hidden] * tolerance.views
+  return cameras, images
+
+
+def held_to_identity(tolerance: Tolerance | None, keys: list, normal_cameras: list) -> np.ndarray | None:
+  """bool [V + D]: the normal views whose student render L_d^- holds to F's identity: those beyond the key
+  tolerance radius of every key (None: all, without a radius)."""
+  if tolerance is None:
+    return None
+  return np.array([all(angle_from_key_deg(camera, key, info["near_length"]) > tolerance.deg for key, info in keys)
+                   for camera in normal_cameras])
