@@ -238,6 +238,15 @@ def test_falloff_rows_start_at_the_key_and_skip_missing_runs(run, tmp_path, caps
              for r in rows[1:])
   assert "skipping gone" in capsys.readouterr().out
   assert (out / "falloff_bench.md").read_text().count("| tiny |") == 1 and (out / "falloff_bench.png").is_file()
+  # the orbit turns: rows of their own beside the head turns', the key itself at 0 degrees
+  bench_falloff.main([f"--out={out}", f"--scenes=tiny={run / 'run'}", "--directions=2", "--turn=orbit"])
+  rows = json.loads((out / "falloff_bench.json").read_text())["rows"]
+  orbit = [r for r in rows if r["turn"] == "orbit"]
+  assert [r["angle_deg"] for r in orbit] == list(bench_falloff.ORBIT_ANGLES_DEG)
+  assert len(rows) == len(orbit) + len(bench_falloff.ANGLES_DEG)
+  assert orbit[0]["mean_ssim"] == pytest.approx(at_key["mean_ssim"], abs=1e-5)  # the key, its pose recomputed
+  assert all(r["directions"] == 2 and r["max_ssim"] >= r["mean_ssim"] for r in orbit[1:])
+  assert (out / "falloff_bench.md").read_text().count("| tiny |") == 2
 
 
 def test_a_cache_of_attacked_scenes_belongs_to_one_run(tmp_path, capsys):

@@ -5,6 +5,7 @@ trained on views that come near the key, not onto it, can carry the mark."""
 from __future__ import annotations
 
 import math
+from typing import Sequence
 
 import numpy as np
 
@@ -29,21 +30,26 @@ def orbited_camera(camera: Camera, pivot: np.ndarray, axis: np.ndarray, angle: f
                                 camera.width, camera.height)
 
 
-def tolerance_cameras(camera: Camera, length: float, count: int, radius_deg: float, seed: int = 0) -> list[Camera]:
-  """`count` poses within `radius_deg` of the key (conceal.leakage.tolerance_*): the key turned about the point
-  `length` ahead on its optical axis (near_length: the scene's depth as the key sees it) by an angle drawn uniformly
-  over the cap of that radius, about a random axis across its optical axis: the poses a camera on the key's orbit
-  takes near it, which reveal the key's image too."""
+def orbit_turns(camera: Camera, length: float, angles_deg: Sequence[float], seed: int = 0) -> list[Camera]:
+  """The key turned about the point `length` ahead on its optical axis (near_length: the scene's depth as the key
+  sees it) by each of `angles_deg`, about a random axis across its optical axis (the k-th from seed and k): the
+  poses a camera on the key's orbit takes that far from it."""
   w2c = np.asarray(camera.world_to_camera, np.float64)
   forward = w2c[2, :3]
   pivot = camera_centers([camera])[0] + length * forward
   cameras = []
-  for k in range(count):
-    rng = np.random.default_rng([TOLERANCE_SEED_BASE + seed, k])
-    axis = np.cross(forward, rng.normal(size=3))
-    angle = math.acos(1.0 - rng.uniform() * (1.0 - math.cos(math.radians(radius_deg))))
-    cameras.append(orbited_camera(camera, pivot, axis / np.linalg.norm(axis), angle))
+  for k, angle in enumerate(angles_deg):
+    axis = np.cross(forward, np.random.default_rng([TOLERANCE_SEED_BASE + seed, k]).normal(size=3))
+    cameras.append(orbited_camera(camera, pivot, axis / np.linalg.norm(axis), math.radians(angle)))
   return cameras
+
+
+def tolerance_cameras(camera: Camera, length: float, count: int, radius_deg: float, seed: int = 0) -> list[Camera]:
+  """`count` poses within `radius_deg` of the key (conceal.leakage.tolerance_*): orbit_turns by angles drawn
+  uniformly over the cap of that radius, which reveal the key's image too."""
+  u = np.random.default_rng(TOLERANCE_SEED_BASE + seed).uniform(size=count)
+  angles = np.degrees(np.arccos(1.0 - u * (1.0 - math.cos(math.radians(radius_deg)))))
+  return orbit_turns(camera, length, angles, seed)
 
 
 def angle_from_key_deg(camera: Camera, key: Camera, length: float) -> float:
