@@ -117,7 +117,13 @@ SCENE_NOTES = {
                              "workdirs/bench/lego/conceal_recommended_w16) with lego_conceal.py:in_scene concealed on "
                              "it as a second mark (workdirs/survive_runs/lego_recommended_in_scene, 2026-11-29): the "
                              "in_scene mark, read at its own key with its own decoder",
-    "lego_layered_film": "lego_layered_in_scene's scene; the film's mark, read from it"}
+    "lego_layered_film": "lego_layered_in_scene's scene; the film's mark, read from it",
+    "lego_layered_close": "lego_layered_in_scene with lego_conceal.py:in_scene_close as the second mark "
+                          "(workdirs/survive_runs/lego_recommended_in_scene_close, 2026-11-30)",
+    "lego_layered_tolerant": "lego_layered_in_scene with lego_conceal.py:in_scene_tolerant as the second mark "
+                             "(workdirs/survive_runs/lego_recommended_in_scene_tolerant, 2026-11-30)",
+    "demo_layered_tolerant": "demo_layered_in_scene with demo.py:tolerant as the second mark "
+                             "(workdirs/survive_runs/demo_thick_mf20_tolerant, 2026-11-30)"}
 TRANSFORMS = ([("rotate", d) for d in (1.0, 5.0, 45.0, 180.0)] + [("translate", f) for f in (0.026, 1.0)]
               + [("scale", f) for f in (0.5, 1.1, 2.0)])
 # attack, level -> converter.round_trip's arguments
@@ -131,6 +137,11 @@ SCALED_FACTORS, SCALED_KEEP = (0.1, 0.15, 0.4, 1.6, 4.0), 0.5
 CONVERTER_TIMEOUT_S = 3600  # per converter call: .sog clusters a lego scene for many minutes on a CPU
 # What each recipe label of the rows is (the survival designs of issue 39 beside the in_scene recipe).
 RECIPE_NOTES = {
+    "in_scene_close": "recipes.in_scene_close: in_scene with 768 decoys turned 1-5 degrees on a quarter of the "
+                      "steps, L_d^- weighted 2.5",
+    "in_scene_tolerant": "recipes.in_scene_tolerant: in_scene with a key tolerance radius of 10 degrees "
+                         "(recipes.tolerant_key), its decoys beyond it",
+    "tolerant": "demo.py:tolerant: the demo's in_scene recipe with recipes.tolerant_key",
     "in_scene": "the mark in the teacher's Gaussians, refined (recipes.in_scene; configs/demo.py; bench-conceal's "
                 "in_scene lego row)",
     "recommended": "recipes.recommended: the carrier film (configs/conceal.py's default; the label of a run given by "
