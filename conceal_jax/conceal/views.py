@@ -47,8 +47,8 @@ class ConcealData:
   (linear_check.normal_weights: linear.ColourWeights [R]), with normal_maps int32 [V + D]: each normal view's index
   among them (-1: fixed), which those views are read through. The two stacks hold maps of one length, so that a
   step's two views stack whichever they read. held: None (every normal view) or bool [V + D]: the normal views whose
-  student render L_d^- holds to F's identity (beyond the key tolerance radius; train.held_to_identity). keys: the
-  run's keys, then the poses within the key tolerance radius of each (train.tolerance_keys), key by key."""
+  student render L_d^- holds to F's identity (beyond the key tolerance radius; tolerance.held_to_identity). keys: the
+  run's keys, then the poses within the key tolerance radius of each (tolerance.check_views), key by key."""
   images: jax.Array
   teacher: jax.Array
   teacher_small: jax.Array

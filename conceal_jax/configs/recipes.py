@@ -7,6 +7,7 @@ key sees), built from the named parts below. configs/conceal.py applies one by n
 
 The figures behind each choice: experiments/results/REPRODUCTION.md (a row per recipe) and conceal_options.md.
 """
+import math
 
 RECIPES = ("paper", "released", "in_scene", "standardized", "recommended", "recommended_at_decoder_size",
            "in_scene_watched", "in_scene_close", "in_scene_tolerant")
@@ -59,10 +60,10 @@ WATCH_DECOY_VIEWS, WATCH_DECOY_FRACTION, WATCH_WEIGHT_MINUS = 768, 0.9, 1.5
 # The rate of the film's base colours in the vivid film (the gentle student's is 6.25e-4).
 VIVID_DC_LR = 1e-2
 # The key tolerance radius: poses within TOLERANCE_DEG of the key (turned about what it looks at, as an orbit camera)
-# reveal its image on TOLERANCE_FRACTION of the steps; its decoys beyond the radius, turned TOLERANT_DECOY_ROTATION_DEG
-# or moved TOLERANT_DECOY_TRANSLATION of the key's depth (an orbit turn of TOLERANCE_DEG moves the key about 0.17).
+# reveal its image on TOLERANCE_FRACTION of the steps; its decoys beyond the radius, between TOLERANT_DECOYS_BEYOND
+# times it: turned that many degrees, or moved as far as such an orbit turn moves the key (2 sin(t / 2) of its depth).
 TOLERANCE_DEG, TOLERANCE_VIEWS, TOLERANCE_FRACTION = 10.0, 64, 0.5
-TOLERANT_DECOY_ROTATION_DEG, TOLERANT_DECOY_TRANSLATION = (15.0, 30.0), (0.25, 0.5)
+TOLERANT_DECOYS_BEYOND = (1.5, 3.0)
 # The key at the decoder's size: its decoys (twice the watched key's), moved by these fractions of the key's depth
 # (the default's are 0.01-0.1), and the memory their linear maps may take.
 DECODER_SIZE_DECOYS, DECODER_SIZE_DECOY_TRANSLATION, DECODER_SIZE_MAPS_MB = 1536, (0.005, 0.06), 8192
@@ -153,11 +154,13 @@ def in_scene_tolerant(config):
 
 def tolerant_key(config, radius_deg: float = TOLERANCE_DEG):
   """TOLERANCE_VIEWS poses within `radius_deg` of the key reveal its image on TOLERANCE_FRACTION of the steps, the
-  training views within it are not held to F's identity, and the decoys lie beyond it (conceal.leakage.tolerance_*,
-  decoy_rotation_deg, decoy_translation)."""
+  training views within it are not held to F's identity, and the decoys lie beyond it, TOLERANT_DECOYS_BEYOND times
+  it (conceal.leakage.tolerance_*, decoy_rotation_deg, decoy_translation)."""
   lk = config.conceal.leakage
   lk.tolerance_deg, lk.tolerance_views, lk.tolerance_fraction = radius_deg, TOLERANCE_VIEWS, TOLERANCE_FRACTION
-  lk.decoy_rotation_deg, lk.decoy_translation = TOLERANT_DECOY_ROTATION_DEG, TOLERANT_DECOY_TRANSLATION
+  turns = tuple(radius_deg * factor for factor in TOLERANT_DECOYS_BEYOND)
+  lk.decoy_rotation_deg = turns
+  lk.decoy_translation = tuple(round(2.0 * math.sin(math.radians(t) / 2.0), 4) for t in turns)
   return config
 
 
