@@ -731,10 +731,14 @@ def extraction_curves(rows: list[dict]) -> dict[tuple, list[tuple[int, float, bo
   curves = {}
   for r in rows:
     if r["attack"].startswith("extraction"):
-      poses = r["attack"].removeprefix("extraction").removeprefix("_") or "orbit"
-      curves.setdefault((r["scene"], r["recipe"], poses, r["level"]), []).append(
-          (r["steps"], r["hidden_ssim"], owned(r)))
+      curves.setdefault(extraction_key(r), []).append((r["steps"], r["hidden_ssim"], owned(r)))
   return {key: sorted(points) for key, points in sorted(curves.items())}
+
+
+def extraction_key(row: dict) -> tuple:
+  """(scene, recipe, poses, views) of a model-extraction row (attack extraction: poses orbit; extraction_<poses>)."""
+  poses = row["attack"].removeprefix("extraction").removeprefix("_") or "orbit"
+  return row["scene"], row["recipe"], poses, row["level"]
 
 
 PANEL_HEIGHT, LEGEND_LINE = 4.8, 0.16  # inches: survive_curves.png's panels, a line of their legends

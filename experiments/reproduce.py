@@ -389,18 +389,25 @@ def extraction_table(survive_bench: dict) -> list[str]:
   """Model extraction (bench-survive --extraction): hidden SSIM at the key of a fresh 3D-GS trained on `views`
   renders of the marked scene, per scene, recipe, poses and views, at each length of its training (*: owned by
   verify given the owner's copy)."""
-  curves = bench_survive.extraction_curves(survive_bench.get("rows", []))
+  rows = survive_bench.get("rows", [])
+  curves = bench_survive.extraction_curves(rows)
+  nearest = {bench_survive.extraction_key(r): r["key_nearest_deg"] for r in rows
+             if r["attack"].startswith("extraction") and r.get("key_nearest_deg") is not None}
   lengths = sorted({steps for points in curves.values() for steps, _, _ in points})
   lines = ["### Model extraction: is the mark in a copy trained on the scene's renders? (hidden SSIM at the key of a "
            "fresh 3D-GS trained from random points on renders of the marked scene: its training cameras, then poses "
-           "on their orbit or over the sphere; * owned by verify given the owner's copy)", "",
-           "| scene | recipe | poses | views | " + " | ".join(f"{n} steps" for n in lengths) + " |",
-           "|---|---|---|---|" + "---|" * len(lengths)]
-  for (scene, recipe, poses, views), points in curves.items():
+           "on their orbit or over the sphere, or (unseen) orbit poses only; * owned by verify given the owner's "
+           "copy; nearest: how far from the key the closest rendered view stands, degrees of a turn about what the "
+           "key looks at, - where not recorded)", "",
+           "| scene | recipe | poses | views | nearest | " + " | ".join(f"{n} steps" for n in lengths) + " |",
+           "|---|---|---|---|---|" + "---|" * len(lengths)]
+  for key, points in curves.items():
+    scene, recipe, poses, views = key
     by_steps = {steps: f"{ssim:.3f}{'*' if owned else ''}" for steps, ssim, owned in points}
-    lines.append(f"| {scene} | {recipe} | {poses} | {views} | " + " | ".join(by_steps.get(n, "-") for n in lengths)
-                 + " |")
-  return lines + ([] if curves else [f"| {NOT_RUN} | | | |"]) + [""]
+    near = f"{nearest[key]:.1f}" if key in nearest else "-"
+    lines.append(f"| {scene} | {recipe} | {poses} | {views} | {near} | "
+                 + " | ".join(by_steps.get(n, "-") for n in lengths) + " |")
+  return lines + ([] if curves else [f"| {NOT_RUN} | | | | |"]) + [""]
 
 
 def full_resolution_section(full_bench: dict) -> list[str]:

@@ -317,12 +317,15 @@ def test_extraction_rows_form_one_curve_per_scene_recipe_and_views():
                                                       steps=steps, hidden_ssim=ssim, owned=owned, decided=False)
   rows = [row("extraction", 200, 3000, 0.97, True), row("extraction", 200, 1000, 0.83, True),
           row("extraction", 50, 1000, 0.2, False), row("extraction_sphere", 200, 1000, 0.5, None),
+          dict(row("extraction_unseen", 200, 1000, 0.9, True), key_nearest_deg=6.34),
           dict(row("finetune", 30, None, 0.1, False), steps=None)]
   curves = bench_survive.extraction_curves(rows)
   assert curves == {("demo", "in_scene", "orbit", 50): [(1000, 0.2, False)],
                     ("demo", "in_scene", "orbit", 200): [(1000, 0.83, True), (3000, 0.97, True)],
-                    ("demo", "in_scene", "sphere", 200): [(1000, 0.5, False)]}
+                    ("demo", "in_scene", "sphere", 200): [(1000, 0.5, False)],
+                    ("demo", "in_scene", "unseen", 200): [(1000, 0.9, True)]}
   table = "\n".join(reproduce.extraction_table(dict(rows=rows)))
-  assert "| demo | in_scene | orbit | 200 | 0.830* | 0.970* |" in table
-  assert "| demo | in_scene | sphere | 200 | 0.500 | - |" in table
+  assert "| demo | in_scene | orbit | 200 | - | 0.830* | 0.970* |" in table
+  assert "| demo | in_scene | sphere | 200 | - | 0.500 | - |" in table
+  assert "| demo | in_scene | unseen | 200 | 6.3 | 0.900* | - |" in table
   assert reproduce.NOT_RUN in "\n".join(reproduce.extraction_table(dict(rows=[])))
