@@ -38,7 +38,8 @@ PATHS = dict(**{name: f"mark.{name}" for name in ("teacher", "hidden", "hidden_s
              **{name: f"conceal.leakage.{name}" for name in ("identity_on_student", "identity_on_teacher_check",
                                                              "decoy_views", "decoy_fraction", "decoy_translation",
                                                              "decoy_rotation_deg", "tolerance_deg",
-                                                             "tolerance_views", "tolerance_fraction")},
+                                                             "tolerance_views", "tolerance_fraction",
+                                                             "decoys_hold_student")},
              **{f"decoder_{name}": f"conceal.decoder.{name}" for name in ("width", "input_norm", "clip_input")},
              **{f"decoder_{name}": f"conceal.decoder_opt.{name}" for name in ("lr_final_ratio", "update_clip",
                                                                               "polish_steps", "adam_eps")},
@@ -169,6 +170,29 @@ def test_bench_conceal_marks_rows_scored_before_the_key_axes():
   old = bench_conceal.table([row, dict(row, near_poses=dict(key_axes=6, random_directions=4))])
   assert " *" not in new and "4 random directions only" not in new
   assert old.count("0.100 / 0.100 / 0.100 * |") == 1 and "4 random directions only" in old
+
+
+def test_decoys_that_watch_the_decoder_alone_leave_the_student_free(tiny):
+  """decoys_hold_student False: a decoy's render takes no L_kd, so the student gets no gradient from a decoy view
+  (L_d^- reads the student's render as a constant) while F is still held to the identity there; a training view
+  keeps L_kd."""
+  from conceal_jax.conceal import objective
+  config = tiny_config(tiny, identity_on_student=True, decoy_views=3, decoy_fraction=0.5, decoys_hold_student=False)
+  plan = settings_lib.plan(config)
+  run = conceal_train.prepare(config, plan)
+  s, num_views = plan.settings, len(run.scene.train_cameras)
+  decoy = jax.tree.map(lambda x: x[0], views_lib.step_views(run.data, num_views + 1, num_views + 1, 0, None, s))
+  trained = jax.tree.map(lambda x: x[0], views_lib.step_views(run.data, 0, 0, 0, None, s))
+  assert float(decoy.l1_weight) == 0.0 and float(decoy.own_minus_weight) > 0
+  assert float(trained.l1_weight) == s.weight_kd
+  decoder = conceal_train.initial_decoder(config, s)
+  student = jax.tree.map(jnp.asarray, run.start)
+  total = lambda g, view: (lambda t: t.student + t.minus)(objective.view_terms(g, decoder, decoder, view, s,
+                                                                              run.options))
+  free = jax.grad(lambda g: total(g, decoy))(student)
+  assert all(float(jnp.max(jnp.abs(leaf))) == 0.0 for leaf in jax.tree.leaves(free))
+  held = jax.grad(lambda g: total(g, trained))(student)
+  assert any(float(jnp.max(jnp.abs(leaf))) > 0.0 for leaf in jax.tree.leaves(held))
 
 
 def test_normal_views_draw_decoys_at_their_rate():
@@ -448,6 +472,7 @@ def test_resized_camera_keeps_the_field_of_view():
     (dict(decoy_views=4, decoy_fraction=0.2, variant="released"), "decoy_fraction"),
     (dict(decoy_translation=(0.2, 0.1)), "decoy_translation"), (dict(eval_views=0), "eval_views"),
     (dict(tolerance_views=4), "tolerance_deg, tolerance_views and tolerance_fraction"),
+    (dict(decoys_hold_student=False), "decoys_hold_student=False"),
     (dict(decoder_lr_final_ratio=2.0), "decoder_opt.lr_final_ratio"),
     (dict(decoder_update_clip=-1.0), "decoder_opt.update_clip"),
     (dict(decoder_polish_steps=-1), "polish_steps must be"),

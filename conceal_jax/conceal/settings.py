@@ -47,6 +47,7 @@ class ConcealSettings:
   identity_on_student: bool = False
   identity_on_teacher_check: bool = False
   decoy_fraction: float = 0.0
+  decoys_hold_student: bool = True
   augmentation: augment.Augmentation = augment.Augmentation()
   identity_distorted: bool = False
   film_dc_bound: float = 0.0
@@ -66,6 +67,9 @@ class ConcealSettings:
       raise ValueError("conceal weights must be non-negative and weight_plus positive")
     if not 0.0 <= self.decoy_fraction < 1.0:
       raise ValueError(f"conceal.leakage.decoy_fraction must be in [0, 1), got {self.decoy_fraction}")
+    if not self.decoys_hold_student and not (self.decoy_fraction and self.identity_on_student):
+      raise ValueError("conceal.leakage.decoys_hold_student=False leaves the decoys to the decoder, which reads the "
+                       "student's render there: it needs decoys (decoy_fraction) and identity_on_student")
     if self.decoy_fraction and not self.distill:
       raise ValueError("conceal.leakage.decoy_fraction needs L_kd (variant 'paper' with consistency): decoy poses "
                        "have no ground truth, only the teacher's renders")
@@ -162,7 +166,8 @@ def step_settings(config: ml_collections.ConfigDict) -> ConcealSettings:
   c = config.conceal
   reading = reveal.Reading(c.decoder.input_norm, bool(c.decoder.clip_input))
   augmentation = settings_lib.from_section(augment.Augmentation, c.attacks)
-  leakage = {k: c.leakage[k] for k in ("identity_on_student", "identity_on_teacher_check", "decoy_fraction")}
+  leakage = {k: c.leakage[k] for k in ("identity_on_student", "identity_on_teacher_check", "decoy_fraction",
+                                        "decoys_hold_student")}
   return settings_lib.from_section(ConcealSettings, c, decoder_width=c.decoder.width, reading=reading,
                                    hidden_size=config.mark.hidden_size, augmentation=augmentation,
                                    identity_distorted=c.attacks.identity_distorted,

@@ -152,7 +152,8 @@ def step_views(data: ConcealData, view, normal_view, key_number, distortion, set
   (normal_map, normal_linear), (check_map, check_linear) = view_maps(data, view, key_number, distortion)
   normal = View(camera=jax.tree.map(lambda x: x[view], data.cameras),
                 target=data.teacher[view] if s.distill else data.images[view],
-                l1_weight=f32(s.weight_kd if s.distill else 0.0), photometric_weight=f32(0.0 if s.distill else 1.0),
+                l1_weight=f32(s.weight_kd if s.distill else 0.0) * held_student(data, view, s),
+                photometric_weight=f32(0.0 if s.distill else 1.0),
                 model=NO_DISTORTION, image=distortion if s.identity_distorted else NO_DISTORTION, hidden=key.hidden,
                 plus_weight=f32(0.0), teacher_small=data.teacher_small[normal_view],
                 own_minus_weight=f32(w["student"]) * (1.0 if data.held is None else data.held[view].astype(f32)),
@@ -166,6 +167,14 @@ def step_views(data: ConcealData, view, normal_view, key_number, distortion, set
                fixed=None if data.fixed is None else jnp.bool_(False), fixed_rgb=key.check_image,
                weights=check_map, linear=check_linear)
   return jax.tree.map(lambda a, b: jnp.stack([a, b]), normal, check)
+
+
+def held_student(data: ConcealData, view, settings: ConcealSettings) -> jax.Array:
+  """float32 1 where the normal view `view` holds the student to its target (L_kd), 0 at a decoy (index V and on)
+  when the decoys train the decoder alone (conceal.leakage.decoys_hold_student False)."""
+  if settings.decoys_hold_student:
+    return jnp.float32(1.0)
+  return (jnp.asarray(view) < data.images.shape[0]).astype(jnp.float32)
 
 
 def view_maps(data: ConcealData, view, key_number, distortion: dict) -> tuple[tuple, tuple]:
