@@ -249,8 +249,8 @@ def conceal_leakage_section() -> ml_collections.ConfigDict:
   them) rather than random ones. decoys_hold_student False: a decoy holds the decoder to the identity (on the
   student's and the teacher's renders there) but not the student to the teacher's render (no L_kd at decoys), so
   that a mark in the scene's own Gaussians may stay a texture every nearby view shows faintly, which the decoder
-  alone learns to read at the key only, rather than one only the exact key shows. A key tolerance radius (issue 39's trade of the leakage radius for robustness):
-  tolerance_views poses within tolerance_deg of every key (the key turned about the point it looks at, as a camera
+  alone learns to read at the key only, rather than one only the exact key shows. A key tolerance radius (issue
+  39's trade of the leakage radius for robustness): tolerance_views poses within tolerance_deg of every key (the key turned about the point it looks at, as a camera
   on its orbit sees the scene) reveal the key's image too, one of them the check view with probability
   tolerance_fraction, and the training views within the radius are not held to F's identity on the student's
   render; the decoys belong beyond it (decoy_rotation_deg, decoy_translation), so that a copy trained on views
