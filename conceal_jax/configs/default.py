@@ -241,20 +241,20 @@ def conceal_leakage_section() -> ml_collections.ConfigDict:
   teacher's check render (the key reveals the student's change, not the pose); decoy_views cameras near every key
   (moved by a fraction of the key's depth, turned by degrees, within the ranges) trained as normal views with
   probability decoy_fraction, holding the student to the teacher and F to the identity there. The key's depth
-  (near.near_length) is the opacity-weighted median depth of the teacher's Gaussians in its image (the camera
-  distance for a key that sees almost none): the unit of the near-key leakage figure's translations too, so that
-  a fraction means about the same pixel motion on an object-centred orbit and on a forward-facing capture, where
-  the 3D-GS extent (the spread of the camera centres) is small against the depth. decoy_key_axes: the decoys that
-  are only moved go along, and those only turned turn about, the key's own axes in turn (a zoom and a roll among
-  them) rather than random ones. decoys_hold_student False: a decoy holds the decoder to the identity (on the
-  student's and the teacher's renders there) but not the student to the teacher's render (no L_kd at decoys), so
-  that a mark in the scene's own Gaussians may stay a texture every nearby view shows faintly, which the decoder
-  alone learns to read at the key only, rather than one only the exact key shows. A key tolerance radius (issue
-  39's trade of the leakage radius for robustness): tolerance_views poses within tolerance_deg of every key (the key turned about the point it looks at, as a camera
-  on its orbit sees the scene) reveal the key's image too, one of them the check view with probability
-  tolerance_fraction, and the training views within the radius are not held to F's identity on the student's
-  render; the decoys belong beyond it (decoy_rotation_deg, decoy_translation), so that a copy trained on views
-  that come near the key, not onto it, can carry the mark (0: off, the key alone)."""
+  (near.near_length) is the opacity- weighted median depth of the teacher's Gaussians in its image (the camera
+  distance for a key that sees almost none): the unit of the near-key leakage figure's translations too, so that a
+  fraction means about the same pixel motion on an object-centred orbit and on a forward-facing capture, where the
+  3D-GS extent (the spread of the camera centres) is small against the depth. decoy_key_axes: the decoys that are
+  only moved go along, and those only turned turn about, the key's own axes in turn (a zoom and a roll among them)
+  rather than random ones. decoys_hold_student False: a decoy holds the decoder to the identity (on the student's and
+  the teacher's renders there) but not the student to the teacher's render (no L_kd at decoys), so that a mark in the
+  scene's own Gaussians may stay a texture every nearby view shows faintly, which the decoder alone learns to read at
+  the key only, rather than one only the exact key shows. A key tolerance radius (issue 39's trade of the leakage
+  radius for robustness): tolerance_views poses within tolerance_deg of every key (the key turned about the point it
+  looks at, as a camera on its orbit sees the scene) reveal the key's image too, one of them the check view with
+  probability tolerance_fraction, and the training views within the radius are not held to F's identity on the
+  student's render; the decoys belong beyond it (decoy_rotation_deg, decoy_translation), so that a copy trained on
+  views that come near the key, not onto it, can carry the mark (0: off, the key alone)."""
   c = ml_collections.ConfigDict()
   c.identity_on_student = False
   c.identity_on_teacher_check = False
