@@ -120,6 +120,8 @@ SCENE_NOTES = {
     "lego_layered_film": "lego_layered_in_scene's scene; the film's mark, read from it",
     "lego_layered_close": "lego_layered_in_scene with lego_conceal.py:in_scene_close as the second mark "
                           "(workdirs/survive_runs/lego_recommended_in_scene_close, 2026-11-30)",
+    "lego_layered_close_decoder": "lego_layered_in_scene with lego_conceal.py:in_scene_close_decoder as the second "
+                                  "mark (workdirs/survive_runs/lego_recommended_in_scene_close_decoder, 2026-11-30)",
     "lego_layered_tolerant": "lego_layered_in_scene with lego_conceal.py:in_scene_tolerant as the second mark "
                              "(workdirs/survive_runs/lego_recommended_in_scene_tolerant, 2026-11-30)",
     "demo_layered_tolerant": "demo_layered_in_scene with demo.py:tolerant as the second mark "
@@ -139,6 +141,8 @@ CONVERTER_TIMEOUT_S = 3600  # per converter call: .sog clusters a lego scene for
 RECIPE_NOTES = {
     "in_scene_close": "recipes.in_scene_close: in_scene with 768 decoys turned 1-5 degrees on a quarter of the "
                       "steps, L_d^- weighted 2.5",
+    "in_scene_close_decoder": "recipes.in_scene_close_decoder: in_scene_close with decoys that hold the decoder to "
+                              "the identity but not the student to the teacher (conceal.leakage.decoys_hold_student)",
     "in_scene_tolerant": "recipes.in_scene_tolerant: in_scene with a key tolerance radius of 10 degrees "
                          "(recipes.tolerant_key), its decoys beyond it",
     "tolerant": "demo.py:tolerant: the demo's in_scene recipe with recipes.tolerant_key",
