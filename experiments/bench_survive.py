@@ -122,6 +122,8 @@ SCENE_NOTES = {
                           "(workdirs/survive_runs/lego_recommended_in_scene_close, 2026-11-30)",
     "lego_layered_close_decoder": "lego_layered_in_scene with lego_conceal.py:in_scene_close_decoder as the second "
                                   "mark (workdirs/survive_runs/lego_recommended_in_scene_close_decoder, 2026-11-30)",
+    "lego_layered_axial": "lego_layered_in_scene with lego_conceal.py:in_scene_axial as the second mark "
+                          "(workdirs/survive_runs/lego_recommended_in_scene_axial, 2026-11-30)",
     "lego_layered_tolerant": "lego_layered_in_scene with lego_conceal.py:in_scene_tolerant as the second mark "
                              "(workdirs/survive_runs/lego_recommended_in_scene_tolerant, 2026-11-30)",
     "demo_layered_tolerant": "demo_layered_in_scene with demo.py:tolerant as the second mark "
@@ -143,6 +145,8 @@ RECIPE_NOTES = {
                       "steps, L_d^- weighted 2.5",
     "in_scene_close_decoder": "recipes.in_scene_close_decoder: in_scene_close with decoys that hold the decoder to "
                               "the identity but not the student to the teacher (conceal.leakage.decoys_hold_student)",
+    "in_scene_axial": "recipes.in_scene_axial: in_scene with 192 decoys along and about the key's own axes (a zoom "
+                      "and a roll among them) that hold the decoder alone to the identity",
     "in_scene_tolerant": "recipes.in_scene_tolerant: in_scene with a key tolerance radius of 10 degrees "
                          "(recipes.tolerant_key), its decoys beyond it",
     "tolerant": "demo.py:tolerant: the demo's in_scene recipe with recipes.tolerant_key",

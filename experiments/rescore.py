@@ -1,11 +1,14 @@
 """Scores finished concealments again with today's scoring (conceal.train.score_saved), for runs trained before
-the scoring changed (the near-key poses, a leakage figure):
+the scoring changed (the near-key poses, a leakage figure), or a run's latest checkpoint, finished or not:
 
   python -m experiments.rescore workdirs/bench/lego/conceal_in_scene_w16 workdirs/demo/conceal
+  python -m experiments.rescore --checkpoint workdirs/survive_runs/lego_recommended_in_scene_axial
 
 Each run's metrics.json is rewritten; the one it replaces is kept as metrics_previous.json (once: a second
 rescore keeps the first original). Prints each run's hidden PSNR / SSIM and leakage before and after. `make
-bench-conceal BENCH_ARGS=--reuse` then rebuilds the bench's JSON from the new files.
+bench-conceal BENCH_ARGS=--reuse` then rebuilds the bench's JSON from the new files. With --checkpoint the run's
+own files are left alone: the checkpoint's student and decoder are scored as a finished run's are, into
+<run>/checkpoint_scores/step_<N>/ (metrics.json and the revealed images), and its headline figures printed.
 """
 from __future__ import annotations
 
@@ -16,24 +19,31 @@ import sys
 
 import ml_collections
 
-from conceal_jax.conceal import train
+from conceal_jax.conceal import carrier, settings as settings_lib, train
+from conceal_jax.conceal.step import create_state
 from conceal_jax.configs import default
-from conceal_jax.core import fileio, workdir as workdir_lib
+from conceal_jax.core import checkpoint, fileio, workdir as workdir_lib
 from conceal_jax.gs import evaluate
 
 PREVIOUS_FILE = "metrics_previous.json"
 RUN_FILES = ("config.json", train.STUDENT_FILE, evaluate.METRICS_FILE)
+CHECKPOINT_SCORES = "checkpoint_scores"
 
 
 def headline(metrics: dict) -> dict:
   return dict(hidden=metrics["hidden"], leakage=metrics["leakage"])
 
 
+def saved_config(run: pathlib.Path) -> ml_collections.ConfigDict:
+  """The run's config.json, completed with today's defaults (core.workdir.with_defaults)."""
+  saved = json.loads((run / "config.json").read_text())
+  return ml_collections.ConfigDict(workdir_lib.with_defaults(saved, default.get_config().to_dict()))
+
+
 def rescore(run: pathlib.Path) -> dict:
   """{'before': ..., 'after': ...} headline figures of `run` (a finished conceal workdir) scored again (module
   doc)."""
-  saved = json.loads((run / "config.json").read_text())
-  config = ml_collections.ConfigDict(workdir_lib.with_defaults(saved, default.get_config().to_dict()))
+  config = saved_config(run)
   before = json.loads((run / evaluate.METRICS_FILE).read_text())
   if not (run / PREVIOUS_FILE).is_file():
     fileio.write_json(str(run / PREVIOUS_FILE), before)
@@ -41,11 +51,42 @@ def rescore(run: pathlib.Path) -> dict:
   return dict(run=str(run), before=headline(before), after=headline(after))
 
 
+def score_checkpoint(run: pathlib.Path) -> dict:
+  """The headline figures and step of `run`'s latest conceal checkpoint, scored as a finished run's student and
+  decoder are (train.score_student) into <run>/checkpoint_scores/step_<N>/; the run's own files are not touched.
+  The state's template is the run's own first state: the teacher, or the teacher and its planned film."""
+  config = saved_config(run)
+  plan = settings_lib.plan(config)
+  marked = train.marking(config, plan)
+  start, rows = carrier.student_start(plan.film, marked.teacher, marked.keys[0][0], marked.scene.train_cameras,
+                                      marked.scene.test_cameras, marked.options, plan.settings.hidden_size)
+  template = create_state(start, train.initial_decoder(config, plan.settings),
+                          settings_lib.student_optimizer(config, marked.scene.scene_extent(), rows is not None),
+                          settings_lib.decoder_optimizer(config), rows)
+  path, _, leaves = checkpoint.load_latest(str(run / "checkpoints"))
+  state = checkpoint.restore(template, leaves, source=path)
+  out = run / CHECKPOINT_SCORES / f"step_{int(state.step)}"
+  out.mkdir(parents=True, exist_ok=True)
+  scored = train.score_student(config, str(out), marked, plan.settings, state.student, state.decoder)
+  return dict(run=str(run), step=int(state.step), **headline(scored), student=scored["student_vs_ground_truth"],
+              teacher=scored["teacher_vs_ground_truth"])
+
+
 def main(argv=None):
   parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-  parser.add_argument("runs", nargs="+", help="finished conceal workdirs")
+  parser.add_argument("runs", nargs="+", help="conceal workdirs: finished ones, or with --checkpoint any with one")
+  parser.add_argument("--checkpoint", action="store_true",
+                      help="score each run's latest checkpoint into <run>/checkpoint_scores/step_<N>/")
   args = parser.parse_args(argv)
   runs = [pathlib.Path(run) for run in args.runs]
+  if args.checkpoint:
+    bad = [f"{run}: no config.json" for run in runs if not (run / "config.json").is_file()]
+    bad += [f"{run}: no checkpoint" for run in runs if not checkpoint.list_steps(str(run / "checkpoints"))]
+    if bad:
+      sys.exit("rescore: not conceal runs with a checkpoint: " + "; ".join(bad))
+    for run in runs:
+      print(json.dumps(score_checkpoint(run)))
+    return
   bad = [f"{run}: missing {name}" for run in runs for name in RUN_FILES if not (run / name).is_file()]
   if bad:
     sys.exit("rescore: not finished conceal runs: " + "; ".join(bad))

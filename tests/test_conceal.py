@@ -283,6 +283,44 @@ def test_rescore_refuses_an_unfinished_run_before_writing(tiny, joint_run, tmp_p
   assert not (finished / rescore.PREVIOUS_FILE).exists()
 
 
+@pytest.mark.job
+def test_a_checkpoint_is_scored_as_the_finished_run_and_the_run_is_left_alone(tiny, joint_run, tmp_path):
+  """rescore --checkpoint: the last checkpoint of a finished run holds its final student and decoder, so it scores
+  to the run's own figures, into checkpoint_scores/step_<N>/, and no file of the run changes."""
+  run = finished_copy(tiny, joint_run, tmp_path / "run")
+  before = {path: path.read_bytes() for path in run.rglob("*") if path.is_file()}
+  result = rescore.score_checkpoint(run)
+  original = json.loads((run / "metrics.json").read_text())
+  assert result["step"] == 20
+  assert result["hidden"] == pytest.approx(original["hidden"], abs=1e-4)
+  assert result["leakage"] == pytest.approx(original["leakage"], abs=1e-4)
+  assert result["student"] == pytest.approx(original["student_vs_ground_truth"], abs=1e-4)
+  scored = json.loads((run / rescore.CHECKPOINT_SCORES / "step_20" / "metrics.json").read_text())
+  assert scored["hidden"] == result["hidden"]
+  assert {path: path.read_bytes() for path in before} == before
+
+
+@pytest.mark.slow  # a film run of 4 steps
+def test_a_film_runs_checkpoint_restores_its_film(tiny, tmp_path):
+  """A film run's state has the teacher and its planned film as the student and Adam over the film's colours:
+  rescore --checkpoint rebuilds that template (carrier.student_start) and scores the run's figures."""
+  config = tiny_config(tiny, iterations=4, key_kind="unseen", **{"carrier.film": True, "carrier.spacing": 4.0})
+  conceal_train.train_and_evaluate(config, str(tmp_path))
+  (tmp_path / "config.json").write_text(config.to_json())
+  result = rescore.score_checkpoint(tmp_path)
+  original = json.loads((tmp_path / "metrics.json").read_text())
+  assert result["step"] == 4 and result["hidden"] == pytest.approx(original["hidden"], abs=1e-4)
+
+
+@pytest.mark.job
+def test_rescore_refuses_a_run_without_a_checkpoint(tiny, joint_run, tmp_path):
+  run = finished_copy(tiny, joint_run, tmp_path / "run")
+  shutil.rmtree(run / "checkpoints")
+  with pytest.raises(SystemExit, match="run: no checkpoint"):
+    rescore.main(["--checkpoint", str(run)])
+  assert not (run / rescore.CHECKPOINT_SCORES).exists()
+
+
 @pytest.mark.slow  # two runs of 40 steps; no recipe polishes (conceal.decoder_opt.polish_steps is 0 in each)
 def test_decoder_polish_trains_the_decoder_alone_and_resumes_across_phases(tiny, joint_run, tmp_path):
   joint, joint_dir = joint_run

@@ -180,6 +180,17 @@ def planned_film(plan: Film, teacher: Gaussians, key: Camera, train_cameras: Seq
                      plan.thickness)
 
 
+def student_start(plan: Film | None, teacher: Gaussians, key: Camera, train_cameras: Sequence[Camera],
+                  test_cameras: Sequence[Camera], options: RenderOptions,
+                  hidden_size: int) -> tuple[Gaussians, jax.Array | None]:
+  """(the student's first state, the rows whose base colours alone train [F] or None): the teacher, or with a
+  film `plan` the teacher and then the planned film (planned_film) with its colour_rows."""
+  if plan is None:
+    return teacher, None
+  film = planned_film(plan, teacher, key, train_cameras, test_cameras, options, hidden_size)
+  return concatenate([teacher, film]), colour_rows(teacher.num, film.num)
+
+
 def colour_rows(num_teacher: int, num_film: int) -> jax.Array:
   """int32 [num_film] the student rows (teacher + film) whose base colours (SH DC) alone train: the film's. Its SH
   bands above DC stay zero (publishing formats drop or coarsen those bands: splat-transform's SH cut, .spz) and

@@ -27,7 +27,6 @@ from conceal_jax.core import fileio, loop, parallel
 from conceal_jax.data import ply
 from conceal_jax.gs import capacity, evaluate, metrics
 from conceal_jax.splat import render as render_lib
-from conceal_jax.splat.gaussians import concatenate
 
 STUDENT_FILE = "student.ply"
 DECODER_FILE = "decoder.msgpack"
@@ -96,12 +95,11 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
   check_cameras, check_hiddens = tolerance_lib.check_views(plan.tolerance, plan.key_seed, keys, hiddens)
   # the released variant's check-view L1 target: a training-camera key's image (elsewhere the teacher's render)
   key_images = [scene.train_images[info["index"]] for _, info in keys] if plan.key_kind == "train_index" else None
-  start, colour_rows, merges, ties, neighbourhoods = teacher, None, None, None, merge_costs.Neighbourhoods()
+  start, colour_rows = carrier.student_start(plan.film, teacher, keys[0][0], scene.train_cameras, scene.test_cameras,
+                                             options, s.hidden_size)
+  merges, ties, neighbourhoods = None, None, merge_costs.Neighbourhoods()
   if plan.film is not None:
-    film = carrier.planned_film(plan.film, teacher, keys[0][0], scene.train_cameras, scene.test_cameras, options,
-                                s.hidden_size)
-    start, colour_rows = concatenate([teacher, film]), carrier.colour_rows(teacher.num, film.num)
-    ties = carrier.tied_rows(film.num, plan.film.stack) if plan.film.stack > 1 else None
+    ties = carrier.tied_rows(start.num - teacher.num, plan.film.stack) if plan.film.stack > 1 else None
     if s.augmentation.merge_fraction > 0:
       merges = grouping.training_merges(start, teacher.num, s.augmentation, neighbourhoods=neighbourhoods)
   # with only the film's colours trained, each view renders the rows that reach it (subsets.py); not where

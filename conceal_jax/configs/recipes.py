@@ -10,7 +10,7 @@ The figures behind each choice: experiments/results/REPRODUCTION.md (a row per r
 import math
 
 RECIPES = ("paper", "released", "in_scene", "standardized", "recommended", "recommended_at_decoder_size",
-           "in_scene_watched", "in_scene_close", "in_scene_close_decoder", "in_scene_tolerant")
+           "in_scene_watched", "in_scene_close", "in_scene_close_decoder", "in_scene_tolerant", "in_scene_axial")
 
 # The decoder a CPU trains: width 16 from scratch (the paper's width 64 costs ~10x more per step), at a rate
 # a from-scratch decoder learns at (1e-3 stalled the demo's first steps).
@@ -64,6 +64,8 @@ VIVID_DC_LR = 1e-2
 # times it: turned that many degrees, or moved as far as such an orbit turn moves the key (2 sin(t / 2) of its depth).
 TOLERANCE_DEG, TOLERANCE_VIEWS, TOLERANCE_FRACTION = 10.0, 64, 0.5
 TOLERANT_DECOYS_BEYOND = (1.5, 3.0)
+# The axial layer's decoys: how many, moved by these fractions of the key's depth, turned by these degrees.
+AXIAL_DECOY_VIEWS, AXIAL_DECOY_TRANSLATION, AXIAL_DECOY_ROTATION_DEG = 192, (0.01, 0.06), (1.0, 6.0)
 # The key at the decoder's size: its decoys (twice the watched key's), moved by these fractions of the key's depth
 # (the default's are 0.01-0.1), and the memory their linear maps may take.
 DECODER_SIZE_DECOYS, DECODER_SIZE_DECOY_TRANSLATION, DECODER_SIZE_MAPS_MB = 1536, (0.005, 0.06), 8192
@@ -160,6 +162,24 @@ def in_scene_tolerant(config):
   key, not only the key, reveal, so that a copy trained on an attacker's views, which come near the key but not onto
   it, can carry it; the leakage radius grows to TOLERANCE_DEG (the trade issue 39 names)."""
   return tolerant_key(in_scene(config))
+
+
+def in_scene_axial(config):
+  """in_scene with decoys along and about the key's own axes that watch the decoder alone (axial_decoys): an in-scene
+  layer leaks where its texture barely moves in the image, a key moved along its optical axis (a zoom) or rolled
+  about it, and only there; random directions seldom come near those poses, and holding the student to the teacher
+  at them asks for a texture a 2% zoom hides, which costs every view."""
+  return axial_decoys(in_scene(config))
+
+
+def axial_decoys(config, decoy_views: int = AXIAL_DECOY_VIEWS):
+  """`decoy_views` decoys (AXIAL_DECOY_TRANSLATION, AXIAL_DECOY_ROTATION_DEG) whose moved-only and turned-only
+  ones go along and about the key's axes in turn (conceal.leakage.decoy_key_axes) and hold the decoder alone to
+  the identity (decoys_hold_student False), on in_scene's share of the steps."""
+  lk = config.conceal.leakage
+  lk.decoy_views, lk.decoy_key_axes, lk.decoys_hold_student = decoy_views, True, False
+  lk.decoy_translation, lk.decoy_rotation_deg = AXIAL_DECOY_TRANSLATION, AXIAL_DECOY_ROTATION_DEG
+  return config
 
 
 def tolerant_key(config, radius_deg: float = TOLERANCE_DEG):
