@@ -1,4 +1,4 @@
-"""Scores finished concealments again with today's scoring (conceal.train.score_saved), for runs trained before
+"""Scores finished concealments again with today's scoring (score_saved), for runs trained before
 the scoring changed (the near-key poses, a leakage figure), or a run's latest checkpoint, finished or not:
 
   python -m experiments.rescore workdirs/bench/lego/conceal_in_scene_w16 workdirs/demo/conceal
@@ -19,10 +19,11 @@ import sys
 
 import ml_collections
 
-from conceal_jax.conceal import carrier, settings as settings_lib, train
+from conceal_jax.conceal import carrier, reveal, settings as settings_lib, train
 from conceal_jax.conceal.step import create_state
 from conceal_jax.configs import default
 from conceal_jax.core import checkpoint, fileio, workdir as workdir_lib
+from conceal_jax.data import ply
 from conceal_jax.gs import evaluate
 
 PREVIOUS_FILE = "metrics_previous.json"
@@ -40,6 +41,15 @@ def saved_config(run: pathlib.Path) -> ml_collections.ConfigDict:
   return ml_collections.ConfigDict(workdir_lib.with_defaults(saved, default.get_config().to_dict()))
 
 
+def score_saved(config: ml_collections.ConfigDict, run: pathlib.Path) -> dict:
+  """metrics.json of a finished run scored again from its saved student.ply and decoder.msgpack, at the keys
+  train.marking chooses for `config` (the run's config.json)."""
+  plan = settings_lib.plan(config)
+  student = ply.load_ply(str(run / train.STUDENT_FILE))
+  decoder = reveal.load_decoder(str(run / train.DECODER_FILE)) if plan.settings.use_decoder else {}
+  return train.score_student(config, str(run), train.marking(config, plan), plan.settings, student, decoder)
+
+
 def rescore(run: pathlib.Path) -> dict:
   """{'before': ..., 'after': ...} headline figures of `run` (a finished conceal workdir) scored again (module
   doc)."""
@@ -47,7 +57,7 @@ def rescore(run: pathlib.Path) -> dict:
   before = json.loads((run / evaluate.METRICS_FILE).read_text())
   if not (run / PREVIOUS_FILE).is_file():
     fileio.write_json(str(run / PREVIOUS_FILE), before)
-  after = train.score_saved(config, str(run))
+  after = score_saved(config, run)
   return dict(run=str(run), before=headline(before), after=headline(after))
 
 

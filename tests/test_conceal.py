@@ -321,6 +321,23 @@ def test_rescore_refuses_a_run_without_a_checkpoint(tiny, joint_run, tmp_path):
   assert not (run / rescore.CHECKPOINT_SCORES).exists()
 
 
+@pytest.mark.job
+def test_a_reference_decoder_run_is_revealed_from_its_shared_files(tiny, tmp_path):
+  """conceal.decoder.reference: the decoder file carries its reference image (trained from the clean teacher's
+  check render), the key records the reading, and the reveal job reproduces the run's figures from the files."""
+  config = tiny_config(tiny, iterations=4, **{"decoder.reference": True})
+  metrics = conceal_train.train_and_evaluate(config, str(tmp_path / "run"))["metrics"]
+  run = tmp_path / "run"
+  assert reveal.load_decoder(str(run / "decoder.msgpack"))["reference"].shape == (16, 16, 3)
+  assert json.loads((run / "key.json").read_text())["decoder_reference"] is True
+  reveal_config = demo.get_config()
+  reveal_config.mode = "reveal"
+  reveal_config.reveal.ply, reveal_config.reveal.key = str(run / "student.ply"), str(run / "key.json")
+  reveal_config.reveal.decoder, reveal_config.reveal.hidden = str(run / "decoder.msgpack"), "astronaut"
+  result = main_lib.run(reveal_config, str(tmp_path / "reveal"))
+  np.testing.assert_allclose(result["psnr"], metrics["hidden"]["psnr"], rtol=1e-4)
+
+
 @pytest.mark.slow  # two runs of 40 steps; no recipe polishes (conceal.decoder_opt.polish_steps is 0 in each)
 def test_decoder_polish_trains_the_decoder_alone_and_resumes_across_phases(tiny, joint_run, tmp_path):
   joint, joint_dir = joint_run

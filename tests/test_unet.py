@@ -229,3 +229,35 @@ def test_a_key_of_a_retired_decoder_reading_is_refused_by_name():
   for field, value in (("decoder_pattern", 4), ("decoder_modulation", 1.5)):
     with pytest.raises(ValueError, match=field):
       reveal.Reading.from_key(dict(plain, **{field: value}))
+
+
+@pytest.mark.parametrize("input_norm", ("none", "standardize"))
+def test_a_reference_decoder_reads_its_reference_beside_the_input(input_norm):
+  """UNet.reference_size: the params hold the reference started at the given image and enc1_1 reads 3 more
+  channels; the output is the plain U-Net's on the input with the reference as channels 4-6 (normalised with the
+  input's statistics), so a change of the reference changes it; gradients (the reference's too) are finite; the
+  key records the reading."""
+  from conceal_jax.conceal import reveal
+  rng = np.random.default_rng(7)
+  reference = jnp.asarray(rng.uniform(size=(16, 16, 3)), jnp.float32)
+  params = unet.init_decoder(jax.random.key(2), SMALL, 16, reference=reference)
+  np.testing.assert_array_equal(params["reference"], reference)
+  assert params["enc1_1"]["kernel"].shape == (3, 3, 6, SMALL)
+  images = jnp.asarray(rng.uniform(size=(2, 16, 16, 3)), jnp.float32)
+  reading = reveal.Reading(input_norm, reference=True)
+  out = reveal.decode(params, SMALL, images, reading)
+  plain = {name: value for name, value in params.items() if name != "reference"}
+  mean, std = unet.image_statistics(images, input_norm) if input_norm != "none" else (0.0, 1.0)
+  read = jnp.concatenate([(images - mean) / std, jnp.broadcast_to((reference - mean) / std, images.shape)], -1)
+  expected = unet.UNet(SMALL).apply({"params": plain}, read) * std + mean
+  np.testing.assert_allclose(out, expected, atol=1e-5)
+  moved = reveal.decode(dict(params, reference=reference[::-1]), SMALL, images, reading)
+  assert np.max(np.abs(np.asarray(moved - out))) > 1e-4
+  assert_finite_tree(jax.grad(lambda p: jnp.sum(reveal.decode(p, SMALL, images, reading) ** 2))(params))
+  assert reveal.Reading.from_key(dict(hidden_size=16, **reading.key_fields())) == reading
+  with pytest.raises(ValueError, match="reference"):
+    reveal.decode(params, SMALL, images[:, :8, :8], reading)
+  with pytest.raises(ValueError, match="disagree on a reference"):
+    reveal.decode(params, SMALL, images, reveal.Reading(input_norm))
+  with pytest.raises(ValueError, match="reference must be"):
+    unet.init_decoder(jax.random.key(2), SMALL, 16, reference=reference[:8])

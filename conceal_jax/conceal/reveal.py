@@ -47,6 +47,7 @@ class Reading:
   experiments/results/conceal_options.md)."""
   input_norm: str = "none"
   clip: bool = False
+  reference: bool = False  # the decoder reads its reference image beside the render (unet.UNet.reference_size)
 
   @classmethod
   def from_key(cls, info: dict) -> "Reading":
@@ -56,10 +57,11 @@ class Reading:
     if retired:
       raise ValueError(f"the key was made with a retired decoder reading ({retired}); this version of "
                        "conceal_jax reveals only the paper's decoder with input_norm and clip_input")
-    return cls(str(info.get("decoder_input_norm", "none")), bool(info.get("decoder_clip_input", False)))
+    return cls(str(info.get("decoder_input_norm", "none")), bool(info.get("decoder_clip_input", False)),
+               bool(info.get("decoder_reference", False)))
 
   def key_fields(self) -> dict:
-    return dict(decoder_input_norm=self.input_norm, decoder_clip_input=self.clip)
+    return dict(decoder_input_norm=self.input_norm, decoder_clip_input=self.clip, decoder_reference=self.reference)
 
 
 # Key fields of decoder readings that were tried and retired (experiments/results/film_designs.md: the keyed and
@@ -79,8 +81,11 @@ def resize_for_decoder(image: jax.Array, size: int, clip: bool = False) -> jax.A
 def decode(decoder_params, base_channels: int, images: jax.Array, reading: Reading = PAPER_READING) -> jax.Array:
   """F: [..., S, S, C] -> [..., S, S, 3] with the U-Net decoder (C: the input channels its params were made
   for, 3 for a render), reading the images as `reading` says (its input_norm; its clip is resize_for_decoder's)."""
+  if ("reference" in decoder_params) != reading.reference:
+    raise ValueError("the key's reading and the decoder disagree on a reference image (key.json decoder_reference "
+                     f"{reading.reference}): the decoder file belongs to another run")
   batch = images[None] if images.ndim == 3 else images
-  model = unet.UNet(base_channels, reading.input_norm)
+  model = unet.UNet(base_channels, reading.input_norm, decoder_params["reference"].shape[0] if reading.reference else 0)
   out = model.apply({"params": decoder_params}, batch)
   return out[0] if images.ndim == 3 else out
 

@@ -164,7 +164,7 @@ def key_offset(config: ml_collections.ConfigDict) -> float:
 def step_settings(config: ml_collections.ConfigDict) -> ConcealSettings:
   """ConcealSettings from conceal.*, conceal.leakage.*, conceal.attacks.* and mark.hidden_size."""
   c = config.conceal
-  reading = reveal.Reading(c.decoder.input_norm, bool(c.decoder.clip_input))
+  reading = reveal.Reading(c.decoder.input_norm, bool(c.decoder.clip_input), bool(c.decoder.reference))
   augmentation = settings_lib.from_section(augment.Augmentation, c.attacks)
   leakage = {k: c.leakage[k] for k in ("identity_on_student", "identity_on_teacher_check", "decoy_fraction",
                                         "decoys_hold_student")}

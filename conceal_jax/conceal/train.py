@@ -115,11 +115,16 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
   return Run(plan, teacher, start, scene, hiddens, keys, decoys, options, data, message, neighbourhoods)
 
 
-def initial_decoder(config: ml_collections.ConfigDict, settings: settings_lib.ConcealSettings):
-  """A fresh decoder ({} without one), the VGG16 encoder loaded with conceal.decoder.vgg_init."""
+def initial_decoder(config: ml_collections.ConfigDict, settings: settings_lib.ConcealSettings, keys=None):
+  """A fresh decoder ({} without one), the VGG16 encoder loaded with conceal.decoder.vgg_init; a reading with a
+  reference starts it at the clean teacher's check render of the first of `keys` (views.ConcealData.keys; None:
+  zeros, a template of the shapes)."""
   if not settings.use_decoder:
     return {}
-  params = unet.init_decoder(jax.random.key(config.seed), settings.decoder_width, settings.hidden_size)
+  size, reference = settings.hidden_size, None
+  if settings.reading.reference:
+    reference = jnp.zeros((size, size, 3)) if keys is None else keys.teacher_check[0]
+  params = unet.init_decoder(jax.random.key(config.seed), settings.decoder_width, size, reference=reference)
   return unet.load_vgg16_encoder(params) if config.conceal.decoder.vgg_init else params
 
 
@@ -182,7 +187,8 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
 
   def fresh(_meta=None):
     student = jax.tree.map(lambda x: jnp.array(x, copy=True), run.start)  # the step donates its buffers
-    return create_state(student, initial_decoder(config, s), student_tx, decoder_tx, run.data.colour_rows)
+    return create_state(student, initial_decoder(config, s, run.data.keys), student_tx, decoder_tx,
+                        run.data.colour_rows)
 
   regroup = grouping.regrouping(run.teacher.num, s.augmentation, c.checkpoint_every, run.neighbourhoods)
 
@@ -238,11 +244,3 @@ def score_student(config: ml_collections.ConfigDict, workdir: str, marked: Marki
                                       reveal_fn(settings, decoder), [camera for camera, _ in marked.keys],
                                       marked.hiddens, marked.options)
 
-
-def score_saved(config: ml_collections.ConfigDict, workdir: str) -> dict:
-  """metrics.json of a finished run scored again from its saved student.ply and decoder.msgpack, at the keys
-  `marking` chooses for `config` (the run's config.json): for runs trained before the scoring changed."""
-  plan = settings_lib.plan(config)
-  student = ply.load_ply(os.path.join(workdir, STUDENT_FILE))
-  decoder = reveal.load_decoder(os.path.join(workdir, DECODER_FILE)) if plan.settings.use_decoder else {}
-  return score_student(config, workdir, marking(config, plan), plan.settings, student, decoder)

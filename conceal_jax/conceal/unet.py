@@ -18,6 +18,12 @@ stays reachable (reversible instance normalisation, `standardize_images` / `unst
 The statistics are constants to the gradient: differentiated, they would let L_d^+ move the whole check render.
 Dividing by the spread turns a local change (holes where Gaussians were removed) into a global one. What each
 mode gains and loses under the attacks is in experiments/results/conceal_options.md.
+
+`reference_size` (beyond the paper, conceal.decoder.reference) gives F a learned image [S, S, 3] of its own, the
+`reference` parameter, read beside every input as three more channels (normalised with the input's statistics):
+started from the clean teacher's render at the key, it lets the first convolution compare what it reads with the
+key's exact framing pixel by pixel, so that a mark F reads in the scene's own Gaussians need not be read from the
+key zoomed or rolled a little, where that mark looks the same but the framing does not.
 """
 from __future__ import annotations
 
@@ -86,6 +92,7 @@ class UNet(nn.Module):
   """
   base_channels: int = PAPER_WIDTH
   input_norm: str = "none"
+  reference_size: int = 0  # S of the `reference` image read beside the input (module doc); 0: none
 
   @nn.compact
   def __call__(self, images: jax.Array) -> jax.Array:
@@ -95,13 +102,27 @@ class UNet(nn.Module):
       raise ValueError(f"UNet needs H and W divisible by {DOWNSAMPLE}, got {images.shape[1:3]}")
     if self.input_norm not in INPUT_NORMS:
       raise ValueError(f"input_norm must be one of {INPUT_NORMS}, got {self.input_norm!r}")
+    reference = None
+    if self.reference_size:
+      size = (self.reference_size, self.reference_size)
+      if images.shape[1:3] != size:
+        raise ValueError(f"a decoder with a {size} reference reads images of that size, got {images.shape[1:3]}")
+      reference = self.param("reference", nn.initializers.zeros, size + (3,))
     if self.input_norm == "none":
-      return _encode_decode(images, self.base_channels)
+      return _encode_decode(with_reference(images, reference), self.base_channels)
     # The statistics are constants of the image: through them the student could reach I by brightening or
     # scaling the whole check render, a global change that every normal view pays for.
     mean, std = jax.lax.stop_gradient(image_statistics(images, self.input_norm))
-    return unstandardize_images(_encode_decode(standardize_images(images, mean, std), self.base_channels), mean,
-                                std)
+    read = with_reference(standardize_images(images, mean, std),
+                          None if reference is None else standardize_images(reference, mean, std))
+    return unstandardize_images(_encode_decode(read, self.base_channels), mean, std)
+
+
+def with_reference(images: jax.Array, reference: jax.Array | None) -> jax.Array:
+  """images [B, H, W, C] with `reference` [H, W, 3] (or [B, H, W, 3]) as three more channels (None: as they are)."""
+  if reference is None:
+    return images
+  return jnp.concatenate([images, jnp.broadcast_to(reference, images.shape[:3] + (3,))], axis=-1)
 
 
 def _encode_decode(images: jax.Array, base_channels: int) -> jax.Array:
@@ -124,18 +145,26 @@ def _encode_decode(images: jax.Array, base_channels: int) -> jax.Array:
 
 
 def init_decoder(rng: jax.Array, base_channels: int = PAPER_WIDTH, image_size: int = 64,
-                 in_channels: int = 3) -> dict[str, Any]:
+                 in_channels: int = 3, reference=None) -> dict[str, Any]:
   """Freshly initialised UNet params (the 'params' collection) for [B, image_size, image_size, in_channels]
-  input (3: a render; 4: StegaNeRF's render and classifier score)."""
+  input (3: a render; 4: StegaNeRF's render and classifier score); with `reference` [image_size, image_size, 3]
+  also the reference image read beside it (UNet.reference_size), started there."""
   if image_size <= 0 or image_size % DOWNSAMPLE:
     raise ValueError(f"image_size must be a positive multiple of {DOWNSAMPLE}, got {image_size}")
   if in_channels < 1:
     raise ValueError(f"in_channels must be positive, got {in_channels}")
   # The params do not depend on the image size, so the smallest valid input keeps init's forward pass
   # cheap.
-  dummy = jnp.zeros((1, DOWNSAMPLE, DOWNSAMPLE, in_channels), jnp.float32)
   # One jitted program initialises every kernel: much faster than one eager dispatch per initialiser.
-  return jax.jit(UNet(base_channels).init)(rng, dummy)["params"]
+  if reference is None:
+    dummy = jnp.zeros((1, DOWNSAMPLE, DOWNSAMPLE, in_channels), jnp.float32)
+    return jax.jit(UNet(base_channels).init)(rng, dummy)["params"]
+  reference = jnp.asarray(reference, jnp.float32)
+  if reference.shape != (image_size, image_size, 3):
+    raise ValueError(f"the reference must be [{image_size}, {image_size}, 3], got {list(reference.shape)}")
+  dummy = jnp.zeros((1, image_size, image_size, in_channels), jnp.float32)
+  params = jax.jit(UNet(base_channels, reference_size=image_size).init)(rng, dummy)["params"]
+  return dict(params, reference=reference)
 
 
 def load_vgg16_encoder(params: dict[str, Any]) -> dict[str, Any]:

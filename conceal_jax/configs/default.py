@@ -218,6 +218,10 @@ def conceal_decoder_section() -> ml_collections.ConfigDict:
   # beyond the paper: F reads every render clipped to [0, 1], as an image file holds it, so no hidden signal can
   # live in values an attacked or saved image loses
   c.clip_input = False
+  # beyond the paper: F reads a learned image of its own beside every render (unet.UNet.reference_size), started
+  # from the clean teacher's render at the first key, so that it can tell the key's exact framing from a key
+  # zoomed or rolled a little (a mark in the scene's own Gaussians looks the same there)
+  c.reference = False
   return c
 
 

@@ -27,12 +27,14 @@ target and the film as far again); `demo.py:drift` trains through parameter drif
 watched_key); `demo.py:owned`, the ownership test's demo recipe (issue 40), is `pruned` trained through blur and
 noise too, its decoder reading clipped renders (recipes.through_attacks); `demo.py:orbit` keys a secret pose on the
 orbit instead of a training camera; `demo.py:tolerant` gives the key a tolerance radius (recipes.tolerant_key);
-`demo.py:axial` watches the decoder alone along and about the key's own axes (recipes.axial_decoys)."""
+`demo.py:axial` watches the decoder alone along and about the key's own axes (recipes.axial_decoys);
+`demo.py:referenced` is axial with a decoder that reads a reference image (recipes.referenced_decoder) and no blur or
+noise of the check render (recipes.owner_rendered)."""
 from conceal_jax.configs import default, recipes
 
 
 VARIANTS = ("film", "film_pub", "film_web", "film_watch", "film_long", "film_deep", "film_stack", "film_faint",
-            "film_reset", "film_far", "drift", "pruned", "owned", "orbit", "tolerant", "axial")
+            "film_reset", "film_far", "drift", "pruned", "owned", "orbit", "tolerant", "axial", "referenced")
 # The faint films whose colours train at the vivid rate, each building on the one before from film_pub on.
 VIVID_FILMS = ("film", "film_pub", "film_web", "film_watch", "film_long", "film_deep", "film_stack")
 # A closely watched key needs twice the demo's concealment to read its film (or a pruned student).
@@ -72,8 +74,10 @@ def get_config(variant: str = ""):
     config.mark.key_kind = "orbit"
   if variant == "tolerant":
     config = recipes.tolerant_key(config)
-  if variant == "axial":
+  if variant in ("axial", "referenced"):
     config = recipes.axial_decoys(config)
+  if variant == "referenced":
+    config = recipes.referenced_decoder(recipes.owner_rendered(config))
   if variant.startswith("film"):  # every pose near the key sees the film: 64 decoys, drawn more often
     config = recipes.through_quantization(recipes.unseen_carrier(config))
     config.conceal.decoder.input_norm = "standardize"
