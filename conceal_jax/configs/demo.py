@@ -29,12 +29,13 @@ noise too, its decoder reading clipped renders (recipes.through_attacks); `demo.
 orbit instead of a training camera; `demo.py:tolerant` gives the key a tolerance radius (recipes.tolerant_key);
 `demo.py:axial` watches the decoder alone along and about the key's own axes (recipes.axial_decoys);
 `demo.py:referenced` is axial with a decoder that reads a reference image (recipes.referenced_decoder) and no blur or
-noise of the check render (recipes.owner_rendered)."""
+noise of the check render (recipes.owner_rendered); `demo.py:axes` watches the key's axes (recipes.watched_axes: those
+decoys on half the steps, L_d^- weighted 2.5, L_kd 4), twice as long."""
 from conceal_jax.configs import default, recipes
 
 
 VARIANTS = ("film", "film_pub", "film_web", "film_watch", "film_long", "film_deep", "film_stack", "film_faint",
-            "film_reset", "film_far", "drift", "pruned", "owned", "orbit", "tolerant", "axial", "referenced")
+            "film_reset", "film_far", "drift", "pruned", "owned", "orbit", "tolerant", "axial", "referenced", "axes")
 # The faint films whose colours train at the vivid rate, each building on the one before from film_pub on.
 VIVID_FILMS = ("film", "film_pub", "film_web", "film_watch", "film_long", "film_deep", "film_stack")
 # A closely watched key needs twice the demo's concealment to read its film (or a pruned student).
@@ -78,6 +79,9 @@ def get_config(variant: str = ""):
     config = recipes.axial_decoys(config)
   if variant == "referenced":
     config = recipes.referenced_decoder(recipes.owner_rendered(config))
+  if variant == "axes":
+    config = recipes.watched_axes(config)
+    config.conceal.iterations = FILM_ITERATIONS
   if variant.startswith("film"):  # every pose near the key sees the film: 64 decoys, drawn more often
     config = recipes.through_quantization(recipes.unseen_carrier(config))
     config.conceal.decoder.input_norm = "standardize"

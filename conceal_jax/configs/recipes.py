@@ -11,7 +11,7 @@ import math
 
 RECIPES = ("paper", "released", "in_scene", "standardized", "recommended", "recommended_at_decoder_size",
            "in_scene_watched", "in_scene_close", "in_scene_close_decoder", "in_scene_tolerant", "in_scene_axial",
-           "in_scene_referenced")
+           "in_scene_referenced", "in_scene_axes")
 
 # The decoder a CPU trains: width 16 from scratch (the paper's width 64 costs ~10x more per step), at a rate
 # a from-scratch decoder learns at (1e-3 stalled the demo's first steps).
@@ -67,6 +67,8 @@ TOLERANCE_DEG, TOLERANCE_VIEWS, TOLERANCE_FRACTION = 10.0, 64, 0.5
 TOLERANT_DECOYS_BEYOND = (1.5, 3.0)
 # The axial layer's decoys: how many, moved by these fractions of the key's depth, turned by these degrees.
 AXIAL_DECOY_VIEWS, AXIAL_DECOY_TRANSLATION, AXIAL_DECOY_ROTATION_DEG = 192, (0.01, 0.06), (1.0, 6.0)
+# The watched axes: the axial decoys on this share of the steps, L_d^- and L_kd weighted so.
+AXES_DECOY_FRACTION, AXES_WEIGHT_MINUS, AXES_WEIGHT_KD = 0.5, 2.5, 4.0
 # The key at the decoder's size: its decoys (twice the watched key's), moved by these fractions of the key's depth
 # (the default's are 0.01-0.1), and the memory their linear maps may take.
 DECODER_SIZE_DECOYS, DECODER_SIZE_DECOY_TRANSLATION, DECODER_SIZE_MAPS_MB = 1536, (0.005, 0.06), 8192
@@ -186,6 +188,24 @@ def referenced_decoder(config):
   """The decoder reads a learned image of its own beside every render, started from the clean teacher's render at
   the key (conceal.decoder.reference)."""
   config.conceal.decoder.reference = True
+  return config
+
+
+def in_scene_axes(config):
+  """in_scene with its key's axes watched (watched_axes): a second mark in the scene's own Gaussians that a model
+  extraction carries over (as in_scene's does) and that the key zoomed or rolled a little does not reveal."""
+  return watched_axes(in_scene(config))
+
+
+def watched_axes(config):
+  """axial_decoys as the normal view on AXES_DECOY_FRACTION of the steps, L_d^- weighted AXES_WEIGHT_MINUS: the
+  decoder sees a zoom or roll of the key often enough, and hard enough, to learn the key's exact framing (at a
+  quarter of the steps and weight 1 it still reveals from its own zoomed decoys); and L_kd weighted AXES_WEIGHT_KD:
+  decoys that watch the decoder alone leave the student without L_kd on those steps, and a decoder that refuses
+  the zoom asks L_d^+ for more, which drifts the render in every view unless the normal views hold it harder."""
+  config = axial_decoys(config)
+  config.conceal.leakage.decoy_fraction = AXES_DECOY_FRACTION
+  config.conceal.weight_minus, config.conceal.weight_kd = AXES_WEIGHT_MINUS, AXES_WEIGHT_KD
   return config
 
 
