@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from conceal_jax.conceal import key, near, reveal, scoring, settings as settings_lib, train as conceal_train
+from conceal_jax.conceal import key, near, reveal, scoring, settings as settings_lib, tolerance, train as conceal_train
 from conceal_jax.conceal import views as views_lib
 from conceal_jax.data import demo_scene, ply
 from conceal_jax.gs import init, losses
@@ -136,6 +136,27 @@ def test_near_poses_move_along_and_turn_about_the_keys_own_axes_then_random_ones
   np.testing.assert_allclose(roll[2], w2c[2, :3], atol=1e-9)
 
 
+def test_orbit_turn_decoys_stand_on_the_keys_orbit_and_the_others_are_unchanged():
+  """decoy_orbit_turns: the decoys both moved and turned become the key turned about the point its depth ahead, by
+  the degrees drawn (angle_from_key_deg measures exactly that turn), still looking at that point; the others are
+  the plain decoys."""
+  check = Camera.from_intrinsics(look_at([0.0, -4.0, 1.0], [0.0, 0.0, 0.0]), 40.0, 40.0, 16.0, 16.0, 32, 32)
+  length = 4.0
+  plain = near.decoy_cameras(check, length, 12, (0.05, 0.1), (3.0, 6.0), seed=1, key_axes=True)
+  decoys = near.decoy_cameras(check, length, 12, (0.05, 0.1), (3.0, 6.0), seed=1, key_axes=True, orbit_turns=True)
+  w2c = np.asarray(check.world_to_camera, np.float64)
+  pivot = camera_centers([check])[0] + length * w2c[2, :3]
+  for k, (decoy, other) in enumerate(zip(decoys, plain)):
+    if k % 3 != 2:
+      np.testing.assert_array_equal(np.asarray(decoy.world_to_camera), np.asarray(other.world_to_camera))
+      continue
+    angle = tolerance.angle_from_key_deg(decoy, check, length)
+    assert 3.0 - 1e-4 <= angle <= 6.0 + 1e-4
+    d2c = np.asarray(decoy.world_to_camera, np.float64)
+    ahead = d2c[:3, :3] @ pivot + d2c[:3, 3]  # the pivot in the decoy's frame: straight ahead at the same depth
+    np.testing.assert_allclose(ahead, [0.0, 0.0, length], atol=1e-5)
+
+
 def test_decoys_moved_along_or_turned_about_the_keys_axes_take_each_axis_in_turn():
   check = Camera.from_intrinsics(look_at([0.0, -4.0, 1.0], [0.0, 0.0, 0.0]), 40.0, 40.0, 16.0, 16.0, 32, 32)
   w2c = np.asarray(check.world_to_camera, np.float64)
@@ -235,13 +256,18 @@ def test_conceal_writes_outputs_resumes_and_reveals(tiny, tmp_path):
   assert ply.load_ply(a / "student.ply").num == 1200
 
   # the reveal job reproduces the concealment's revealed image from the shared files alone
-  reveal_config = demo.get_config()
-  reveal_config.mode = "reveal"
-  reveal_config.reveal.ply, reveal_config.reveal.key = str(a / "student.ply"), str(a / "key.json")
-  reveal_config.reveal.decoder, reveal_config.reveal.hidden = str(a / "decoder.msgpack"), "astronaut"
-  result = main_lib.run(reveal_config, str(tmp_path / "reveal"))
+  result = reveal_from_files(a, tmp_path / "reveal")
   np.testing.assert_allclose(result["psnr"], metrics["hidden"]["psnr"], rtol=1e-4)
   assert (tmp_path / "reveal" / "revealed.png").read_bytes() == (a / "revealed.png").read_bytes()
+
+
+def reveal_from_files(run, workdir) -> dict:
+  """The reveal job's result on a conceal run's shared files (student.ply, key.json, decoder.msgpack)."""
+  reveal_config = demo.get_config()
+  reveal_config.mode = "reveal"
+  reveal_config.reveal.ply, reveal_config.reveal.key = str(run / "student.ply"), str(run / "key.json")
+  reveal_config.reveal.decoder, reveal_config.reveal.hidden = str(run / "decoder.msgpack"), "astronaut"
+  return main_lib.run(reveal_config, str(workdir))
 
 
 @pytest.fixture(scope="module")
@@ -330,12 +356,7 @@ def test_a_reference_decoder_run_is_revealed_from_its_shared_files(tiny, tmp_pat
   run = tmp_path / "run"
   assert reveal.load_decoder(str(run / "decoder.msgpack"))["reference"].shape == (16, 16, 3)
   assert json.loads((run / "key.json").read_text())["decoder_reference"] is True
-  reveal_config = demo.get_config()
-  reveal_config.mode = "reveal"
-  reveal_config.reveal.ply, reveal_config.reveal.key = str(run / "student.ply"), str(run / "key.json")
-  reveal_config.reveal.decoder, reveal_config.reveal.hidden = str(run / "decoder.msgpack"), "astronaut"
-  result = main_lib.run(reveal_config, str(tmp_path / "reveal"))
-  np.testing.assert_allclose(result["psnr"], metrics["hidden"]["psnr"], rtol=1e-4)
+  np.testing.assert_allclose(reveal_from_files(run, tmp_path / "reveal")["psnr"], metrics["hidden"]["psnr"], rtol=1e-4)
 
 
 @pytest.mark.slow  # two runs of 40 steps; no recipe polishes (conceal.decoder_opt.polish_steps is 0 in each)

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from conceal_jax.conceal import settings as settings_lib, tolerance, train as conceal_train, views as views_lib
+from conceal_jax.conceal import near, settings as settings_lib, tolerance, train as conceal_train, views as views_lib
 from conceal_jax.configs import default, recipes
 from conceal_jax.splat.camera import Camera, camera_centers, look_at
 from tests.test_conceal import tiny, tiny_config  # noqa: F401 (the fixture)
@@ -21,7 +21,7 @@ def test_an_orbited_camera_sees_the_world_turned_about_the_pivot():
   kept at its distance from the pivot, the pivot still on its optical axis."""
   rng = np.random.default_rng(0)
   pivot, axis, angle = rng.normal(size=3), rng.normal(size=3), 0.3
-  turned = tolerance.orbited_camera(KEY, pivot, axis, angle)
+  turned = near.orbited_camera(KEY, pivot, axis, angle)
   axis = axis / np.linalg.norm(axis)
   k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
   rotation = np.eye(3) + math.sin(angle) * k + (1 - math.cos(angle)) * k @ k
@@ -100,7 +100,7 @@ def test_the_distance_from_the_key_is_the_turn_a_pose_takes():
   """A pose turned t degrees about the key's point is t away; a roll of r at the key's place is r; a move of m
   key lengths towards the scene is the turn that moves the centre as far: 2 asin(m / 2)."""
   pivot = np.zeros(3)
-  turned = tolerance.orbited_camera(KEY, pivot, np.array([0.3, 0.2, 1.0]), math.radians(7.0))
+  turned = near.orbited_camera(KEY, pivot, np.array([0.3, 0.2, 1.0]), math.radians(7.0))
   assert tolerance.angle_from_key_deg(turned, KEY, LENGTH) == pytest.approx(7.0, abs=1e-4)
   w2c = np.asarray(KEY.world_to_camera, np.float64)
   rolled = np.array(w2c)

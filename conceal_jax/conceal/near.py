@@ -110,8 +110,32 @@ def nearby_cameras(camera: Camera, length: float, translations: Sequence[float],
 DECOY_SEED_BASE = 1_000_000
 
 
+def orbited_camera(camera: Camera, pivot: np.ndarray, axis: np.ndarray, angle: float) -> Camera:
+  """`camera` turned rigidly by `angle` radians about the world `axis` through the world point `pivot` [3]: where
+  it stands moves about the pivot and it turns with it, looking at the pivot as before. Same intrinsics."""
+  rotation = rotation_about(axis, angle)
+  w2c = np.asarray(camera.world_to_camera, np.float64)
+  center = pivot + rotation @ (camera_centers([camera])[0] - pivot)
+  moved = np.eye(4)
+  moved[:3, :3] = w2c[:3, :3] @ rotation.T
+  moved[:3, 3] = -moved[:3, :3] @ center
+  return Camera.from_intrinsics(moved, float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy),
+                                camera.width, camera.height)
+
+
+def orbit_turn(camera: Camera, length: float, angle_deg: float, rng: np.random.Generator) -> Camera:
+  """The key turned by `angle_deg` about the point `length` ahead on its optical axis (near_length: the scene's
+  depth as the key sees it), about an axis across its optical axis drawn from `rng`: the pose a camera on the key's
+  orbit takes that far from it, which sees what the key sees at its centre almost unmoved."""
+  forward = np.asarray(camera.world_to_camera, np.float64)[2, :3]
+  pivot = camera_centers([camera])[0] + length * forward
+  axis = np.cross(forward, rng.normal(size=3))
+  return orbited_camera(camera, pivot, axis / np.linalg.norm(axis), math.radians(angle_deg))
+
+
 def decoy_cameras(camera: Camera, length: float, count: int, translation: Sequence[float],
-                  rotation_deg: Sequence[float], seed: int = 0, key_axes: bool = False) -> list[Camera]:
+                  rotation_deg: Sequence[float], seed: int = 0, key_axes: bool = False,
+                  orbit_turns: bool = False) -> list[Camera]:
   """`count` cameras near the key, for training the decoder to stay the identity there (conceal.leakage.decoy_*).
 
   Each is moved by a fraction of the key's near-key `length` (near_length, the unit the leakage figure's
@@ -119,7 +143,8 @@ def decoy_cameras(camera: Camera, length: float, count: int, translation: Sequen
   (lo, hi), or both, the three kinds in turn; directions are random, except with `key_axes`, where the decoys
   that are only moved go along, and those only turned turn about, the key's own axes in turn (KEY_AXES: a move
   along the optical axis and a roll about it among them, the poses a decoder trained on random directions reveals
-  its image at).
+  its image at). With `orbit_turns` those both moved and turned are orbit turns instead (orbit_turn, by the
+  degrees drawn): the key turned about the point its depth ahead, the other pose that barely moves its image.
   """
   cameras = []
   for k in range(count):
@@ -128,13 +153,18 @@ def decoy_cameras(camera: Camera, length: float, count: int, translation: Sequen
     moved = rng.uniform(*translation) * length if kind in (0, 2) else 0.0
     turned = rng.uniform(*rotation_deg) if kind in (1, 2) else 0.0
     axis = KEY_AXES[(k // 3) % len(KEY_AXES)] if key_axes and kind in (0, 1) else None
-    cameras.append(nearby_camera(camera, moved, turned, DECOY_SEED_BASE + seed * count + k, key_axis=axis))
+    pose_seed = DECOY_SEED_BASE + seed * count + k
+    if orbit_turns and kind == 2:
+      cameras.append(orbit_turn(camera, length, turned, np.random.default_rng(pose_seed)))
+    else:
+      cameras.append(nearby_camera(camera, moved, turned, pose_seed, key_axis=axis))
   return cameras
 
 
 def keys_decoys(keys: list, count: int, translation: Sequence[float], rotation_deg: Sequence[float], seed: int,
-                key_axes: bool = False) -> list[Camera]:
+                key_axes: bool = False, orbit_turns: bool = False) -> list[Camera]:
   """decoy_cameras around each key of `keys` [(camera, info)] in turn, at its near_length, from its own seed
   seed + k: `count` per key."""
   return [decoy for k, (camera, info) in enumerate(keys)
-          for decoy in decoy_cameras(camera, info["near_length"], count, translation, rotation_deg, seed + k, key_axes)]
+          for decoy in decoy_cameras(camera, info["near_length"], count, translation, rotation_deg, seed + k, key_axes,
+                                     orbit_turns)]

@@ -112,9 +112,8 @@ class ConcealSettings:
 class RunPlan:
   """What a concealment job reads from its config, checked: the step's settings, the loop (the joint
   iterations then conceal.decoder_opt.polish_steps decoder-only steps), the sources of the hidden images
-  (mark.hidden then mark.extra_hidden), the key's kind, the decoys' (count, ranges, whether the moved ones go
-  along the key's axes), the carrier film's (None: the student is the teacher's Gaussians) and the key tolerance
-  radius (None: the key alone)."""
+  (mark.hidden then mark.extra_hidden), the key's kind, the decoys' (count, ranges, key axes, orbit turns), the
+  carrier film's (None: the student is the teacher's Gaussians) and the key tolerance radius (None: the key alone)."""
   settings: ConcealSettings
   loop: loop.LoopSettings
   iterations: int
@@ -130,6 +129,7 @@ class RunPlan:
   film: carrier.Film | None = None
   decoy_key_axes: bool = False
   tolerance: Tolerance | None = None
+  decoy_orbit_turns: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -211,7 +211,7 @@ def plan(config: ml_collections.ConfigDict) -> RunPlan:
   return RunPlan(settings, dataclasses.replace(joint, iterations=joint.iterations + polish), c.iterations, polish,
                  sources, m.key_kind, m.key_index, m.key_seed, key_offset(config), lk.decoy_views,
                  ranges["decoy_translation"], ranges["decoy_rotation_deg"], carrier.film_plan(config),
-                 bool(lk.decoy_key_axes), tolerance(lk))
+                 bool(lk.decoy_key_axes), tolerance(lk), bool(lk.decoy_orbit_turns))
 
 
 def extra_hidden(extra, use_decoder: bool) -> tuple[str, ...]:

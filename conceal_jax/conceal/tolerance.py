@@ -9,7 +9,7 @@ from typing import Sequence
 
 import numpy as np
 
-from conceal_jax.conceal.key import rotation_about
+from conceal_jax.conceal.near import orbit_turn
 from conceal_jax.conceal.settings import Tolerance
 from conceal_jax.splat.camera import Camera, camera_centers
 
@@ -17,31 +17,10 @@ from conceal_jax.splat.camera import Camera, camera_centers
 TOLERANCE_SEED_BASE = 3_000_000  # seeds of the tolerance poses, apart from leakage's, the decoys' and the nulls'
 
 
-def orbited_camera(camera: Camera, pivot: np.ndarray, axis: np.ndarray, angle: float) -> Camera:
-  """`camera` turned rigidly by `angle` radians about the world `axis` through the world point `pivot` [3]: where
-  it stands moves about the pivot and it turns with it, looking at the pivot as before. Same intrinsics."""
-  rotation = rotation_about(axis, angle)
-  w2c = np.asarray(camera.world_to_camera, np.float64)
-  center = pivot + rotation @ (camera_centers([camera])[0] - pivot)
-  moved = np.eye(4)
-  moved[:3, :3] = w2c[:3, :3] @ rotation.T
-  moved[:3, 3] = -moved[:3, :3] @ center
-  return Camera.from_intrinsics(moved, float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy),
-                                camera.width, camera.height)
-
-
 def orbit_turns(camera: Camera, length: float, angles_deg: Sequence[float], seed: int = 0) -> list[Camera]:
-  """The key turned about the point `length` ahead on its optical axis (near_length: the scene's depth as the key
-  sees it) by each of `angles_deg`, about a random axis across its optical axis (the k-th from seed and k): the
-  poses a camera on the key's orbit takes that far from it."""
-  w2c = np.asarray(camera.world_to_camera, np.float64)
-  forward = w2c[2, :3]
-  pivot = camera_centers([camera])[0] + length * forward
-  cameras = []
-  for k, angle in enumerate(angles_deg):
-    axis = np.cross(forward, np.random.default_rng([TOLERANCE_SEED_BASE + seed, k]).normal(size=3))
-    cameras.append(orbited_camera(camera, pivot, axis / np.linalg.norm(axis), math.radians(angle)))
-  return cameras
+  """near.orbit_turn by each of `angles_deg`, the k-th about an axis drawn from seed and k."""
+  return [orbit_turn(camera, length, angle, np.random.default_rng([TOLERANCE_SEED_BASE + seed, k]))
+          for k, angle in enumerate(angles_deg)]
 
 
 def tolerance_cameras(camera: Camera, length: float, count: int, radius_deg: float, seed: int = 0) -> list[Camera]:

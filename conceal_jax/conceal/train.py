@@ -91,7 +91,7 @@ def prepare(config: ml_collections.ConfigDict, plan: settings_lib.RunPlan) -> Ru
   s = plan.settings
   teacher, scene, hiddens, keys, options, message = marking(config, plan)
   decoys = near.keys_decoys(keys, plan.decoy_views, plan.decoy_translation, plan.decoy_rotation_deg, plan.key_seed,
-                            plan.decoy_key_axes)
+                            plan.decoy_key_axes, plan.decoy_orbit_turns)
   check_cameras, check_hiddens = tolerance_lib.check_views(plan.tolerance, plan.key_seed, keys, hiddens)
   # the released variant's check-view L1 target: a training-camera key's image (elsewhere the teacher's render)
   key_images = [scene.train_images[info["index"]] for _, info in keys] if plan.key_kind == "train_index" else None

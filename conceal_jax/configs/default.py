@@ -250,10 +250,12 @@ def conceal_leakage_section() -> ml_collections.ConfigDict:
   fraction means about the same pixel motion on an object-centred orbit and on a forward-facing capture, where the
   3D-GS extent (the spread of the camera centres) is small against the depth. decoy_key_axes: the decoys that are
   only moved go along, and those only turned turn about, the key's own axes in turn (a zoom and a roll among them)
-  rather than random ones. decoys_hold_student False: a decoy holds the decoder to the identity (on the student's and
-  the teacher's renders there) but not the student to the teacher's render (no L_kd at decoys), so that a mark in the
-  scene's own Gaussians may stay a texture every nearby view shows faintly, which the decoder alone learns to read at
-  the key only, rather than one only the exact key shows. A key tolerance radius (issue 39's trade of the leakage
+  rather than random ones; decoy_orbit_turns: those both moved and turned are orbit turns instead, the key turned
+  about the point its depth ahead (a pose whose image of the scene barely moves at its centre). decoys_hold_student
+  False: a decoy holds the decoder to the identity (on the student's and the teacher's renders there) but not the
+  student to the teacher's render (no L_kd at decoys), so that a mark in the scene's own Gaussians may stay a
+  texture every nearby view shows faintly, which the decoder alone learns to read at the key only, rather than one
+  only the exact key shows. A key tolerance radius (issue 39's trade of the leakage
   radius for robustness): tolerance_views poses within tolerance_deg of every key (the key turned about the point it
   looks at, as a camera on its orbit sees the scene) reveal the key's image too, one of them the check view with
   probability tolerance_fraction, and the training views within the radius are not held to F's identity on the
@@ -267,6 +269,7 @@ def conceal_leakage_section() -> ml_collections.ConfigDict:
   c.decoy_translation = (0.01, 0.1)
   c.decoy_rotation_deg = (1.0, 10.0)
   c.decoy_key_axes = False
+  c.decoy_orbit_turns = False
   c.decoys_hold_student = True
   c.tolerance_deg = 0.0
   c.tolerance_views = 0
