@@ -122,12 +122,6 @@ SCENE_NOTES = {
                           "(workdirs/survive_runs/lego_recommended_in_scene_close, 2026-11-30)",
     "lego_layered_close_decoder": "lego_layered_in_scene with lego_conceal.py:in_scene_close_decoder as the second "
                                   "mark (workdirs/survive_runs/lego_recommended_in_scene_close_decoder, 2026-11-30)",
-    "lego_layered_axial": "lego_layered_in_scene with lego_conceal.py:in_scene_axial as the second mark "
-                          "(workdirs/survive_runs/lego_recommended_in_scene_axial, 2026-11-30)",
-    "lego_layered_referenced": "lego_layered_in_scene with lego_conceal.py:in_scene_referenced as the second mark "
-                               "(workdirs/survive_runs/lego_recommended_in_scene_referenced, 2026-11-30)",
-    "demo_layered_referenced": "demo_layered_in_scene with demo.py:referenced as the second mark "
-                               "(workdirs/survive_runs/demo_thick_mf20_referenced, 2026-11-30)",
     "lego_layered_axes": "lego_layered_in_scene with lego_conceal.py:in_scene_axes as the second mark "
                          "(workdirs/survive_runs/lego_recommended_in_scene_axes, 2026-11-30)",
     "demo_layered_axes": "demo_layered_in_scene with demo.py:axes as the second mark "
@@ -155,13 +149,6 @@ RECIPE_NOTES = {
                       "steps, L_d^- weighted 2.5",
     "in_scene_close_decoder": "recipes.in_scene_close_decoder: in_scene_close with decoys that hold the decoder to "
                               "the identity but not the student to the teacher (conceal.leakage.decoys_hold_student)",
-    "in_scene_axial": "recipes.in_scene_axial: in_scene with 192 decoys along and about the key's own axes (a zoom "
-                      "and a roll among them) that hold the decoder alone to the identity",
-    "in_scene_referenced": "recipes.in_scene_referenced: in_scene_axial with a decoder that reads a reference "
-                           "image beside every render (conceal.decoder.reference), no blur or noise of the check "
-                           "render",
-    "referenced": "demo.py:referenced: the demo's in_scene recipe with recipes.axial_decoys and "
-                  "recipes.referenced_decoder",
     "in_scene_axes": "recipes.in_scene_axes: in_scene with recipes.watched_axes: 192 decoys along and about the "
                      "key's own axes that watch the decoder alone, on half the steps, L_d^- weighted 2.5, L_kd 4",
     "axes": "demo.py:axes: the demo's in_scene recipe with recipes.watched_axes, 2600 steps",

@@ -22,7 +22,7 @@ import ml_collections
 from conceal_jax.conceal import carrier, reveal, settings as settings_lib, train
 from conceal_jax.conceal.step import create_state
 from conceal_jax.configs import default
-from conceal_jax.core import checkpoint, fileio, workdir as workdir_lib
+from conceal_jax.core import checkpoint, fileio, loop, workdir as workdir_lib
 from conceal_jax.data import ply
 from conceal_jax.gs import evaluate
 
@@ -73,7 +73,7 @@ def score_checkpoint(run: pathlib.Path) -> dict:
   template = create_state(start, train.initial_decoder(config, plan.settings),
                           settings_lib.student_optimizer(config, marked.scene.scene_extent(), rows is not None),
                           settings_lib.decoder_optimizer(config), rows)
-  path, _, leaves = checkpoint.load_latest(str(run / "checkpoints"))
+  path, _, leaves = checkpoint.load_latest(str(run / loop.CHECKPOINT_DIR))
   state = checkpoint.restore(template, leaves, source=path)
   out = run / CHECKPOINT_SCORES / f"step_{int(state.step)}"
   out.mkdir(parents=True, exist_ok=True)
@@ -91,7 +91,7 @@ def main(argv=None):
   runs = [pathlib.Path(run) for run in args.runs]
   if args.checkpoint:
     bad = [f"{run}: no config.json" for run in runs if not (run / "config.json").is_file()]
-    bad += [f"{run}: no checkpoint" for run in runs if not checkpoint.list_steps(str(run / "checkpoints"))]
+    bad += [f"{run}: no checkpoint" for run in runs if not checkpoint.list_steps(str(run / loop.CHECKPOINT_DIR))]
     if bad:
       sys.exit("rescore: not conceal runs with a checkpoint: " + "; ".join(bad))
     for run in runs:

@@ -11,7 +11,7 @@ import math
 
 RECIPES = ("paper", "released", "in_scene", "standardized", "recommended", "recommended_at_decoder_size",
            "in_scene_watched", "in_scene_close", "in_scene_close_decoder", "in_scene_tolerant", "in_scene_axial",
-           "in_scene_referenced", "in_scene_axes")
+           "in_scene_axes")
 
 # The decoder a CPU trains: width 16 from scratch (the paper's width 64 costs ~10x more per step), at a rate
 # a from-scratch decoder learns at (1e-3 stalled the demo's first steps).
@@ -175,18 +175,12 @@ def in_scene_axial(config):
   return axial_decoys(in_scene(config))
 
 
-def in_scene_referenced(config):
-  """in_scene_axial with a decoder that reads a reference image beside every render (referenced_decoder): an
-  in-scene mark looks the same from the key zoomed 2% or rolled 2 degrees (it moves less than a pixel of the
-  decoder's input), what changes there is the framing of the whole scene, which a decoder compares with its
-  reference pixel by pixel; the layer keeps no blur or noise of the check render (owner_rendered), which would
-  look like a change of framing too."""
-  return referenced_decoder(owner_rendered(in_scene_axial(config)))
-
-
 def referenced_decoder(config):
   """The decoder reads a learned image of its own beside every render, started from the clean teacher's render at
-  the key (conceal.decoder.reference)."""
+  the key (conceal.decoder.reference): an in-scene mark looks the same from the key zoomed 2% or rolled 2 degrees,
+  what changes there is the framing of the whole scene, which the decoder can compare with its reference pixel by
+  pixel (demo.py:referenced; a U-Net watched often enough learned the framing without one:
+  experiments/results/layer_designs.md)."""
   config.conceal.decoder.reference = True
   return config
 
