@@ -24,14 +24,25 @@ def merged_rows(path: pathlib.Path, rows: list[dict], key: Callable[[dict], tupl
   return kept + list(fresh.values())
 
 
+def results_json(header: dict, rows: list[dict]) -> str:
+  """{**header, "rows": rows} as JSON text, the header indented and one row per line: a result file stays small
+  (rows carry nested matrices that an indented dump spreads over dozens of lines) and its diff shows which rows
+  changed."""
+  fields = [f"  {json.dumps(k)}: " + json.dumps(v, indent=2, sort_keys=True, default=fileio.json_default)
+            .replace("\n", "\n  ") for k, v in sorted(header.items())]
+  lines = [json.dumps(row, sort_keys=True, default=fileio.json_default) for row in rows]
+  fields.append('  "rows": [' + "".join(f"\n    {line}," for line in lines).rstrip(",") + ("\n  ]" if rows else "]"))
+  return "{\n" + ",\n".join(fields) + "\n}\n"
+
+
 def write_results(out: pathlib.Path, name: str, rows: list[dict], key: Callable[[dict], tuple],
                   table: Callable[[list[dict]], str], plot: Callable[[list[dict], pathlib.Path], None],
                   **header) -> list[dict]:
   """Merges `rows` into <out>/<name>.json (with the device, the CPU and `header`), rewrites <name>.md
   and <name>.png from all rows; returns them."""
   merged = merged_rows(out / f"{name}.json", rows, key)
-  fileio.write_json(out / f"{name}.json", dict(device=str(jax.devices()[0]), cpu=platform.processor(), **header,
-                                               rows=merged))
+  fileio.write_text(out / f"{name}.json", results_json(dict(device=str(jax.devices()[0]), cpu=platform.processor(),
+                                                            **header), merged))
   fileio.write_text(out / f"{name}.md", table(merged))
   plot(merged, out / f"{name}.png")
   return merged

@@ -259,3 +259,24 @@ def test_the_ownership_test_table_counts_pairs_and_shows_message_mode():
   assert text.index("| demo | 48 |") < text.index("| lego | 48 | BCH(125, 48), shortened from BCH(127, 50) | 100.00%")
   assert "runs: w/demo_48, w/lego_48;" in text
   assert reproduce.NOT_RUN in "\n".join(reproduce.ownership_test_table(dict(bench, message={})))
+
+
+def test_result_files_hold_one_row_per_line_and_merge_rebuilt_rows_in_place(tmp_path):
+  key = lambda row: (row["scene"], row["level"])
+  plot = lambda rows, path: path.write_text("plot")
+  table = lambda rows: "\n".join(f"{r['scene']} {r['level']} {r['ssim']}" for r in rows)
+  first = [dict(scene="demo", level=1.0, ssim=0.9, registration=dict(rotation=np.eye(3, dtype=np.float32))),
+           dict(scene="demo", level=5.0, ssim=0.3)]
+  results_io.write_results(tmp_path, "bench", first, key, table, plot, note="header")
+  text = (tmp_path / "bench.json").read_text()
+  data = json.loads(text)
+  assert data["note"] == "header" and data["rows"][0]["registration"]["rotation"][1] == [0.0, 1.0, 0.0]
+  rows = [line for line in text.splitlines() if line.startswith('    {"')]
+  assert len(rows) == 2 and json.loads(rows[1].rstrip(",")) == first[1]
+  merged = results_io.write_results(tmp_path, "bench", [dict(scene="lego", level=1.0, ssim=0.8),
+                                                        dict(scene="demo", level=5.0, ssim=0.4)], key, table, plot)
+  assert [(r["scene"], r["level"], r["ssim"]) for r in merged] == [("demo", 1.0, 0.9), ("demo", 5.0, 0.4),
+                                                                    ("lego", 1.0, 0.8)]
+  assert json.loads((tmp_path / "bench.json").read_text())["rows"] == merged
+  assert (tmp_path / "bench.md").read_text() == "demo 1.0 0.9\ndemo 5.0 0.4\nlego 1.0 0.8"
+  assert json.loads(results_io.results_json(dict(device="cpu"), [])) == dict(device="cpu", rows=[])

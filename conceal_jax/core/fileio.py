@@ -56,7 +56,7 @@ def write_text(path: str | os.PathLike, text: str) -> None:
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> None:
-  write_bytes(path, (json.dumps(obj, indent=2, sort_keys=True, default=_json_default) + "\n").encode())
+  write_bytes(path, (json.dumps(obj, indent=2, sort_keys=True, default=json_default) + "\n").encode())
 
 
 def write_image(path: str | os.PathLike, image: Any) -> None:
@@ -67,7 +67,7 @@ def write_image(path: str | os.PathLike, image: Any) -> None:
     iio.imwrite(tmp, np.round(pixels * 255).astype(np.uint8))
 
 
-def _json_default(value: Any) -> Any:
+def json_default(value: Any) -> Any:
   if isinstance(value, (np.generic, np.ndarray)) or hasattr(value, "__array__"):
     return np.asarray(value).tolist()
   raise TypeError(f"cannot write {type(value).__name__} to JSON")
