@@ -39,33 +39,42 @@ demo: $(STAMP)
 
 # your own scene: SCENE=<a folder the loaders read (Blender, COLMAP, transforms.json, LLFF) or demo>, TEACHER=<its
 # trained .ply> to skip training one. Trains a teacher (OWN_TRAIN_STEPS steps), conceals HIDDEN with the recommended
-# recipe (configs/conceal.py), reveals it from the student and verifies ownership (at verify.alpha; CALIBRATION=<a file
-# of measured scores> adds its threshold's decision as evidence), each job in its own
+# recipe (configs/conceal.py), hides it a second time in the student's own Gaussians with LAYER's recipe (a mark a
+# model extraction carries over; LAYER= for the film's mark alone), reveals the film's mark from the shared scene
+# and verifies ownership from both marks (at verify.alpha; CALIBRATION=<a file of measured scores> adds its
+# threshold's decision as evidence), each job in its own
 # folder of workdirs/own_scene/<scene folder's name> (or WORKDIR=...); ARGS: --config overrides for every job, e.g.
 # ARGS=--config.data.images=images_4. Each job resumes when run again. Open verify/report.html.
 SCENE ?=
 TEACHER ?=
 HIDDEN ?= astronaut
+LAYER ?=
 OWN_TRAIN_STEPS ?= 10000
 CURVE_EVERY ?= 500
 CALIBRATION ?=
 ARGS ?=
 OWN_DIR = $(if $(filter-out file,$(origin WORKDIR)),$(WORKDIR),workdirs/own_scene/$(notdir $(abspath $(SCENE))))
 OWN_TEACHER = $(or $(TEACHER),$(OWN_DIR)/teacher/point_cloud.ply)
-OWN_MAIN = $(PY) -m conceal_jax.main --config=conceal_jax/configs/conceal.py --config.data.path=$(SCENE) $(ARGS)
+# a job of configs/conceal.py on SCENE; $(1): the recipe (":name"), empty for the recommended one
+own_main = $(PY) -m conceal_jax.main --config=conceal_jax/configs/conceal.py$(1) --config.data.path=$(SCENE) $(ARGS)
+OWN_SHARED = $(OWN_DIR)/$(if $(LAYER),layer,conceal)/student.ply
 OWN_CALIBRATION = $(if $(CALIBRATION),--config.verify.calibration=$(CALIBRATION))
-OWN_KEYS = --config.reveal.ply=$(OWN_DIR)/conceal/student.ply --config.reveal.key=$(OWN_DIR)/conceal/key.json \
+OWN_KEYS = --config.reveal.ply=$(OWN_SHARED) --config.reveal.key=$(OWN_DIR)/conceal/key.json \
            --config.reveal.decoder=$(OWN_DIR)/conceal/decoder.msgpack --config.reveal.hidden=$(HIDDEN)
 own-scene: $(STAMP)
 	@test -n "$(SCENE)" || { echo "make own-scene: SCENE=<scene folder> is required" >&2; exit 2; }
 	@test -z "$(TEACHER)" || test -f "$(TEACHER)" || \
 	  { echo "make own-scene: TEACHER=$(TEACHER): no such file" >&2; exit 2; }
-	test -n "$(TEACHER)" || $(OWN_MAIN) --workdir=$(OWN_DIR)/teacher --config.mode=train \
+	test -n "$(TEACHER)" || $(call own_main) --workdir=$(OWN_DIR)/teacher --config.mode=train \
 	  --config.train.iterations=$(OWN_TRAIN_STEPS)
-	$(OWN_MAIN) --workdir=$(OWN_DIR)/conceal --config.mark.teacher=$(OWN_TEACHER) --config.mark.hidden=$(HIDDEN) \
+	$(call own_main) --workdir=$(OWN_DIR)/conceal --config.mark.teacher=$(OWN_TEACHER) --config.mark.hidden=$(HIDDEN) \
 	  --config.conceal.eval_every=$(CURVE_EVERY)
-	$(OWN_MAIN) --workdir=$(OWN_DIR)/reveal --config.mode=reveal $(OWN_KEYS)
-	$(OWN_MAIN) --workdir=$(OWN_DIR)/verify --config.mode=verify $(OWN_KEYS) $(OWN_CALIBRATION)
+	test -z "$(LAYER)" || $(call own_main,:$(LAYER)) --workdir=$(OWN_DIR)/layer \
+	  --config.mark.teacher=$(OWN_DIR)/conceal/student.ply --config.mark.hidden=$(HIDDEN) \
+	  --config.conceal.eval_every=$(CURVE_EVERY)
+	$(call own_main) --workdir=$(OWN_DIR)/reveal --config.mode=reveal $(OWN_KEYS)
+	$(call own_main) --workdir=$(OWN_DIR)/verify --config.mode=verify $(OWN_KEYS) $(OWN_CALIBRATION) \
+	  $(if $(LAYER),--config.verify.marks=$(OWN_DIR)/layer)
 	@echo "own-scene: open $(OWN_DIR)/verify/report.html (the concealment alone: $(OWN_DIR)/conceal/report.html)"
 
 # headless Chromium (Debian's package), which the report test opens report.html in; the test skips without it

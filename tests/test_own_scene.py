@@ -77,26 +77,48 @@ def test_own_scene_with_a_teacher_conceals_it_and_trains_none(tmp_path):
 
 
 @needs_make
+@pytest.mark.parametrize("layer", ["", "in_scene_axes"])
+def test_own_scene_layers_a_second_mark_on_the_student_and_verifies_both(layer):
+  commands = make_own_scene("SCENE=my/scene", "TEACHER=t.ply", f"LAYER={layer}", dry_run=True).stdout
+  job = lambda name: [line for line in commands.splitlines() if f"--workdir=workdirs/own_scene/scene/{name}" in line]
+  assert job("layer") == [f'test -z "{layer}" || {sys.executable} -m conceal_jax.main '
+                          f"--config=conceal_jax/configs/conceal.py:{layer} "
+                          "--config.data.path=my/scene  --workdir=workdirs/own_scene/scene/layer \\"]
+  assert "--config.mark.teacher=workdirs/own_scene/scene/conceal/student.ply" in commands
+  shared = f"--config.reveal.ply=workdirs/own_scene/scene/{'layer' if layer else 'conceal'}/student.ply"
+  for name in ("reveal", "verify"):  # the film's key and decoder, read from the scene as shared
+    assert shared in job(name)[0] and "--config.reveal.key=workdirs/own_scene/scene/conceal/key.json" in job(name)[0]
+  assert ("--config.verify.marks=workdirs/own_scene/scene/layer" in commands) == bool(layer)
+
+
+@needs_make
 @pytest.mark.slow  # four jobs, each its own process and compilation
-@pytest.mark.parametrize("layout", ["blender", "colmap", "transforms", "llff"])
-def test_own_scene_trains_conceals_reveals_and_verifies(tmp_path, layout):
+@pytest.mark.parametrize("layout,layer", [("blender", ""), ("colmap", ""), ("transforms", ""), ("llff", ""),
+                                          ("blender", "in_scene_axes")])
+def test_own_scene_trains_conceals_reveals_and_verifies(tmp_path, layout, layer):
   scene = write_scene(layout, tmp_path / "scene")
   work = tmp_path / "work"
   images = " --config.data.images=images_8" if layout == "llff" else ""
   result = make_own_scene(f"SCENE={scene}", f"WORKDIR={work}", "OWN_TRAIN_STEPS=20", "CURVE_EVERY=5",
-                          f"ARGS={TINY_ARGS}{images}")
+                          f"ARGS={TINY_ARGS}{images}", f"LAYER={layer}")
   assert result.returncode == 0, result.stderr[-3000:]
   output = result.stdout + result.stderr
   assert "Unable to initialize backend" not in output and f"loading as {layout}" in output
-  for line in ("trained 20 steps in", "concealed in 10 steps", f"revealed from {work}/conceal/student.ply: PSNR",
-               f"{work}/conceal/student.ply: ", "  evidence: ", f"open {work}/verify/report.html"):
+  shared = work / ("layer" if layer else "conceal") / "student.ply"
+  for line in ("trained 20 steps in", "concealed in 10 steps", f"revealed from {shared}: PSNR",
+               f"{shared}: ", "  evidence: ", f"open {work}/verify/report.html"):
     assert line in result.stdout, line
   for path in ("teacher/point_cloud.ply", "conceal/student.ply", "conceal/report.html", "reveal/revealed.png",
-               "verify/verify.json", "verify/report.html"):
+               "verify/verify.json", "verify/report.html") + (("layer/student.ply", "layer/key.json") if layer else ()):
     assert (work / path).is_file(), path
   concealed = json.loads((work / "conceal" / "metrics.json").read_text())
   revealed = json.loads((work / "reveal" / "reveal.json").read_text())
-  assert revealed["psnr"] == pytest.approx(concealed["hidden"]["psnr"], rel=1e-4)
+  verified = json.loads((work / "verify" / "verify.json").read_text())
+  if layer:  # the film's mark read from the layered scene, and both marks tested
+    assert np.isfinite(revealed["psnr"]) and verified["ply"] == str(shared)
+    assert [m["key"] for m in verified["marks"]] == [f"{work}/conceal/key.json", f"{work}/layer/key.json"]
+  else:
+    assert revealed["psnr"] == pytest.approx(concealed["hidden"]["psnr"], rel=1e-4) and "marks" not in verified
   curves = [h for h in json.loads((work / "conceal" / "conceal.json").read_text())["history"] if "hidden_psnr" in h]
   assert [h["step"] for h in curves] == [5, 10]
   assert "The concealment this key comes from" in (work / "verify" / "report.html").read_text()
