@@ -3,6 +3,7 @@ the scoring changed (the near-key poses, a leakage figure), or a run's latest ch
 
   python -m experiments.rescore workdirs/bench/lego/conceal_in_scene_w16 workdirs/demo/conceal
   python -m experiments.rescore --checkpoint workdirs/survive_runs/lego_recommended_in_scene_axial
+  python -m experiments.rescore --checkpoint --views=20 RUN  # a quicker interim read: 20 of the test views
 
 Each run's metrics.json is rewritten; the one it replaces is kept as metrics_previous.json (once: a second
 rescore keeps the first original). Prints each run's hidden PSNR / SSIM and leakage before and after. `make
@@ -61,11 +62,14 @@ def rescore(run: pathlib.Path) -> dict:
   return dict(run=str(run), before=headline(before), after=headline(after))
 
 
-def score_checkpoint(run: pathlib.Path) -> dict:
+def score_checkpoint(run: pathlib.Path, views: int = 0) -> dict:
   """The headline figures and step of `run`'s latest conceal checkpoint, scored as a finished run's student and
-  decoder are (train.score_student) into <run>/checkpoint_scores/step_<N>/; the run's own files are not touched.
-  The state's template is the run's own first state: the teacher, or the teacher and its planned film."""
+  decoder are (train.score_student) into <run>/checkpoint_scores/step_<N>/ (on `views` evenly spaced test views,
+  0: the run's own eval.max_views); the run's own files are not touched. The state's template is the run's own
+  first state: the teacher, or the teacher and its planned film."""
   config = saved_config(run)
+  if views:
+    config.eval.max_views = views
   plan = settings_lib.plan(config)
   marked = train.marking(config, plan)
   start, rows = carrier.student_start(plan.film, marked.teacher, marked.keys[0][0], marked.scene.train_cameras,
@@ -75,10 +79,10 @@ def score_checkpoint(run: pathlib.Path) -> dict:
                           settings_lib.decoder_optimizer(config), rows)
   path, _, leaves = checkpoint.load_latest(str(run / loop.CHECKPOINT_DIR))
   state = checkpoint.restore(template, leaves, source=path)
-  out = run / CHECKPOINT_SCORES / f"step_{int(state.step)}"
+  out = run / CHECKPOINT_SCORES / (f"step_{int(state.step)}" + (f"_views_{views}" if views else ""))
   out.mkdir(parents=True, exist_ok=True)
   scored = train.score_student(config, str(out), marked, plan.settings, state.student, state.decoder)
-  return dict(run=str(run), step=int(state.step), **headline(scored), student=scored["student_vs_ground_truth"],
+  return dict(run=str(run), step=int(state.step), views=config.eval.max_views, **headline(scored), student=scored["student_vs_ground_truth"],
               teacher=scored["teacher_vs_ground_truth"])
 
 
@@ -87,7 +91,11 @@ def main(argv=None):
   parser.add_argument("runs", nargs="+", help="conceal workdirs: finished ones, or with --checkpoint any with one")
   parser.add_argument("--checkpoint", action="store_true",
                       help="score each run's latest checkpoint into <run>/checkpoint_scores/step_<N>/")
+  parser.add_argument("--views", type=int, default=0,
+                      help="with --checkpoint: score on this many evenly spaced test views (0: the run's own count)")
   args = parser.parse_args(argv)
+  if args.views < 0 or (args.views and not args.checkpoint):
+    sys.exit(f"rescore: --views must be a positive count of test views, given with --checkpoint (got {args.views})")
   runs = [pathlib.Path(run) for run in args.runs]
   if args.checkpoint:
     bad = [f"{run}: no config.json" for run in runs if not (run / "config.json").is_file()]
@@ -95,7 +103,7 @@ def main(argv=None):
     if bad:
       sys.exit("rescore: not conceal runs with a checkpoint: " + "; ".join(bad))
     for run in runs:
-      print(json.dumps(score_checkpoint(run)))
+      print(json.dumps(score_checkpoint(run, args.views)))
     return
   bad = [f"{run}: missing {name}" for run in runs for name in RUN_FILES if not (run / name).is_file()]
   if bad:

@@ -322,7 +322,11 @@ def test_a_checkpoint_is_scored_as_the_finished_run_and_the_run_is_left_alone(ti
   assert result["leakage"] == pytest.approx(original["leakage"], abs=1e-4)
   assert result["student"] == pytest.approx(original["student_vs_ground_truth"], abs=1e-4)
   scored = json.loads((run / rescore.CHECKPOINT_SCORES / "step_20" / "metrics.json").read_text())
-  assert scored["hidden"] == result["hidden"]
+  assert scored["hidden"] == result["hidden"] and result["views"] == 1
+  both = rescore.score_checkpoint(run, views=2)  # every test view of the tiny scene, beside the run's own read
+  assert both["views"] == 2 and both["hidden"] == result["hidden"]
+  scored = json.loads((run / rescore.CHECKPOINT_SCORES / "step_20_views_2" / "metrics.json").read_text())
+  assert scored["num_test_views"] == 2 and original["num_test_views"] == 1
   assert {path: path.read_bytes() for path in before} == before
 
 
@@ -344,6 +348,8 @@ def test_rescore_refuses_a_run_without_a_checkpoint(tiny, joint_run, tmp_path):
   shutil.rmtree(run / "checkpoints")
   with pytest.raises(SystemExit, match="run: no checkpoint"):
     rescore.main(["--checkpoint", str(run)])
+  with pytest.raises(SystemExit, match="--views must be a positive count of test views, given with --checkpoint"):
+    rescore.main(["--views=3", str(run)])
   assert not (run / rescore.CHECKPOINT_SCORES).exists()
 
 
