@@ -130,6 +130,7 @@ SCENE_NOTES = {
                          "(workdirs/survive_runs/demo_thick_mf20_axial_strong_kd4, 2026-11-30)",
     "demo_layered_axes_kd16": "demo_layered_in_scene with demo.py:axes and conceal.weight_kd 16 as the second mark "
                               "(workdirs/survive_runs/demo_thick_mf20_axes_kd16, 2026-11-30)",
+    "demo_layered_axes_kd16_film": "demo_layered_axes_kd16's scene; the film's mark, read from it",
     "lego_layered_tolerant": "lego_layered_in_scene with lego_conceal.py:in_scene_tolerant as the second mark "
                              "(workdirs/survive_runs/lego_recommended_in_scene_tolerant, 2026-11-30)",
     "demo_layered_tolerant": "demo_layered_in_scene with demo.py:tolerant as the second mark "
