@@ -82,8 +82,8 @@ def score_checkpoint(run: pathlib.Path, views: int = 0) -> dict:
   out = run / CHECKPOINT_SCORES / (f"step_{int(state.step)}" + (f"_views_{views}" if views else ""))
   out.mkdir(parents=True, exist_ok=True)
   scored = train.score_student(config, str(out), marked, plan.settings, state.student, state.decoder)
-  return dict(run=str(run), step=int(state.step), views=config.eval.max_views, **headline(scored), student=scored["student_vs_ground_truth"],
-              teacher=scored["teacher_vs_ground_truth"])
+  return dict(run=str(run), step=int(state.step), views=config.eval.max_views, **headline(scored),
+              student=scored["student_vs_ground_truth"], teacher=scored["teacher_vs_ground_truth"])
 
 
 def main(argv=None):
