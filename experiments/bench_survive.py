@@ -124,8 +124,6 @@ SCENE_NOTES = {
                                   "mark (workdirs/survive_runs/lego_recommended_in_scene_close_decoder, 2026-11-30)",
     "lego_layered_axes": "lego_layered_in_scene with lego_conceal.py:in_scene_axes as the second mark "
                          "(workdirs/survive_runs/lego_recommended_in_scene_axes, 2026-11-30)",
-    "lego_layered_axes_kd16": "lego_layered_in_scene with lego_conceal.py:in_scene_axes and conceal.weight_kd 16 as "
-                              "the second mark (workdirs/survive_runs/lego_recommended_in_scene_axes_kd16, 2026-11-30)",
     "demo_layered_axes": "demo_layered_in_scene with demo.py:axes as the second mark "
                          "(workdirs/survive_runs/demo_thick_mf20_axial_strong_kd4, 2026-11-30)",
     "demo_layered_axes_kd16": "demo_layered_in_scene with demo.py:axes and conceal.weight_kd 16 as the second mark "
@@ -154,7 +152,6 @@ RECIPE_NOTES = {
                               "the identity but not the student to the teacher (conceal.leakage.decoys_hold_student)",
     "in_scene_axes": "recipes.in_scene_axes: in_scene with recipes.watched_axes: 192 decoys along and about the "
                      "key's own axes that watch the decoder alone, on half the steps, L_d^- weighted 2.5, L_kd 4",
-    "in_scene_axes_kd16": "recipes.in_scene_axes with L_kd weighted 16 (--config.conceal.weight_kd=16)",
     "axes": "demo.py:axes: the demo's in_scene recipe with recipes.watched_axes, 2600 steps",
     "axes_kd16": "demo.py:axes with L_kd weighted 16 (--config.conceal.weight_kd=16)",
     "in_scene_tolerant": "recipes.in_scene_tolerant: in_scene with a key tolerance radius of 10 degrees "
