@@ -65,3 +65,27 @@ def test_a_setting_retired_since_a_run_was_saved_is_no_change_at_its_retired_val
     workdir.claim(str(tmp_path), {"conceal": {"iterations": 10, "decoder": {}}}, retired=retired)
   flat = workdir.flatten(default.get_config().to_dict())
   assert default.RETIRED_SETTINGS and not set(default.RETIRED_SETTINGS) & set(flat)
+
+
+def test_a_figure_saved_with_a_palette_keeps_its_pixels_close_in_fewer_colours(tmp_path):
+  """save_figure(palette=N): the same image size, at most N colours, each pixel near the full-colour figure's."""
+  import matplotlib
+  matplotlib.use("Agg")
+  import matplotlib.pyplot as plt
+  import numpy as np
+  from PIL import Image
+
+  def figure():
+    fig, ax = plt.subplots(figsize=(3, 2))
+    ax.bar(range(5), [0.2, 0.9, 0.5, 0.7, 0.1], color=["C0", "C3", "C0", "C3", "C0"])
+    ax.set_title("bars")
+    return fig
+
+  fileio.save_figure(figure(), tmp_path / "full.png", dpi=60)
+  fileio.save_figure(figure(), tmp_path / "palette.png", dpi=60, palette=16)
+  with Image.open(tmp_path / "full.png") as full, Image.open(tmp_path / "palette.png") as reduced:
+    assert reduced.mode == "P" and full.size == reduced.size
+    assert len(reduced.getcolors()) <= 16
+    difference = np.abs(np.asarray(full.convert("RGB"), float) - np.asarray(reduced.convert("RGB"), float))
+  assert np.median(difference) == 0.0 and difference.mean() < 4.0
+  assert sorted(p.name for p in tmp_path.iterdir()) == ["full.png", "palette.png"]
