@@ -624,8 +624,8 @@ def test_concealed_image_is_revealed_only_by_the_student(tiny, tmp_path):
   metrics = conceal_train.train_and_evaluate(config, str(tmp_path))["metrics"]
   floor = metrics["leakage_floor"]["max_ssim_teacher_test_views"]
   assert metrics["hidden"]["ssim"] > 0.8 and floor < 0.5
-  assert metrics["leakage"]["ssim_teacher_check_view"] < floor + 0.02
-  assert metrics["leakage"]["max_ssim_student_test_views"] < floor + 0.02
+  assert metrics["leakage"]["ssim_teacher_check_view"] < min(0.4, floor + 0.02)
+  assert metrics["leakage"]["max_ssim_student_test_views"] < min(0.4, floor + 0.02)
 
 
 def test_decoder_optimizer_uses_the_configured_eps():
