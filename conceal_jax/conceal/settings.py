@@ -12,7 +12,7 @@ import os
 import ml_collections
 import optax
 
-from conceal_jax.conceal import augment, carrier, guidance, key as key_lib, reveal, unet
+from conceal_jax.conceal import augment, carrier, guidance, key as key_lib, reveal, rollback as rollback_lib, unet
 from conceal_jax.core import loop, settings as settings_lib
 from conceal_jax.gs import evaluate, optimizer
 
@@ -113,7 +113,8 @@ class RunPlan:
   """What a concealment job reads from its config, checked: the step's settings, the loop (the joint
   iterations then conceal.decoder_opt.polish_steps decoder-only steps), the sources of the hidden images
   (mark.hidden then mark.extra_hidden), the key's kind, the decoys' (count, ranges, key axes, orbit turns), the
-  carrier film's (None: the student is the teacher's Gaussians) and the key tolerance radius (None: the key alone)."""
+  carrier film's (None: the student is the teacher's Gaussians), the key tolerance radius (None: the key alone) and
+  the decoder's rollback guard (None: none)."""
   settings: ConcealSettings
   loop: loop.LoopSettings
   iterations: int
@@ -130,6 +131,7 @@ class RunPlan:
   decoy_key_axes: bool = False
   tolerance: Tolerance | None = None
   decoy_orbit_turns: bool = False
+  rollback: rollback_lib.Rollback | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -197,10 +199,8 @@ def plan(config: ml_collections.ConfigDict) -> RunPlan:
       raise ValueError(f"conceal.leakage.{name} must be a range (lo, hi) with 0 <= lo <= hi, got {(lo, hi)}")
   if c.eval_every < 0 or c.eval_views < 1:
     raise ValueError("conceal.eval_every must be >= 0 and conceal.eval_views >= 1")
-  if not m.teacher:
-    raise ValueError("mark.teacher (the teacher's .ply) is required")
-  if not os.path.isfile(m.teacher):
-    raise ValueError(f"mark.teacher: no such file {m.teacher}")
+  if not m.teacher or not os.path.isfile(m.teacher):
+    raise ValueError(f"mark.teacher (the teacher's .ply) is required: no such file {m.teacher!r}")
   sources = (m.hidden,) + extra_hidden(m.extra_hidden, settings.use_decoder)
   if polish and not settings.use_decoder:
     raise ValueError("conceal.decoder_opt.polish_steps needs a decoder (conceal.use_decoder)")
@@ -211,7 +211,8 @@ def plan(config: ml_collections.ConfigDict) -> RunPlan:
   return RunPlan(settings, dataclasses.replace(joint, iterations=joint.iterations + polish), c.iterations, polish,
                  sources, m.key_kind, m.key_index, m.key_seed, key_offset(config), lk.decoy_views,
                  ranges["decoy_translation"], ranges["decoy_rotation_deg"], carrier.film_plan(config),
-                 bool(lk.decoy_key_axes), tolerance(lk), bool(lk.decoy_orbit_turns))
+                 bool(lk.decoy_key_axes), tolerance(lk), bool(lk.decoy_orbit_turns),
+                 rollback_lib.rollback_settings(c.decoder_opt))
 
 
 def extra_hidden(extra, use_decoder: bool) -> tuple[str, ...]:
@@ -228,8 +229,7 @@ def extra_hidden(extra, use_decoder: bool) -> tuple[str, ...]:
 
 
 def validate(config: ml_collections.ConfigDict) -> None:
-  """The conceal mode's check before anything runs (main.MODES)."""
-  plan(config)
+  plan(config)  # the conceal mode's check before anything runs (main.MODES)
 
 
 def decoder_optimizer(config: ml_collections.ConfigDict) -> optax.GradientTransformation:

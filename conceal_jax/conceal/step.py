@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from conceal_jax.conceal import carrier, decoder_pair, guidance, objective
+from conceal_jax.conceal import carrier, decoder_pair, guidance, objective, rollback as rollback_lib
 from conceal_jax.conceal.settings import ConcealSettings
 from conceal_jax.conceal.views import ConcealData, step_views
 from conceal_jax.core import loop, parallel
@@ -27,19 +27,27 @@ from conceal_jax.splat.render import RenderOptions
 @struct.dataclass
 class ConcealState:
   """step: int32; student: Gaussians [N]; decoder: U-Net params ({} without a decoder); their optimiser states (the
-  student's of what trains: the whole student, or the base colours [F, 3] of views.ConcealData.colour_rows)."""
+  student's of what trains: the whole student, or the base colours [F, 3] of views.ConcealData.colour_rows); guard:
+  the decoder's rollback.Guard (() without one)."""
   step: jax.Array
   student: Any
   decoder: Any
   student_opt: Any
   decoder_opt: Any
+  guard: Any = ()
+
+  def weights_only(self) -> ConcealState:
+    """The state without its optimiser states and guard (what scoring reads, moved cheaply)."""
+    return self.replace(student_opt=(), decoder_opt=(), guard=())
 
 
-def create_state(student, decoder, student_tx, decoder_tx, colour_rows=None) -> ConcealState:
-  """The step-0 state; with `colour_rows` [F], student_tx optimises their base colours alone."""
+def create_state(student, decoder, student_tx, decoder_tx, colour_rows=None, guarded: bool = False) -> ConcealState:
+  """The step-0 state; with `colour_rows` [F], student_tx optimises their base colours alone; `guarded`: with a
+  rollback.Guard of the decoder."""
+  decoder_opt = decoder_tx.init(decoder)
   return ConcealState(step=jnp.zeros((), jnp.int32), student=student, decoder=decoder,
                       student_opt=student_tx.init(carrier.trained_part(student, colour_rows)),
-                      decoder_opt=decoder_tx.init(decoder))
+                      decoder_opt=decoder_opt, guard=rollback_lib.init_guard(decoder, decoder_opt) if guarded else ())
 
 
 def gradients(student, decoder, views: objective.View, settings: ConcealSettings, options: RenderOptions, mesh=None,
@@ -80,11 +88,13 @@ def decoder_gradient(plus, minus, settings: ConcealSettings):
 
 
 def make_step(settings: ConcealSettings, options: RenderOptions, student_tx, decoder_tx, mesh=None,
-              train_student: bool = True, traces: loop.TraceCounter | None = None):
+              train_student: bool = True, traces: loop.TraceCounter | None = None,
+              rollback: rollback_lib.Rollback | None = None):
   """step(state, data, view, normal_view, key_number, distortion) -> (state, stats), jitted with the state
   donated (views.step_views says what the indices pick; `distortion` is augment.draw's, or None). `options`
   carry a pair capacity: a step whose renders overflowed it returns the state unchanged (gs.capacity).
-  Without `train_student` (the decoder polish) the student and its optimiser state stay as they are."""
+  Without `train_student` (the decoder polish) the student and its optimiser state stay as they are. With
+  `rollback` (the state made `guarded`) a collapsed decoder returns to its guard's snapshot (rollback.py)."""
   s = settings
 
   def step(state: ConcealState, data: ConcealData, view, normal_view, key_number=0, distortion=None):
@@ -112,7 +122,11 @@ def make_step(settings: ConcealSettings, options: RenderOptions, student_tx, dec
       updates, decoder_opt = decoder_tx.update(direction, state.decoder_opt, state.decoder)
       # the sizes of the decoder's gradient and step: a run whose L_d^+ jumps back to its start shows its burst here
       stats["decoder_grad_norm"], stats["decoder_step_norm"] = optax.global_norm(direction), optax.global_norm(updates)
-      new = new.replace(decoder=optax.apply_updates(state.decoder, updates), decoder_opt=decoder_opt)
+      decoder, guard = optax.apply_updates(state.decoder, updates), state.guard
+      if rollback is not None:
+        decoder, decoder_opt, guard = rollback_lib.guarded_update(rollback, guard, decoder, decoder_opt, stats["plus"])
+        stats["rollbacks"] = guard.rollbacks
+      new = new.replace(decoder=decoder, decoder_opt=decoder_opt, guard=guard)
     return capacity.keep_unless_overflowed(jnp.max(terms.overflowed) > 0, new, state), stats
 
   if traces is not None:

@@ -181,14 +181,14 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   traces = loop.TraceCounter()
   # GrowingSteps' key is the phase: the joint steps (True), then the decoder polish's
   steps = capacity.GrowingSteps(lambda joint, options: make_step(s, options, student_tx, decoder_tx, mesh, joint,
-                                                                 traces), run.options)
+                                                                 traces, plan.rollback), run.options)
   steps.grow(render_lib.initial_capacity(run.start.num, run.options))
   num_views, num_keys = len(run.scene.train_cameras), len(run.keys)
 
   def fresh(_meta=None):
     student = jax.tree.map(lambda x: jnp.array(x, copy=True), run.start)  # the step donates its buffers
     return create_state(student, initial_decoder(config, s, run.data.keys), student_tx, decoder_tx,
-                        run.data.colour_rows)
+                        run.data.colour_rows, plan.rollback is not None)
 
   regroup = grouping.regrouping(run.teacher.num, s.augmentation, c.checkpoint_every, run.neighbourhoods)
 
@@ -206,7 +206,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   def after_window(state, iteration):
     if not c.eval_every or iteration % c.eval_every:
       return None
-    return curve_record(run, parallel.on_one_device(state.replace(student_opt=(), decoder_opt=()), mesh), eval_views)
+    return curve_record(run, parallel.on_one_device(state.weights_only(), mesh), eval_views)
 
   result = loop.run("conceal", plan.loop, workdir, init_state=fresh, restore_template=fresh, step=step,
                     after_window=after_window, postfix_keys=("plus",), max_steps=max_steps)

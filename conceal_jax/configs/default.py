@@ -228,13 +228,17 @@ def conceal_decoder_section() -> ml_collections.ConfigDict:
 def conceal_decoder_opt_section() -> ml_collections.ConfigDict:
   """The decoder's optimiser: Adam at lr; beyond the paper, a log-linear decay to lr * lr_final_ratio over the run
   and each tensor's step clipped to RMS update_clip (0: off), against the bursts that kill an unnormalised
-  conv+ReLU U-Net late in a run; then polish_steps more steps that train the decoder alone on the finished student
-  (the same losses and guided update), fitting it to the scene that is shared."""
+  conv+ReLU U-Net late in a run; rollback_factor (0: off) a guard that returns the decoder to its snapshot of
+  rollback_every to twice that many steps back at a step whose L_d^+ exceeds rollback_factor times its running mean
+  (conceal/rollback.py); then polish_steps more steps that train the decoder alone on the finished student (the
+  same losses and guided update), fitting it to the scene that is shared."""
   c = ml_collections.ConfigDict()
   c.lr = 1e-4
   c.adam_eps = 1e-15  # the released code's (torch's default: 1e-8)
   c.lr_final_ratio = 1.0
   c.update_clip = 0.0
+  c.rollback_factor = 0.0
+  c.rollback_every = 100
   c.polish_steps = 0
   return c
 

@@ -11,7 +11,7 @@ import math
 
 RECIPES = ("paper", "released", "in_scene", "standardized", "recommended", "recommended_at_decoder_size",
            "in_scene_watched", "in_scene_close", "in_scene_close_decoder", "in_scene_tolerant", "in_scene_axial",
-           "in_scene_axes")
+           "in_scene_axes", "in_scene_layer")
 
 # The decoder a CPU trains: width 16 from scratch (the paper's width 64 costs ~10x more per step), at a rate
 # a from-scratch decoder learns at (1e-3 stalled the demo's first steps).
@@ -69,6 +69,9 @@ TOLERANT_DECOYS_BEYOND = (1.5, 3.0)
 AXIAL_DECOY_VIEWS, AXIAL_DECOY_TRANSLATION, AXIAL_DECOY_ROTATION_DEG = 192, (0.01, 0.06), (1.0, 6.0)
 # The watched axes: the axial decoys on this share of the steps, L_d^- and L_kd weighted so.
 AXES_DECOY_FRACTION, AXES_WEIGHT_MINUS, AXES_WEIGHT_KD = 0.5, 2.5, 4.0
+# The layer a film-marked scene carries: L_kd weighted so; a guarded decoder returns to its snapshot when L_d^+ exceeds
+# ROLLBACK_FACTOR times its running mean (a constant output's L_d^+ is some 40 times a trained decoder's).
+LAYER_WEIGHT_KD, ROLLBACK_FACTOR = 32.0, 8.0
 # The key at the decoder's size: its decoys (twice the watched key's), moved by these fractions of the key's depth
 # (the default's are 0.01-0.1), and the memory their linear maps may take.
 DECODER_SIZE_DECOYS, DECODER_SIZE_DECOY_TRANSLATION, DECODER_SIZE_MAPS_MB = 1536, (0.005, 0.06), 8192
@@ -189,6 +192,27 @@ def in_scene_axes(config):
   """in_scene with its key's axes watched (watched_axes): a second mark in the scene's own Gaussians that a model
   extraction carries over (as in_scene's does) and that the key zoomed or rolled a little does not reveal."""
   return watched_axes(in_scene(config))
+
+
+def in_scene_layer(config):
+  """in_scene_axes as the second mark of a scene already marked in a carrier film (the Makefile's LAYER): read from
+  the owner's renders (owner_rendered) by a guarded decoder (guarded_decoder) on a constant rate with no update clip,
+  reading unclipped renders, and L_kd weighted LAYER_WEIGHT_KD: the film student's render is the bound this layer
+  must keep, and the decay and clip that in_scene sets against the decoder's collapse slow it without preventing
+  it, which the guard does."""
+  config = guarded_decoder(owner_rendered(in_scene_axes(config)))
+  config.conceal.decoder.clip_input = False
+  d = config.conceal.decoder_opt
+  d.lr_final_ratio, d.update_clip = 1.0, 0.0
+  config.conceal.weight_kd = LAYER_WEIGHT_KD
+  return config
+
+
+def guarded_decoder(config, factor: float = ROLLBACK_FACTOR):
+  """The decoder returned to its snapshot of 100 to 200 steps back at a step whose L_d^+ exceeds `factor` times its
+  running mean (conceal.decoder_opt.rollback_factor; conceal/rollback.py): a collapsed decoder does not relearn."""
+  config.conceal.decoder_opt.rollback_factor = factor
+  return config
 
 
 def watched_axes(config):
