@@ -40,7 +40,7 @@ demo: $(STAMP)
 # your own scene: SCENE=<a folder the loaders read (Blender, COLMAP, transforms.json, LLFF) or demo>, TEACHER=<its
 # trained .ply> to skip training one. Trains a teacher (OWN_TRAIN_STEPS steps), conceals HIDDEN with the recommended
 # recipe (configs/conceal.py), hides it a second time in the student's own Gaussians with LAYER's recipe (a mark a
-# model extraction carries over; LAYER= for the film's mark alone), reveals the film's mark from the shared scene
+# model extraction carries over; default in_scene_layer, LAYER= for the film's mark alone), reveals the film's mark from the shared scene
 # and verifies ownership from both marks (at verify.alpha; CALIBRATION=<a file of measured scores> adds its
 # threshold's decision as evidence), each job in its own
 # folder of workdirs/own_scene/<scene folder's name> (or WORKDIR=...); ARGS: --config overrides for every job, e.g.
@@ -48,7 +48,7 @@ demo: $(STAMP)
 SCENE ?=
 TEACHER ?=
 HIDDEN ?= astronaut
-LAYER ?=
+LAYER ?= in_scene_layer
 OWN_TRAIN_STEPS ?= 10000
 CURVE_EVERY ?= 500
 CALIBRATION ?=

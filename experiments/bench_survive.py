@@ -132,7 +132,11 @@ SCENE_NOTES = {
     "lego_layered_tolerant": "lego_layered_in_scene with lego_conceal.py:in_scene_tolerant as the second mark "
                              "(workdirs/survive_runs/lego_recommended_in_scene_tolerant, 2026-11-30)",
     "demo_layered_tolerant": "demo_layered_in_scene with demo.py:tolerant as the second mark "
-                             "(workdirs/survive_runs/demo_thick_mf20_tolerant, 2026-11-30)"}
+                             "(workdirs/survive_runs/demo_thick_mf20_tolerant, 2026-11-30)",
+    "lego_layered_layer": "lego's recommended student with lego_conceal.py:in_scene_layer concealed on it as the "
+                          "second mark (workdirs/survive_runs/lego_recommended_in_scene_layer, 2026-11-30): the "
+                          "recommended film and layer; the layer's mark, read at its own key with its own decoder",
+    "lego_layered_layer_film": "lego_layered_layer's scene; the film's mark, read from it"}
 TRANSFORMS = ([("rotate", d) for d in (1.0, 5.0, 45.0, 180.0)] + [("translate", f) for f in (0.026, 1.0)]
               + [("scale", f) for f in (0.5, 1.1, 2.0)])
 # attack, level -> converter.round_trip's arguments

@@ -72,12 +72,13 @@ def test_own_scene_with_a_teacher_conceals_it_and_trains_none(tmp_path):
   assert "--config.data.path=my/scene/" in conceal[0] and "configs/conceal.py" in conceal[0]
   assert "--workdir=workdirs/own_scene/scene/teacher" in commands  # behind `test -n "t.ply" ||`
   assert 'test -n "t.ply" ||' in commands
+  assert "--config=conceal_jax/configs/conceal.py:in_scene_layer" in commands  # the layer, unless LAYER= says none
   elsewhere = make_own_scene("SCENE=my/scene", f"WORKDIR={tmp_path}", dry_run=True).stdout
   assert f"--workdir={tmp_path}/conceal" in elsewhere and f"--config.mark.teacher={tmp_path}/teacher/" in elsewhere
 
 
 @needs_make
-@pytest.mark.parametrize("layer", ["", "in_scene_axes"])
+@pytest.mark.parametrize("layer", ["", "in_scene_axes", "in_scene_layer"])
 def test_own_scene_layers_a_second_mark_on_the_student_and_verifies_both(layer):
   commands = make_own_scene("SCENE=my/scene", "TEACHER=t.ply", f"LAYER={layer}", dry_run=True).stdout
   job = lambda name: [line for line in commands.splitlines() if f"--workdir=workdirs/own_scene/scene/{name}" in line]
@@ -94,7 +95,7 @@ def test_own_scene_layers_a_second_mark_on_the_student_and_verifies_both(layer):
 @needs_make
 @pytest.mark.slow  # four jobs, each its own process and compilation
 @pytest.mark.parametrize("layout,layer", [("blender", ""), ("colmap", ""), ("transforms", ""), ("llff", ""),
-                                          ("blender", "in_scene_axes")])
+                                          ("blender", "in_scene_layer")])
 def test_own_scene_trains_conceals_reveals_and_verifies(tmp_path, layout, layer):
   scene = write_scene(layout, tmp_path / "scene")
   work = tmp_path / "work"
