@@ -76,7 +76,7 @@ def score_checkpoint(run: pathlib.Path, views: int = 0) -> dict:
                                       marked.scene.test_cameras, marked.options, plan.settings.hidden_size)
   template = create_state(start, train.initial_decoder(config, plan.settings),
                           settings_lib.student_optimizer(config, marked.scene.scene_extent(), rows is not None),
-                          settings_lib.decoder_optimizer(config), rows, plan.rollback is not None)
+                          settings_lib.decoder_optimizer(config), rows, plan.rollback)
   path, _, leaves = checkpoint.load_latest(str(run / loop.CHECKPOINT_DIR))
   state = checkpoint.restore(template, leaves, source=path)
   out = run / CHECKPOINT_SCORES / (f"step_{int(state.step)}" + (f"_views_{views}" if views else ""))

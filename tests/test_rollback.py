@@ -73,11 +73,12 @@ def test_the_guarded_step_returns_a_collapsed_decoder_to_its_snapshot():
   s = settings(identity_on_student=True)
   student_tx = optimizer.gaussian_optimizer(default.get_config().conceal.lr, 1.0, 100)
   decoder_tx = optax.adam(1e-3)
+  guard = rollback.Rollback(4.0, 10)
   fresh = lambda guarded: step_lib.create_state(*jax.tree.map(jnp.array, (student, decoder)), student_tx,
-                                                decoder_tx, guarded=guarded)
+                                                decoder_tx, rollback=guard if guarded else None)
   plain, stats = step_lib.make_step(s, OPTIONS, student_tx, decoder_tx)(fresh(False), data, 1, 2)
   plain = jax.device_get(plain)
-  guarded_step = step_lib.make_step(s, OPTIONS, student_tx, decoder_tx, rollback=rollback.Rollback(4.0, 10))
+  guarded_step = step_lib.make_step(s, OPTIONS, student_tx, decoder_tx, rollback=guard)
   for mean, collapses in ((float(stats["plus"]) / 10, True), (float(stats["plus"]) * 10, False)):
     state = fresh(True)
     state = state.replace(guard=state.guard.replace(plus_mean=jnp.float32(mean)))

@@ -41,13 +41,14 @@ class ConcealState:
     return self.replace(student_opt=(), decoder_opt=(), guard=())
 
 
-def create_state(student, decoder, student_tx, decoder_tx, colour_rows=None, guarded: bool = False) -> ConcealState:
-  """The step-0 state; with `colour_rows` [F], student_tx optimises their base colours alone; `guarded`: with a
-  rollback.Guard of the decoder."""
+def create_state(student, decoder, student_tx, decoder_tx, colour_rows=None,
+                 rollback: rollback_lib.Rollback | None = None) -> ConcealState:
+  """The step-0 state; with `colour_rows` [F], student_tx optimises their base colours alone; with a `rollback`
+  (make_step's), a rollback.Guard of the decoder."""
   decoder_opt = decoder_tx.init(decoder)
   return ConcealState(step=jnp.zeros((), jnp.int32), student=student, decoder=decoder,
                       student_opt=student_tx.init(carrier.trained_part(student, colour_rows)),
-                      decoder_opt=decoder_opt, guard=rollback_lib.init_guard(decoder, decoder_opt) if guarded else ())
+                      decoder_opt=decoder_opt, guard=rollback_lib.init_guard(decoder, decoder_opt) if rollback else ())
 
 
 def gradients(student, decoder, views: objective.View, settings: ConcealSettings, options: RenderOptions, mesh=None,

@@ -188,7 +188,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
   def fresh(_meta=None):
     student = jax.tree.map(lambda x: jnp.array(x, copy=True), run.start)  # the step donates its buffers
     return create_state(student, initial_decoder(config, s, run.data.keys), student_tx, decoder_tx,
-                        run.data.colour_rows, plan.rollback is not None)
+                        run.data.colour_rows, plan.rollback)
 
   regroup = grouping.regrouping(run.teacher.num, s.augmentation, c.checkpoint_every, run.neighbourhoods)
 
