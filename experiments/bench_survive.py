@@ -659,6 +659,36 @@ def true_positive_lines(rows: list[dict]) -> list[str]:
   return lines + [""] if lines else []
 
 
+# The scenes that carry the recommended recipe's two marks: the film's label -> the layer's (one attacked scene,
+# each mark read by its own rows).
+TWO_MARKS = {"lego_layered_layer_film": "lego_layered_layer"}
+
+
+def two_mark_lines(rows: list[dict], alpha: float = default.get_config().verify.alpha) -> list[str]:
+  """Per scene of TWO_MARKS, each attack's readings of the film's and the layer's mark (hidden SSIM, * owned by that
+  mark alone) and the decision on both (ownership.combined_log10_p of the two marks' p-values at `alpha`, as verify
+  with verify.marks decides), for the attacks both marks' rows have."""
+  lines = []
+  for film_label, layer_label in TWO_MARKS.items():
+    by_attack = lambda label: {(r["attack"], json.dumps(r["level"]), r.get("steps")): r for r in rows
+                               if r["scene"] == label and r.get("log10_p") is not None}
+    film, layer = by_attack(film_label), by_attack(layer_label)
+    both = [k for k in film if k in layer]
+    if not both:
+      continue
+    lines += [f"The recommended recipe's two marks in one scene ({film_label}: the film; {layer_label}: the layer): "
+              f"hidden SSIM of each (* owned by that mark alone) and verify's decision on both at alpha {alpha:g}:", "",
+              "| attack | level | steps | render PSNR | film | layer | owned (log10 p) |", "|---|---|---|---|---|---|---|"]
+    for k in both:
+      f, l = film[k], layer[k]
+      log10_p = float(ownership.combined_log10_p([f["log10_p"], l["log10_p"]]))
+      mark = lambda r: f"{r['hidden_ssim']:.3f}{'*' if r['owned'] else ''}"
+      lines.append(f"| {k[0]} | {'' if k[1] == 'null' else k[1]} | {k[2] or ''} | {l['render_psnr']:.2f} | "
+                   f"{mark(f)} | {mark(l)} | {'yes' if log10_p <= math.log10(alpha) else 'no'} ({log10_p:.1f}) |")
+    lines.append("")
+  return lines
+
+
 def note_lines(notes: dict[str, str], field: str, rows: list[dict]) -> list[str]:
   """'- name: note' for each of `notes` that some row's `field` names."""
   return [f"- {name}: {note}" for name, note in notes.items() if any(r[field] == name for r in rows)]
@@ -687,7 +717,7 @@ def table(rows: list[dict]) -> str:
            "before: the tone at the key).", "", "Recipes:", "",
            *note_lines(RECIPE_NOTES, "recipe", rows), "", "Scenes by label:", "",
            *note_lines(SCENE_NOTES, "scene", rows), "",
-           *true_positive_lines(rows),
+           *true_positive_lines(rows), *two_mark_lines(rows),
            "| scene | recipe | attack | level | render PSNR | hidden PSNR | hidden SSIM | z | owned (log10 p) "
            "| decided | unaligned SSIM | aligned SSIM | moved SSIM | registration |",
            "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]

@@ -356,8 +356,9 @@ def survival_table(survive_bench: dict) -> list[str]:
   at the key after fine-tuning on the training views for each number of steps (bench-survive: the 3D-GS recipe
   without and with densification, and gentle rates), per scene and recipe, with the decision (*: owned, by
   verify's test given the owner's copy, or by the calibrated threshold in rows measured before it), the untouched
-  scene's SSIM and what the recipe cost the render, and per scene and recipe how many attacked rows verify decided
-  owned (bench_survive.true_positive_lines)."""
+  scene's SSIM and what the recipe cost the render, per scene and recipe how many attacked rows verify decided
+  owned (bench_survive.true_positive_lines), and each attack's readings of the recommended recipe's two marks
+  (bench_survive.two_mark_lines)."""
   rows = survive_bench.get("rows", [])
   lines = ["### Research question 3: is the mark retained after re-training? (hidden SSIM at the key after "
            "fine-tuning on the training views; * owned: by verify at alpha given the owner's copy, by the calibrated "
@@ -382,7 +383,7 @@ def survival_table(survive_bench: dict) -> list[str]:
   tested = bench_survive.true_positive_lines(rows)
   verified = " Verify's decision at alpha over each scene's attacks, given the owner's copy:" if tested else ""
   return lines + ["", "Every attack of a shared scene (transforms, publishing round trips) is in "
-                  "[survive_bench.md](survive_bench.md)." + verified, "", *tested]
+                  "[survive_bench.md](survive_bench.md)." + verified, "", *tested, *bench_survive.two_mark_lines(rows)]
 
 
 def extraction_table(survive_bench: dict) -> list[str]:

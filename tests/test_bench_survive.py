@@ -290,6 +290,26 @@ def test_true_positives_count_the_attacked_rows_verify_decided():
   assert bench_survive.true_positive_lines(rows[-1:]) == []
 
 
+def test_two_marks_are_decided_together_on_the_attacks_both_were_read_after(monkeypatch):
+  """Each attack both marks' rows have: the two readings and the Bonferroni decision on both (the smaller p-value
+  times two); an attack one mark was not read after, and rows without verify's test, are left out."""
+  monkeypatch.setattr(bench_survive, "TWO_MARKS", {"s_film": "s_layer"})
+  row = lambda scene, attack, level, ssim, log10_p, owned: dict(
+      scene=scene, recipe="r", attack=attack, level=level, render_psnr=30.0, hidden_ssim=ssim, log10_p=log10_p,
+      owned=owned)
+  rows = [row("s_film", "none", None, 0.99, -7.0, True), row("s_layer", "none", None, 0.98, -6.5, True),
+          row("s_film", "finetune", 1000, 0.99, -6.5, True), row("s_layer", "finetune", 1000, 0.2, -0.3, False),
+          row("s_film", "rotate", 5.0, 0.9, -5.0, False), row("s_layer", "rotate", 5.0, 0.9, -5.5, False),
+          row("s_film", "sog", None, 0.99, -7.0, True),
+          dict(scene="s_layer", recipe="r", attack="sog", level=None, hidden_ssim=0.9, decided=True)]
+  lines = bench_survive.two_mark_lines(rows, alpha=1e-6)
+  body = [line for line in lines if line.startswith("| ") and not line.startswith("| attack")]
+  assert body == ["| none |  |  | 30.00 | 0.990* | 0.980* | yes (-6.7) |",
+                  "| finetune | 1000 |  | 30.00 | 0.990* | 0.200 | yes (-6.2) |",
+                  "| rotate | 5.0 |  | 30.00 | 0.900 | 0.900 | no (-5.2) |"]
+  assert bench_survive.two_mark_lines(rows[:1]) == []
+
+
 def test_a_mark_is_read_from_the_student_of_a_run_layered_on_it(run, tmp_path):
   """scene=workdir+layered: workdir's owner and key, layered's student (a run concealed on workdir's student); a
   run concealed on another scene is refused by name."""
