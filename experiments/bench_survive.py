@@ -38,7 +38,8 @@ verify reports it: ownership.strongest), `verify` each reading's figures; `decid
 calibrated threshold's (hidden SSIM at or above the threshold chosen from --calibration, which `make bench-robust`
 writes). Rows are merged into <out>/survive_bench.json ({"rows": [...]}, one per scene,
 recipe, attack, level and steps) with survive_bench.md and survive_bench.png; finished rows are kept and not
-recomputed (--redo recomputes them), and each attack's files are cached under --workdir/<scene>/.
+recomputed (--redo recomputes them), and each attack's files are cached under --workdir/<scene>/ (a run given by
+path: --workdir/<the folder of the run whose student is attacked>/, which both marks of one scene share).
 """
 from __future__ import annotations
 
@@ -530,8 +531,7 @@ def snapshot_scores(scene: Scene, config, workdir: pathlib.Path, steps: list[int
   config.train.log_every = math.gcd(int(config.train.log_every), *steps)  # snapshots fall on logged steps
   config.train.eval_every = 0
   config.eval.max_views = test_views
-  workdir.mkdir(parents=True, exist_ok=True)
-  fileio.write_json(workdir / "config.json", config.to_dict())
+  claim_training(workdir, config)
   train.train_and_evaluate(config, str(workdir))
   out = []
   for length in sorted(steps):
@@ -542,6 +542,34 @@ def snapshot_scores(scene: Scene, config, workdir: pathlib.Path, steps: list[int
     print(json.dumps(dict(step=length, hidden_ssim=out[-1][1].get("hidden_ssim"), owned=out[-1][2]["owned"])),
           flush=True)
   return out
+
+
+# A config's sections that say how its mark was made, not how a scene trains: marks of one scene share its
+# fine-tunings and extractions.
+MARK_SECTIONS = ("baseline", "conceal", "mark", "reveal", "verify")
+
+
+def training_settings(config: dict) -> dict:
+  """A config's sections but MARK_SECTIONS, its scene folder (data.path) resolved where it is one."""
+  settings = {k: v for k, v in config.items() if k not in MARK_SECTIONS}
+  folder = pathlib.Path(settings.get("data", {}).get("path", ""))
+  if str(folder) and folder.exists():
+    settings["data"] = dict(settings["data"], path=str(folder.resolve()))
+  return settings
+
+
+def claim_training(workdir: pathlib.Path, config) -> None:
+  """Writes `config` as the train run's in `workdir`; ValueError naming the differing sections when the run there
+  trains otherwise (training_settings differ), so that a cached training never mixes two recipes."""
+  path = workdir / "config.json"
+  if path.is_file():
+    held, ours = training_settings(json.loads(path.read_text())), training_settings(config.to_dict())
+    differ = sorted(k for k in set(held) | set(ours) if held.get(k) != ours.get(k))
+    if differ:
+      raise ValueError(f"{workdir} holds a training with other {', '.join(differ)} settings: remove the folder to "
+                       "train it again")
+  workdir.mkdir(parents=True, exist_ok=True)
+  fileio.write_json(path, config.to_dict())
 
 
 FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")
@@ -912,8 +940,9 @@ def main(argv=None):
     if not all((r / f).is_file() for r in runs for f in ("student.ply", "decoder.msgpack", "key.json", "config.json")):
       print(f"skipping {label}: no finished conceal run in {' or '.join(map(str, runs))}")
       continue
-    # a run given by path caches under its own folder's name: a label alone would share a named scene's cache
-    cache = workdir / (f"{label}_{runs[-1].name}" if path else label)
+    # a run given by path caches under the name of the run whose student is attacked (a label alone would share a
+    # named scene's cache): the marks of one scene read the same attacked scenes, fine-tunings and extractions
+    cache = workdir / (runs[-1].name if path else label)
     scene = load_scene(name, run, recipe, args.test_views, calibration, cache, args.alpha, args.null_views, layered)
     scene.converter_timeout_s = args.converter_timeout_s
     missing = lambda attack, level, steps=None: (name, recipe, attack, json.dumps(level), steps) not in done

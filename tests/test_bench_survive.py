@@ -7,6 +7,7 @@ import json
 import math
 
 import jax
+import ml_collections
 import numpy as np
 import pytest
 
@@ -109,7 +110,7 @@ def test_finetune_and_extraction_rows_at_each_length(run, monkeypatch):
   assert all(r["key_nearest_deg"] == pytest.approx(0.0, abs=1e-3) for r in extracted)  # the key: training camera 1
   tuned = [r for r in rows if r["attack"] == "finetune"]
   assert [r["level"] for r in tuned] == [2, 4] and all(FIELDS <= set(r) for r in tuned)
-  cache = run / "work" / "tiny_run"  # a scene given by path caches under label_folder
+  cache = run / "work" / "run"  # a scene given by path caches under the folder of the run it attacks
   assert (cache / "finetune_fixed_4" / "point_cloud.ply").is_file()
   gentle = [r for r in rows if r["attack"] == "finetune_gentle"]
   assert [r["level"] for r in gentle] == [2, 4] and (cache / "finetune_gentle_4" / "point_cloud.ply").is_file()
@@ -276,6 +277,24 @@ def test_round_trips_can_be_asked_for_by_name(run, monkeypatch, tmp_path):
   bench_survive.main([f"--out={tmp_path / 'out'}", f"--workdir={tmp_path / 'work'}", f"--scenes=tiny={run / 'run'}",
                       f"--calibration={run / 'cal.json'}", "--test-views=1", "--attacks=decimate"])
   assert [(attack, level) for attack, level, _ in asked] == [("decimate", 0.5)]
+
+
+def test_marks_of_one_scene_share_its_trainings_and_other_recipes_are_refused(tmp_path, monkeypatch):
+  """A cached fine-tuning is taken by a config that differs in how its mark was made (conceal, mark, ...) or in
+  how its scene folder is spelled, and refused, by section, for another training recipe."""
+  monkeypatch.chdir(tmp_path)
+  (tmp_path / "scene").mkdir()
+  config = ml_collections.ConfigDict(dict(data=dict(path="scene"), train=dict(iterations=4), conceal=dict(w=1.0)))
+  folder = tmp_path / "work" / "finetune_fixed_4"
+  bench_survive.claim_training(folder, config)
+  other_mark = ml_collections.ConfigDict(config.to_dict())
+  other_mark.conceal.w, other_mark.data.path = 2.0, str(tmp_path / "scene")
+  bench_survive.claim_training(folder, other_mark)
+  assert json.loads((folder / "config.json").read_text())["conceal"] == {"w": 2.0}
+  other_training = ml_collections.ConfigDict(config.to_dict())
+  other_training.train.iterations = 8
+  with pytest.raises(ValueError, match="holds a training with other train settings"):
+    bench_survive.claim_training(folder, other_training)
 
 
 def test_true_positives_count_the_attacked_rows_verify_decided():
