@@ -353,10 +353,11 @@ def render_loss(run: pathlib.Path) -> float | None:
 
 
 def scores_of(scene: Scene, gaussians, similarity: sim.Similarity | None = None) -> dict:
-  """render_psnr on the test views (cameras moved by `similarity`, the one applied to the scene, if given) and
-  hidden PSNR / SSIM at the key as saved (no re-alignment)."""
+  """render_psnr on the test views (cameras moved by `similarity`, the one applied to the scene, if given) at every
+  SH band the scene has (a film's key reads it at degree 0), and hidden PSNR / SSIM at the key as saved (no
+  re-alignment)."""
   g = jax.tree.map(jnp.asarray, gaussians)
-  cameras, options = scene.cameras, scene.owner.options
+  cameras, options = scene.cameras, dataclasses.replace(scene.owner.options, sh_degree=None)
   if similarity is not None:
     moved = [align.moved_key(c, options, similarity) for c in cameras]
     cameras, options = [c for c, _ in moved], moved[0][1]
@@ -742,7 +743,9 @@ def table(rows: list[dict]) -> str:
            "alpha --alpha), with its log10 p-value; rows measured before it have none. Re-aligned hidden figures are "
            "the strongest reading's (as verify reports them: smallest p-value, then from 2026-11-27 night largest "
            "SSIM, before largest z; from 2026-11-27 evening: the tone at the key, over the scene's views, or none; "
-           "before: the tone at the key).", "", "Recipes:", "",
+           "before: the tone at the key). Render PSNR: the attacked scene on --test-views test views at every SH band "
+           "it has (rows of a film's recipes measured before 2026-11-30 evening: at the key's degree 0, some 3 dB "
+           "lower on lego).", "", "Recipes:", "",
            *note_lines(RECIPE_NOTES, "recipe", rows), "", "Scenes by label:", "",
            *note_lines(SCENE_NOTES, "scene", rows), "",
            *true_positive_lines(rows), *two_mark_lines(rows),

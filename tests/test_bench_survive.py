@@ -3,6 +3,7 @@ fields issue 39 names, re-alignment after the transforms, resumed without recomp
 skip cleanly without splat-transform (make node_modules)."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 
@@ -15,6 +16,7 @@ from conceal_jax.conceal import key as key_lib, near, reveal, unet
 from conceal_jax.configs import demo
 from conceal_jax.core import fileio
 from conceal_jax.data import demo_scene, ply
+from conceal_jax.gs import evaluate
 from conceal_jax.robust import converter
 from conceal_jax.splat.render import RenderOptions
 from experiments import bench_survive
@@ -277,6 +279,21 @@ def test_round_trips_can_be_asked_for_by_name(run, monkeypatch, tmp_path):
   bench_survive.main([f"--out={tmp_path / 'out'}", f"--workdir={tmp_path / 'work'}", f"--scenes=tiny={run / 'run'}",
                       f"--calibration={run / 'cal.json'}", "--test-views=1", "--attacks=decimate"])
   assert [(attack, level) for attack, level, _ in asked] == [("decimate", 0.5)]
+
+
+def test_render_psnr_renders_every_sh_band_the_scene_has(run, tmp_path):
+  """The attacked scene's render PSNR is the scene's as a viewer shows it, also where the key reads it at SH degree
+  0 (a film's key)."""
+  scene = bench_survive.load_scene("tiny", run / "run", "recommended", 1, dict(threshold=0.5), tmp_path / "cache",
+                                   1e-3, 4)
+  at_dc = dataclasses.replace(scene.owner.options, sh_degree=0)
+  scene = dataclasses.replace(scene, owner=dataclasses.replace(scene.owner, options=at_dc))
+  sh = np.array(scene.student.sh)
+  sh[:, 1:] = np.random.default_rng(0).normal(size=sh[:, 1:].shape) * 0.3  # view-dependent colour
+  tuned = scene.student.replace(sh=sh)
+  full = evaluate.views_psnr(tuned, scene.cameras, scene.targets, dataclasses.replace(at_dc, sh_degree=None))
+  assert abs(full - evaluate.views_psnr(tuned, scene.cameras, scene.targets, at_dc)) > 0.1
+  assert bench_survive.scores_of(scene, tuned)["render_psnr"] == pytest.approx(full, abs=1e-4)
 
 
 def test_marks_of_one_scene_share_its_trainings_and_other_recipes_are_refused(tmp_path, monkeypatch):
