@@ -707,7 +707,8 @@ def two_mark_lines(rows: list[dict], alpha: float = default.get_config().verify.
       continue
     lines += [f"The recommended recipe's two marks in one scene ({film_label}: the film; {layer_label}: the layer): "
               f"hidden SSIM of each (* owned by that mark alone) and verify's decision on both at alpha {alpha:g}:", "",
-              "| attack | level | steps | render PSNR | film | layer | owned (log10 p) |", "|---|---|---|---|---|---|---|"]
+              "| attack | level | steps | render PSNR | film | layer | owned (log10 p) |",
+              "|---|---|---|---|---|---|---|"]
     for k in both:
       f, l = film[k], layer[k]
       log10_p = float(ownership.combined_log10_p([f["log10_p"], l["log10_p"]]))
