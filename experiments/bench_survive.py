@@ -62,6 +62,7 @@ from conceal_jax.data import ply
 from conceal_jax.gs import evaluate, similarity as sim, train
 from conceal_jax.robust import converter, ownership, robustness, scene_attacks
 from conceal_jax.splat.camera import opengl_camera_to_world
+from conceal_jax.splat.render import RenderOptions
 from experiments import bench_robust, results_io
 
 NAME = "survive_bench"
@@ -304,6 +305,7 @@ class Scene:
   null_views: int
   carrier: int = 0
   key_length: float | None = None  # the key's near_length (key.json; None in runs from before it was recorded)
+  view_options: RenderOptions | None = None  # the test views' (evaluate.eval_options), not the key's
 
   converter_timeout_s: float = CONVERTER_TIMEOUT_S
 
@@ -326,11 +328,13 @@ def load_scene(name: str, run: pathlib.Path, recipe: str, test_views: int, calib
   claim_cache(cache, student_run)
   config, _, owner = bench_robust.load_run(run)
   student = ply.load_ply(str(student_run / "student.ply"))
-  cameras, targets, _ = evaluate.held_out_views(evaluate.load_scene_data(config), test_views)
+  data = evaluate.load_scene_data(config)
+  cameras, targets, _ = evaluate.held_out_views(data, test_views)
   summary = json.loads((run / "conceal.json").read_text()) if (run / "conceal.json").is_file() else {}
   key_length = key_lib.load_key(str(run / "key.json"))[1].get("near_length")
   return Scene(name, recipe, student_run, config, jax.tree.map(np.asarray, student), owner, cameras, targets,
-               calibration, cache, alpha, null_views, int(summary.get("num_carrier", 0)), key_length)
+               calibration, cache, alpha, null_views, int(summary.get("num_carrier", 0)), key_length,
+               evaluate.eval_options(config, data.background))
 
 
 def layered_on(run: pathlib.Path, layered: pathlib.Path) -> pathlib.Path:
@@ -353,11 +357,11 @@ def render_loss(run: pathlib.Path) -> float | None:
 
 
 def scores_of(scene: Scene, gaussians, similarity: sim.Similarity | None = None) -> dict:
-  """render_psnr on the test views (cameras moved by `similarity`, the one applied to the scene, if given) at every
-  SH band the scene has (a film's key reads it at degree 0), and hidden PSNR / SSIM at the key as saved (no
-  re-alignment)."""
+  """render_psnr on the test views (cameras moved by `similarity`, the one applied to the scene, if given) with the
+  scene's evaluation options (every SH band it has: a film's key reads it at degree 0), and hidden PSNR / SSIM at
+  the key as saved (no re-alignment)."""
   g = jax.tree.map(jnp.asarray, gaussians)
-  cameras, options = scene.cameras, dataclasses.replace(scene.owner.options, sh_degree=None)
+  cameras, options = scene.cameras, scene.view_options
   if similarity is not None:
     moved = [align.moved_key(c, options, similarity) for c in cameras]
     cameras, options = [c for c, _ in moved], moved[0][1]
@@ -699,8 +703,7 @@ def two_mark_lines(rows: list[dict], alpha: float = default.get_config().verify.
   with verify.marks decides), for the attacks both marks' rows have."""
   lines = []
   for film_label, layer_label in TWO_MARKS.items():
-    by_attack = lambda label: {(r["attack"], json.dumps(r["level"]), r.get("steps")): r for r in rows
-                               if r["scene"] == label and r.get("log10_p") is not None}
+    by_attack = lambda label: {row_key(r)[2:]: r for r in rows if r["scene"] == label and r.get("log10_p") is not None}
     film, layer = by_attack(film_label), by_attack(layer_label)
     both = [k for k in film if k in layer]
     if not both:
