@@ -138,7 +138,13 @@ SCENE_NOTES = {
     "lego_layered_layer": "lego's recommended student with lego_conceal.py:in_scene_layer concealed on it as the "
                           "second mark (workdirs/survive_runs/lego_recommended_in_scene_layer, 2026-11-30): the "
                           "recommended film and layer; the layer's mark, read at its own key with its own decoder",
-    "lego_layered_layer_film": "lego_layered_layer's scene; the film's mark, read from it"}
+    "lego_layered_layer_film": "lego_layered_layer's scene; the film's mark, read from it",
+    "demo_layered_layer": "the demo's recommended student (conceal.py, 10000 steps, concealed again 2026-11-30 "
+                          "after make demo's teacher was trained again: workdirs/survive_runs/demo_thick_mf20_10k, "
+                          "hidden 37.09 dB / 0.980) with conceal.py:in_scene_layer concealed on it as the second mark "
+                          "(workdirs/survive_runs/demo_thick_mf20_10k_layer, 2026-11-30): the recommended film and "
+                          "layer; the layer's mark, read at its own key with its own decoder",
+    "demo_layered_layer_film": "demo_layered_layer's scene; the film's mark, read from it"}
 TRANSFORMS = ([("rotate", d) for d in (1.0, 5.0, 45.0, 180.0)] + [("translate", f) for f in (0.026, 1.0)]
               + [("scale", f) for f in (0.5, 1.1, 2.0)])
 # attack, level -> converter.round_trip's arguments
@@ -177,8 +183,12 @@ RECIPE_NOTES = {
                      "demo_thick_mf20, concealed again 2026-11-29 on the current renderer: hidden 35.64 dB / 0.986)",
     "thick_mf35_6k": "thick_mf20_6k with 35% of the check renders merged in the converter's groups rather than 20% "
                      "(conceal.attacks.merge_fraction 0.35; workdirs/survive_runs/demo_thick_mf35, 2026-11-29)",
-    "thick_mf20_10k": "thick_mf20_6k at the recipe's full 10000 steps (workdirs/survive_runs/demo_thick_mf20_10k, "
-                      "2026-11-29: hidden 38.92 dB / 0.992)",
+    "thick_mf20_10k": "thick_mf20_6k at the recipe's full 10000 steps (workdirs/survive_runs/demo_thick_mf20_10k; "
+                      "scene demo: concealed 2026-11-29, hidden 38.92 dB / 0.992; demo_layered_layer_film: the same "
+                      "command on 2026-11-30, see its scene note)",
+    "in_scene_layer": "recipes.in_scene_layer (the Makefile's LAYER): in_scene_axes as the second mark of a "
+                      "film-marked scene, in its own Gaussians, read from the owner's renders, L_kd weighted 32, its "
+                      "decoder guarded; concealed on the recommended student (mark.teacher: its student.ply)",
     "thick_k50_6k": "thick_mf20_6k with every merging check render the converter's decimation to 50% (conceal.attacks."
                     "merge_keep (0.5,), not also 80%: twice the steps at each size of the 50% decimation; "
                     "workdirs/survive_runs/demo_thick_k50, 2026-11-29)",
@@ -694,7 +704,7 @@ def true_positive_lines(rows: list[dict]) -> list[str]:
 
 # The scenes that carry the recommended recipe's two marks: the film's label -> the layer's (one attacked scene,
 # each mark read by its own rows).
-TWO_MARKS = {"lego_layered_layer_film": "lego_layered_layer"}
+TWO_MARKS = {"lego_layered_layer_film": "lego_layered_layer", "demo_layered_layer_film": "demo_layered_layer"}
 
 
 def two_mark_lines(rows: list[dict], alpha: float = default.get_config().verify.alpha) -> list[str]:
