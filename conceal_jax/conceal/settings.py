@@ -229,8 +229,7 @@ def extra_hidden(extra, use_decoder: bool) -> tuple[str, ...]:
 
 
 def validate(config: ml_collections.ConfigDict) -> None:
-  """The conceal mode's check of `config` before anything runs (main.MODES): `plan`'s errors, nothing returned."""
-  plan(config)
+  plan(config)  # the conceal mode's check before anything runs (main.MODES)
 
 
 def decoder_optimizer(config: ml_collections.ConfigDict) -> optax.GradientTransformation:
