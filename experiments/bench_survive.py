@@ -298,9 +298,9 @@ def row_key(row: dict) -> tuple:
 @dataclasses.dataclass
 class Scene:
   """A marked scene under test: its name and recipe label, conceal workdir, run config, student (numpy), owner
-  (robustness.Owner), test cameras and images, the decision's calibration, its cache folder, and how many
-  Gaussians of the student are a carrier film (the last ones; conceal.carrier), the key's near_length, and the
-  longest a converter call may take."""
+  (robustness.Owner), test cameras, images and render options, the decision's calibration, its cache folder, and
+  how many Gaussians of the student are a carrier film (the last ones; conceal.carrier), the key's near_length, and
+  the longest a converter call may take."""
   name: str
   recipe: str
   run: pathlib.Path  # the conceal workdir whose student is under test (load_scene's `layered` when given)
@@ -309,13 +309,13 @@ class Scene:
   owner: robustness.Owner
   cameras: list
   targets: list
+  view_options: RenderOptions  # the test views' (evaluate.eval_options), not the key's
   calibration: dict
   cache: pathlib.Path
   alpha: float
   null_views: int
   carrier: int = 0
   key_length: float | None = None  # the key's near_length (key.json; None in runs from before it was recorded)
-  view_options: RenderOptions | None = None  # the test views' (evaluate.eval_options), not the key's
 
   converter_timeout_s: float = CONVERTER_TIMEOUT_S
 
@@ -343,8 +343,8 @@ def load_scene(name: str, run: pathlib.Path, recipe: str, test_views: int, calib
   summary = json.loads((run / "conceal.json").read_text()) if (run / "conceal.json").is_file() else {}
   key_length = key_lib.load_key(str(run / "key.json"))[1].get("near_length")
   return Scene(name, recipe, student_run, config, jax.tree.map(np.asarray, student), owner, cameras, targets,
-               calibration, cache, alpha, null_views, int(summary.get("num_carrier", 0)), key_length,
-               evaluate.eval_options(config, data.background))
+               evaluate.eval_options(config, data.background), calibration, cache, alpha, null_views,
+               int(summary.get("num_carrier", 0)), key_length)
 
 
 def layered_on(run: pathlib.Path, layered: pathlib.Path) -> pathlib.Path:
