@@ -379,6 +379,12 @@ def scores_of(scene: Scene, gaussians, similarity: sim.Similarity | None = None)
               **scene.owner.check_scores(g), num_gaussians=int(np.asarray(gaussians.means).shape[0]))
 
 
+def drop_compilations() -> None:
+  """Frees the compiled programs of the scene just scored: each attacked scene has its own Gaussian count, and a
+  process that keeps every size's CPU code runs out of memory mappings (vm.max_map_count) long before RAM."""
+  jax.clear_caches()
+
+
 def registration_errors(found: dict, applied: sim.Similarity, radius: float) -> dict:
   """The registration's error against the applied similarity: rotation (degrees), scale (relative),
   translation (owner radii, after the scale)."""
@@ -481,6 +487,7 @@ def converter_rows(scene: Scene, todo) -> list[dict]:
     rows.append(scene.row(attack, level, scores, realigned.pop("test"), aligned=realigned,
                           moved=dict(aligned(scene, moved, applied), similarity=align.similarity_report(applied))))
     print(json.dumps({k: v for k, v in rows[-1].items() if not isinstance(v, dict)}), flush=True)
+    drop_compilations()
   return rows
 
 
@@ -503,6 +510,7 @@ def scaled_decimation_rows(scene: Scene, factors) -> list[dict]:
     plain["num_gaussians"] = int(published.num)
     rows.append(realigned_row(scene, "decimate_scaled", factor, published, applied, plain))
     print(json.dumps({k: v for k, v in rows[-1].items() if not isinstance(v, dict)}), flush=True)
+    drop_compilations()
   return rows
 
 
@@ -556,6 +564,7 @@ def snapshot_scores(scene: Scene, config, workdir: pathlib.Path, steps: list[int
                 aligned(scene, tuned)["test"]))
     print(json.dumps(dict(step=length, hidden_ssim=out[-1][1].get("hidden_ssim"), owned=out[-1][2]["owned"])),
           flush=True)
+    drop_compilations()
   return out
 
 
@@ -943,6 +952,7 @@ def main(argv=None):
       for r in rows:
         r["threshold"] = calibration["threshold"]
       results_io.write_results(out, NAME, rows, row_key, table, plot, calibration=args.calibration)
+    drop_compilations()
 
   for spec in (s for s in args.scenes.split(",") if s):
     label, _, path = spec.partition("=")
