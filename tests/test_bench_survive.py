@@ -105,8 +105,11 @@ def test_transforms_and_round_trips_are_revealed_after_re_alignment(run, monkeyp
 
 @pytest.mark.slow  # a training run's compilation: over a minute on two shared cores
 def test_finetune_and_extraction_rows_at_each_length(run, monkeypatch):
+  freed = []
+  monkeypatch.setattr(bench_survive, "drop_compilations", lambda: freed.append(1))
   rows = bench(run, monkeypatch, "--attacks=finetune,finetune_gentle", "--finetune-steps=2,4", "--extraction",
                "--extraction-views=6", "--extraction-steps=2,4")
+  assert len(freed) >= len(rows)  # each scored snapshot's compiled programs are freed
   extracted = [r for r in rows if r["attack"] == "extraction"]
   assert [(r["level"], r["steps"]) for r in extracted] == [(6, 2), (6, 4)] and all(FIELDS <= set(r) for r in extracted)
   assert all(r["key_nearest_deg"] == pytest.approx(0.0, abs=1e-3) for r in extracted)  # the key: training camera 1
@@ -187,6 +190,13 @@ def test_unknown_extraction_poses_are_refused_before_any_work(run, tmp_path, cap
                         "--extraction", "--extraction-poses=orbit,ring"])
   assert exit_info.value.code != 0 and "unknown --extraction-poses ring" in capsys.readouterr().err
   assert not (tmp_path / "out").exists() and not (tmp_path / "work").exists()
+
+
+def test_dropping_compilations_empties_the_jit_caches():
+  twice = jax.jit(lambda x: 2 * x)
+  twice(np.ones(3)), twice(np.ones(4))
+  bench_survive.drop_compilations()
+  assert twice._cache_size() == 0
 
 
 def test_gentle_fine_tuning_moves_every_field_less_than_the_3dgs_recipe():
