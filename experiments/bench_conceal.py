@@ -59,6 +59,9 @@ RECOMMENDED_PAIRS = {"conceal.attacks.merge_groups": "nearest", "conceal.attacks
 # A film grid every 6 pixels of a 64-pixel key (lego's film grid, lego_conceal.FILM_SPACING, read at the decoder's
 # size), in pixels of lego's 200-pixel key: a ninth of its splats.
 SPARSE_FILM_SPACING = 18.75
+# The recommended recipe until 2026-12-01: its decoys in random directions about the key, the decoder not polished
+# (every row built on it before then ran so).
+RANDOM_DECOYS = {"conceal.leakage.decoy_key_axes": False, "conceal.decoder_opt.polish_steps": 0}
 ROWS = {
     "full": ("paper", {}),
     "no_decoder": ("paper", {"conceal.use_decoder": False}),
@@ -78,14 +81,16 @@ ROWS = {
     "in_scene_no_update_clip_decoder_decay05": (through_attacks(True), {DECODER_DECAY: 0.5}),
     "in_scene": ("in_scene", {}),
     "recommended": ("recommended", {}),
-    "recommended_flat": ("recommended", RECOMMENDED_FLAT),
-    "recommended_pairs": ("recommended", RECOMMENDED_PAIRS),
-    "recommended_decoder_size": ("recommended", {"conceal.carrier.at_decoder_size": True}),
-    "recommended_decoder_size_near": ("recommended", {"conceal.carrier.at_decoder_size": True,
+    "recommended_random_decoys": ("recommended", RANDOM_DECOYS),
+    "recommended_flat": ("recommended", {**RANDOM_DECOYS, **RECOMMENDED_FLAT}),
+    "recommended_pairs": ("recommended", {**RANDOM_DECOYS, **RECOMMENDED_PAIRS}),
+    "recommended_decoder_size": ("recommended", {**RANDOM_DECOYS, "conceal.carrier.at_decoder_size": True}),
+    "recommended_decoder_size_near": ("recommended", {**RANDOM_DECOYS, "conceal.carrier.at_decoder_size": True,
                                                       "conceal.leakage.decoy_translation":
                                                           recipes.DECODER_SIZE_DECOY_TRANSLATION}),
-    "recommended_decoder_size_more_decoys": ("recommended_at_decoder_size", {}),
-    "recommended_decoder_size_sparse": ("recommended", {"conceal.carrier.at_decoder_size": True,
+    "recommended_at_decoder_size": ("recommended_at_decoder_size", {}),
+    "recommended_decoder_size_more_decoys": ("recommended_at_decoder_size", RANDOM_DECOYS),
+    "recommended_decoder_size_sparse": ("recommended", {**RANDOM_DECOYS, "conceal.carrier.at_decoder_size": True,
                                                         "conceal.carrier.spacing": SPARSE_FILM_SPACING}),
     "in_scene_decoder_decay05": ("in_scene", {DECODER_DECAY: 0.5}),
     "in_scene_polished": ("in_scene", POLISHED),

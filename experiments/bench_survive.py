@@ -83,7 +83,8 @@ SCENES = {"demo": ("demo", "workdirs/demo/conceal", "in_scene"),
           "demo_film_far": ("demo", "workdirs/survive_runs/demo_film_far", "film_far"),
           "demo_drift": ("demo", "workdirs/survive_runs/demo_drift", "drift"),
           "demo_orbit": ("demo", "workdirs/survive_runs/demo_orbit", "orbit"),
-          "demo_recommended": ("demo", "workdirs/survive_runs/demo_recommended", "recommended_6k"),
+          "demo_recommended_6k": ("demo", "workdirs/survive_runs/demo_recommended", "recommended_6k"),
+          "demo_recommended": ("demo", "workdirs/survive_runs/demo_axes_polished_10k", "recommended"),
           "demo_thick": ("demo", "workdirs/survive_runs/demo_thick_mf20", "thick_mf20_6k"),
           "demo_thick_mf35": ("demo", "workdirs/survive_runs/demo_thick_mf35", "thick_mf35_6k"),
           "demo_thick_k50": ("demo", "workdirs/survive_runs/demo_thick_k50", "thick_k50_6k"),
@@ -171,9 +172,15 @@ RECIPE_NOTES = {
     "tolerant": "demo.py:tolerant: the demo's in_scene recipe with recipes.tolerant_key",
     "in_scene": "the mark in the teacher's Gaussians, refined (recipes.in_scene; configs/demo.py; bench-conceal's "
                 "in_scene lego row)",
-    "recommended": "recipes.recommended: the carrier film (configs/conceal.py's default; the label of a run given by "
-                   "path); lego: bench-conceal's recommended row (lego_conceal.py:recommended, thick_mf20_wm25's "
-                   "settings, workdirs/bench/lego/conceal_recommended_w16, concealed 2026-11-29)",
+    "recommended": "recipes.recommended: the carrier film with its key watched along and about its own axes and "
+                   "its decoder polished alone 2000 steps (configs/conceal.py's default; the label of a run given by "
+                   "path); demo: make survive-runs' demo_recommended (workdirs/survive_runs/demo_axes_polished_10k, "
+                   "conceal.py with data.path=demo, 10000 steps); lego: bench-conceal's recommended row "
+                   "(lego_conceal.py:recommended, workdirs/bench/lego/conceal_recommended_w16)",
+    "recommended_random_decoys": "recipes.recommended until 2026-12-01: its decoys turned and moved in random "
+                                 "directions about the key, the decoder not polished (bench-conceal's "
+                                 "recommended_random_decoys; lego: lego_conceal.py:recommended, thick_mf20_wm25's "
+                                 "settings, concealed 2026-11-29, the film of the lego_layered_layer scenes)",
     "recommended_6k": "recipes.recommended as it was before 2026-11-28 (bench-conceal's recommended_pairs) on the "
                       "demo for 6000 steps (make survive-runs' demo_recommended: conceal.py with data.path=demo; its "
                       "film grid every 4 pixels, where conceal.carrier.spacing 0 places it at 128 pixels), fine-tuned "

@@ -14,9 +14,10 @@ from conceal_jax.data import demo_scene
 from tests import test_datasets, test_llff
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-# a tiny run: 20 teacher steps from 500 random points, 10 concealment steps of a width-4 decoder at 16x16
+# a tiny run: 20 teacher steps from 500 random points, 10 concealment steps of a width-4 decoder at 16x16 and 2
+# steps of its polish
 TINY_ARGS = ("--config.init.kind=random --config.init.num_random_points=500 --config.mark.hidden_size=16 "
-             "--config.conceal.decoder.width=4 "
+             "--config.conceal.decoder.width=4 --config.conceal.decoder_opt.polish_steps=2 "
              "--config.conceal.iterations=10 --config.conceal.log_every=5 --config.eval.max_views=1 "
              "--config.train.progress_bar=False --config.conceal.progress_bar=False")
 needs_make = pytest.mark.skipif(shutil.which("make") is None, reason="make not installed")

@@ -205,7 +205,7 @@ def test_each_recipe_is_one_row_over_its_seeds_and_every_other_run_is_in_the_app
   assert reproduce.recipe_of_row() == {"full": ("paper", 0), "released": ("released", 0),
                                        "released_seed1": ("released", 1),
                                        "in_scene": ("in_scene", 0), "recommended": ("recommended", 0),
-                                       "recommended_decoder_size_more_decoys": ("recommended_at_decoder_size", 0)}
+                                       "recommended_at_decoder_size": ("recommended_at_decoder_size", 0)}
   conceal_rows = [_conceal_row("released", 16, 33.4, 42.5), _conceal_row("released_seed1", 16, 33.3, 39.0),
                   _conceal_row("recommended", 16, 33.0, 40.4),
                   _conceal_row("released_plus_weight2", 16, 33.3, 42.9),

@@ -58,6 +58,8 @@ GRID_OPACITY, SPZ_DC_BOUND = 2.001 / 255, 0.5 / 0.15
 FILM_STACK = 2
 # The watched key: decoys near the key on most steps, many of them, and L_d^- weighted above L_d^+.
 WATCH_DECOY_VIEWS, WATCH_DECOY_FRACTION, WATCH_WEIGHT_MINUS = 768, 0.9, 1.5
+# The decoder polished alone on the finished student: this many decoder-only steps after the joint ones.
+POLISH_STEPS = 2000
 # The rate of the film's base colours in the vivid film (the gentle student's is 6.25e-4).
 VIVID_DC_LR = 1e-2
 # The key tolerance radius: poses within TOLERANCE_DEG of the key (turned about what it looks at, as an orbit camera)
@@ -121,12 +123,14 @@ def recommended(config):
   (vivid_film) that the publishing formats store as they are (publishable_film), trained through 8-bit colours and
   the converter's own decimation at several sizes (through_quantization, through_converter_decimation) of splats as
   thick along the key's axis as across it (thick_film), read by the decoder from standardized renders only at the
-  key (closely_watched_key), and not through image distortions (owner_rendered). The film's grid follows the
-  decoder's input (conceal.carrier.spacing 0: a position every other pixel of it, so the film's size does not grow
-  with the key's resolution)."""
+  key (closely_watched_key) along and about its own axes too (key_axes_watched), with the decoder polished alone on
+  the finished student (polished_decoder), and not through image distortions (owner_rendered). The film's grid
+  follows the decoder's input (conceal.carrier.spacing 0: a position every other pixel of it, so the film's size does
+  not grow with the key's resolution)."""
   config = owner_rendered(in_scene(config))
   config = thick_film(publishable_film(vivid_film(faint_film(unseen_carrier(config), spacing=0.0))))
   config = closely_watched_key(through_converter_decimation(through_quantization(config)))
+  config = polished_decoder(key_axes_watched(config))
   config.conceal.decoder.input_norm = "standardize"
   return config
 
@@ -227,8 +231,8 @@ def axial_decoys(config, decoy_views: int = AXIAL_DECOY_VIEWS):
   """`decoy_views` decoys (AXIAL_DECOY_TRANSLATION, AXIAL_DECOY_ROTATION_DEG) whose moved-only and turned-only
   ones go along and about the key's axes in turn (conceal.leakage.decoy_key_axes) and hold the decoder alone to
   the identity (decoys_hold_student False), on in_scene's share of the steps."""
-  lk = config.conceal.leakage
-  lk.decoy_views, lk.decoy_key_axes, lk.decoys_hold_student = decoy_views, True, False
+  lk = key_axes_watched(config).conceal.leakage
+  lk.decoy_views, lk.decoys_hold_student = decoy_views, False
   lk.decoy_translation, lk.decoy_rotation_deg = AXIAL_DECOY_TRANSLATION, AXIAL_DECOY_ROTATION_DEG
   return config
 
@@ -342,6 +346,24 @@ def closely_watched_key(config, decoy_fraction: float = WATCH_DECOY_FRACTION):
   config = watched_key(config, decoy_fraction=decoy_fraction)
   config.conceal.leakage.decoy_rotation_deg = CLOSE_DECOY_ROTATION_DEG
   config.conceal.weight_minus = CLOSE_WEIGHT_MINUS
+  return config
+
+
+def key_axes_watched(config):
+  """The watched key's moved-only and turned-only decoys along and about the key's own axes in turn
+  (conceal.leakage.decoy_key_axes): a film's image moves least when the key is rolled about its optical axis or
+  moved along it, poses random decoy directions seldom come near, so a decoder watched only at random directions
+  still reads its image from the key rolled a degree."""
+  config.conceal.leakage.decoy_key_axes = True
+  return config
+
+
+def polished_decoder(config, steps: int = POLISH_STEPS):
+  """`steps` more steps that train the decoder alone on the finished student (conceal.decoder_opt.polish_steps):
+  the decoys about the key's axes hold the decoder to the identity at poses close to the key, which the joint steps
+  pay for in hidden SSIM; a decoder fitted to the student as it is shared wins it back and leaves the student as
+  it was."""
+  config.conceal.decoder_opt.polish_steps = steps
   return config
 
 
