@@ -47,3 +47,15 @@ def test_the_recipe_at_the_decoders_size_changes_only_the_keys_size_and_its_deco
     for name in names:
       setattr(getattr(fast.conceal, section), name, getattr(getattr(slow.conceal, section), name))
   assert fast.to_dict() == slow.to_dict()
+
+
+def test_the_recommended_recipe_is_the_random_decoy_one_with_its_key_axes_watched_and_its_decoder_polished():
+  """recipes.recommended differs from the recipe before 2026-12-01 (bench-conceal's recommended_random_decoys row)
+  only in the decoys' directions and the decoder's polish."""
+  from experiments import bench_conceal
+  now, before = (bench_conceal.run_config("lego", "TEACHER.ply", row, 16, 0, 0)
+                 for row in ("recommended", "recommended_random_decoys"))
+  assert now.conceal.leakage.decoy_key_axes and not before.conceal.leakage.decoy_key_axes
+  assert now.conceal.decoder_opt.polish_steps == recipes.POLISH_STEPS and before.conceal.decoder_opt.polish_steps == 0
+  now.conceal.leakage.decoy_key_axes, now.conceal.decoder_opt.polish_steps = False, 0
+  assert now.to_dict() == before.to_dict()
