@@ -145,7 +145,13 @@ SCENE_NOTES = {
                           "hidden 37.09 dB / 0.980) with conceal.py:in_scene_layer concealed on it as the second mark "
                           "(workdirs/survive_runs/demo_thick_mf20_10k_layer, 2026-11-30): the recommended film and "
                           "layer; the layer's mark, read at its own key with its own decoder",
-    "demo_layered_layer_film": "demo_layered_layer's scene; the film's mark, read from it"}
+    "demo_layered_layer_film": "demo_layered_layer's scene; the film's mark, read from it",
+    "demo_layered_layer_axes": "the demo's recommended student (demo_recommended: its key's axes watched, its decoder "
+                               "polished; workdirs/survive_runs/demo_axes_polished_10k, 2026-12-01) with "
+                               "conceal.py:in_scene_layer concealed on it as the second mark "
+                               "(workdirs/survive_runs/demo_axes_polished_10k_layer): the layer's mark, read at its "
+                               "own key with its own decoder",
+    "demo_layered_layer_film_axes": "demo_layered_layer_axes's scene; the film's mark, read from it"}
 TRANSFORMS = ([("rotate", d) for d in (1.0, 5.0, 45.0, 180.0)] + [("translate", f) for f in (0.026, 1.0)]
               + [("scale", f) for f in (0.5, 1.1, 2.0)])
 # attack, level -> converter.round_trip's arguments
@@ -720,7 +726,8 @@ def true_positive_lines(rows: list[dict]) -> list[str]:
 
 # The scenes that carry the recommended recipe's two marks: the film's label -> the layer's (one attacked scene,
 # each mark read by its own rows).
-TWO_MARKS = {"lego_layered_layer_film": "lego_layered_layer", "demo_layered_layer_film": "demo_layered_layer"}
+TWO_MARKS = {"lego_layered_layer_film": "lego_layered_layer", "demo_layered_layer_film": "demo_layered_layer",
+             "demo_layered_layer_film_axes": "demo_layered_layer_axes"}
 
 
 def two_mark_lines(rows: list[dict], alpha: float = default.get_config().verify.alpha) -> list[str]:
