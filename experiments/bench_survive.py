@@ -188,7 +188,7 @@ RECIPE_NOTES = {
                                  "recommended_random_decoys; lego: lego_conceal.py:recommended, thick_mf20_wm25's "
                                  "settings, concealed 2026-11-29, the film of the lego_layered_layer scenes)",
     "recommended_6k": "recipes.recommended as it was before 2026-11-28 (bench-conceal's recommended_pairs) on the "
-                      "demo for 6000 steps (make survive-runs' demo_recommended: conceal.py with data.path=demo; its "
+                      "demo for 6000 steps (bench-survive's demo_recommended_6k: conceal.py with data.path=demo; its "
                       "film grid every 4 pixels, where conceal.carrier.spacing 0 places it at 128 pixels), fine-tuned "
                       "with its config's training recipe, 3D-GS's defaults",
     "thick_mf20_6k": "recipes.recommended (since 2026-11-28 evening: the thick film through the converter's own "
