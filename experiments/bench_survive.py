@@ -151,7 +151,10 @@ SCENE_NOTES = {
                                "conceal.py:in_scene_layer concealed on it as the second mark "
                                "(workdirs/survive_runs/demo_axes_polished_10k_layer): the layer's mark, read at its "
                                "own key with its own decoder",
-    "demo_layered_layer_film_axes": "demo_layered_layer_axes's scene; the film's mark, read from it"}
+    "demo_layered_layer_film_axes": "demo_layered_layer_axes's scene; the film's mark, read from it",
+    "demo_axes_unpolished": "demo_recommended's command without the polish (conceal.py with "
+                            "--config.conceal.decoder_opt.polish_steps=0, workdirs/survive_runs/demo_axes_10k, "
+                            "2026-12-01): which part of the adopted recipe costs decimation"}
 TRANSFORMS = ([("rotate", d) for d in (1.0, 5.0, 45.0, 180.0)] + [("translate", f) for f in (0.026, 1.0)]
               + [("scale", f) for f in (0.5, 1.1, 2.0)])
 # attack, level -> converter.round_trip's arguments
@@ -183,6 +186,7 @@ RECIPE_NOTES = {
                    "path); demo: make survive-runs' demo_recommended (workdirs/survive_runs/demo_axes_polished_10k, "
                    "conceal.py with data.path=demo, 10000 steps); lego: bench-conceal's recommended row "
                    "(lego_conceal.py:recommended, workdirs/bench/lego/conceal_recommended_w16)",
+    "axes_unpolished": "recipes.recommended without its decoder polish (decoys along and about the key's axes only)",
     "recommended_random_decoys": "recipes.recommended until 2026-12-01: its decoys turned and moved in random "
                                  "directions about the key, the decoder not polished (bench-conceal's "
                                  "recommended_random_decoys; lego: lego_conceal.py:recommended, thick_mf20_wm25's "
