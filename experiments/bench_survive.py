@@ -146,12 +146,6 @@ SCENE_NOTES = {
                           "(workdirs/survive_runs/demo_thick_mf20_10k_layer, 2026-11-30): the recommended film and "
                           "layer; the layer's mark, read at its own key with its own decoder",
     "demo_layered_layer_film": "demo_layered_layer's scene; the film's mark, read from it",
-    "demo_layered_layer_axes": "the demo's recommended student (demo_recommended: its key's axes watched, its decoder "
-                               "polished; workdirs/survive_runs/demo_axes_polished_10k, 2026-12-01) with "
-                               "conceal.py:in_scene_layer concealed on it as the second mark "
-                               "(workdirs/survive_runs/demo_axes_polished_10k_layer): the layer's mark, read at its "
-                               "own key with its own decoder",
-    "demo_layered_layer_film_axes": "demo_layered_layer_axes's scene; the film's mark, read from it",
     "demo_axes_unpolished": "demo_recommended's command without the polish (conceal.py with "
                             "--config.conceal.decoder_opt.polish_steps=0, workdirs/survive_runs/demo_axes_10k, "
                             "2026-12-01): which part of the adopted recipe costs decimation"}
@@ -730,8 +724,7 @@ def true_positive_lines(rows: list[dict]) -> list[str]:
 
 # The scenes that carry the recommended recipe's two marks: the film's label -> the layer's (one attacked scene,
 # each mark read by its own rows).
-TWO_MARKS = {"lego_layered_layer_film": "lego_layered_layer", "demo_layered_layer_film": "demo_layered_layer",
-             "demo_layered_layer_film_axes": "demo_layered_layer_axes"}
+TWO_MARKS = {"lego_layered_layer_film": "lego_layered_layer", "demo_layered_layer_film": "demo_layered_layer"}
 
 
 def two_mark_lines(rows: list[dict], alpha: float = default.get_config().verify.alpha) -> list[str]:
