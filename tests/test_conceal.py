@@ -2,6 +2,7 @@
 generated scene (resume, ablation switches, clear errors). The objective and step: tests/test_objective.py."""
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -214,6 +215,25 @@ def test_decoys_that_watch_the_decoder_alone_leave_the_student_free(tiny):
   assert all(float(jnp.max(jnp.abs(leaf))) == 0.0 for leaf in jax.tree.leaves(free))
   held = jax.grad(lambda g: total(g, trained))(student)
   assert any(float(jnp.max(jnp.abs(leaf))) > 0.0 for leaf in jax.tree.leaves(held))
+
+
+def test_polish_draws_its_own_share_of_merged_check_renders(tiny):
+  """conceal.decoder_opt.polish_merge_fraction: the polish's steps draw merges at their own share, the joint steps at
+  conceal.attacks.merge_fraction; unset, every step draws as the joint ones; set without a polish or without the
+  joint steps' merges (whose kind the step leaves out at trace time), one error naming it."""
+  film = {"carrier.film": True, "attacks.merge_fraction": 0.2, "key_kind": "unseen"}
+  config = tiny_config(tiny, iterations=10, decoder_polish_steps=5, **film)
+  plan = settings_lib.plan(config)
+  assert plan.augmentation_at(15) is plan.settings.augmentation
+  config.conceal.decoder_opt.polish_merge_fraction = 0.6
+  plan = settings_lib.plan(config)
+  assert plan.augmentation_at(10).merge_fraction == 0.2 and plan.augmentation_at(11).merge_fraction == 0.6
+  assert plan.augmentation_at(11) == dataclasses.replace(plan.settings.augmentation, merge_fraction=0.6)
+  for changes in (dict(decoder_polish_steps=0), {"attacks.merge_fraction": 0.0}):
+    bad = tiny_config(tiny, iterations=10, **{**film, "decoder_polish_steps": 5, **changes})
+    bad.conceal.decoder_opt.polish_merge_fraction = 0.6
+    with pytest.raises(ValueError, match="polish_merge_fraction"):
+      settings_lib.plan(bad)
 
 
 def test_normal_views_draw_decoys_at_their_rate():

@@ -59,7 +59,7 @@ ADDED = {"conceal.carrier.film": False, "conceal.carrier.distance": 0.1, "concea
          "conceal.leakage.tolerance_views": 0, "conceal.leakage.tolerance_fraction": 0.0,
          "conceal.leakage.decoys_hold_student": True, "conceal.decoder.reference": False,
          "conceal.leakage.decoy_orbit_turns": False, "conceal.decoder_opt.rollback_factor": 0.0,
-         "conceal.decoder_opt.rollback_every": 100}
+         "conceal.decoder_opt.rollback_every": 100, "conceal.decoder_opt.polish_merge_fraction": None}
 # Rows that used a removed option (their results stay in conceal_bench.json and REPRODUCTION's appendix).
 RETIRED_ROWS = {"in_scene_no_update_clip_decoder_amsgrad", "in_scene_polished_running_average",
                 "in_scene_colour_only_student", "in_scene_colour_only_student_polished"}

@@ -55,8 +55,8 @@ def test_tolerance_poses_fill_the_cap_and_look_at_the_keys_point():
 def test_keys_draw_their_tolerance_poses_at_their_rate():
   rng = np.random.default_rng(0)
   assert [views_lib.draw_key(rng, i, 2) for i in range(1, 6)] == [0, 1, 0, 1, 0]
-  tolerance = settings_lib.Tolerance(deg=10.0, views=5, fraction=0.3)
-  drawn = np.array([views_lib.draw_key(rng, i, 2, tolerance) for i in range(1, 4001)])
+  radius = tolerance.Tolerance(deg=10.0, views=5, fraction=0.3)
+  drawn = np.array([views_lib.draw_key(rng, i, 2, radius) for i in range(1, 4001)])
   assert np.mean(drawn >= 2) == pytest.approx(0.3, abs=0.03)
   odd = drawn[0::2]  # iteration 1, 3, ...: key 0, its poses 2..6
   assert set(odd[odd >= 2]) == set(range(2, 7)) and set(drawn[1::2][drawn[1::2] >= 2]) == set(range(7, 12))
@@ -67,7 +67,7 @@ def test_a_radius_is_set_whole_or_not_at_all(values):
   leakage = default.get_config().conceal.leakage
   leakage.tolerance_deg, leakage.tolerance_views, leakage.tolerance_fraction = values
   with pytest.raises(ValueError, match="tolerance_deg, tolerance_views and tolerance_fraction"):
-    settings_lib.tolerance(leakage)
+    tolerance.from_config(leakage)
 
 
 def test_a_run_with_a_radius_reads_its_poses_and_frees_the_views_within_it(tiny):  # noqa: F811

@@ -166,3 +166,15 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
                               else depth * a.merge_depth)
   drawn["prune_small"] = np.float32(rng.uniform(0.0, a.prune_small_max) if a.prune_small_max > 0 else 0.0)
   return drawn
+
+
+def polish_draws(augmentation: Augmentation, merge_share: float | None, polish_steps: int) -> Augmentation | None:
+  """What the decoder polish's steps draw from: `augmentation` (the joint steps') with merge_share of merged check
+  renders (conceal.decoder_opt.polish_merge_fraction; None: unset, the polish draws as the joint steps). The step
+  merges only where the joint steps do (the kind is left out at trace time otherwise), and only a polish draws it."""
+  if merge_share is None:
+    return None
+  if not (polish_steps > 0 and augmentation.merge_fraction > 0):
+    raise ValueError("conceal.decoder_opt.polish_merge_fraction needs conceal.decoder_opt.polish_steps and "
+                     f"conceal.attacks.merge_fraction above 0, got {polish_steps} and {augmentation.merge_fraction}")
+  return dataclasses.replace(augmentation, merge_fraction=merge_share)

@@ -12,7 +12,8 @@ import os
 import ml_collections
 import optax
 
-from conceal_jax.conceal import augment, carrier, guidance, key as key_lib, reveal, rollback as rollback_lib, unet
+from conceal_jax.conceal import augment, carrier, guidance, key as key_lib, reveal, rollback as rollback_lib
+from conceal_jax.conceal import tolerance as tolerance_lib, unet
 from conceal_jax.core import loop, settings as settings_lib
 from conceal_jax.gs import evaluate, optimizer
 
@@ -113,8 +114,9 @@ class RunPlan:
   """What a concealment job reads from its config, checked: the step's settings, the loop (the joint
   iterations then conceal.decoder_opt.polish_steps decoder-only steps), the sources of the hidden images
   (mark.hidden then mark.extra_hidden), the key's kind, the decoys' (count, ranges, key axes, orbit turns), the
-  carrier film's (None: the student is the teacher's Gaussians), the key tolerance radius (None: the key alone) and
-  the decoder's rollback guard (None: none)."""
+  carrier film's (None: the student is the teacher's Gaussians), the key tolerance radius (None: the key alone),
+  the decoder's rollback guard (None: none) and the distortions the polish's steps draw from (None: the joint
+  steps', settings.augmentation)."""
   settings: ConcealSettings
   loop: loop.LoopSettings
   iterations: int
@@ -129,31 +131,16 @@ class RunPlan:
   decoy_rotation_deg: tuple[float, float]
   film: carrier.Film | None = None
   decoy_key_axes: bool = False
-  tolerance: Tolerance | None = None
+  tolerance: tolerance_lib.Tolerance | None = None
   decoy_orbit_turns: bool = False
   rollback: rollback_lib.Rollback | None = None
+  polish_augmentation: augment.Augmentation | None = None
 
-
-@dataclasses.dataclass(frozen=True)
-class Tolerance:
-  """The key tolerance radius (conceal.leakage.tolerance_*): `views` poses within `deg` of each key that reveal its
-  image, one of them the step's check view with probability `fraction`."""
-  deg: float
-  views: int
-  fraction: float
-
-
-def tolerance(leakage: ml_collections.ConfigDict) -> Tolerance | None:
-  """conceal.leakage.tolerance_* checked: all three set (a radius in (0, 90) degrees, a positive number of poses, a
-  share of the steps in (0, 1)) or none (None)."""
-  deg, views, fraction = leakage.tolerance_deg, leakage.tolerance_views, leakage.tolerance_fraction
-  if not deg and not views and not fraction:
-    return None
-  if not (0 < deg < 90 and isinstance(views, int) and views > 0 and 0 < fraction < 1):
-    raise ValueError("conceal.leakage.tolerance_deg, tolerance_views and tolerance_fraction are set together: a "
-                     "radius in (0, 90) degrees, a positive number of poses and a share of the steps in (0, 1), got "
-                     f"{deg}, {views} and {fraction}")
-  return Tolerance(float(deg), views, float(fraction))
+  def augmentation_at(self, iteration: int) -> augment.Augmentation:
+    """The distortions step `iteration` (1-based) draws from: the joint steps', then the polish's."""
+    if iteration <= self.iterations or self.polish_augmentation is None:
+      return self.settings.augmentation
+    return self.polish_augmentation
 
 
 def key_offset(config: ml_collections.ConfigDict) -> float:
@@ -211,8 +198,9 @@ def plan(config: ml_collections.ConfigDict) -> RunPlan:
   return RunPlan(settings, dataclasses.replace(joint, iterations=joint.iterations + polish), c.iterations, polish,
                  sources, m.key_kind, m.key_index, m.key_seed, key_offset(config), lk.decoy_views,
                  ranges["decoy_translation"], ranges["decoy_rotation_deg"], carrier.film_plan(config),
-                 bool(lk.decoy_key_axes), tolerance(lk), bool(lk.decoy_orbit_turns),
-                 rollback_lib.rollback_settings(c.decoder_opt))
+                 bool(lk.decoy_key_axes), tolerance_lib.from_config(lk), bool(lk.decoy_orbit_turns),
+                 rollback_lib.rollback_settings(c.decoder_opt),
+                 augment.polish_draws(settings.augmentation, c.decoder_opt.polish_merge_fraction, polish))
 
 
 def extra_hidden(extra, use_decoder: bool) -> tuple[str, ...]:

@@ -4,17 +4,39 @@ scene, reveal the key's image too, and the training views within it are not held
 trained on views that come near the key, not onto it, can carry the mark."""
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Sequence
 
 import numpy as np
 
 from conceal_jax.conceal.near import orbit_turn
-from conceal_jax.conceal.settings import Tolerance
 from conceal_jax.splat.camera import Camera, camera_centers
 
 
 TOLERANCE_SEED_BASE = 3_000_000  # seeds of the tolerance poses, apart from leakage's, the decoys' and the nulls'
+
+
+@dataclasses.dataclass(frozen=True)
+class Tolerance:
+  """The key tolerance radius (conceal.leakage.tolerance_*): `views` poses within `deg` of each key that reveal its
+  image, one of them the step's check view with probability `fraction`."""
+  deg: float
+  views: int
+  fraction: float
+
+
+def from_config(leakage) -> Tolerance | None:
+  """conceal.leakage.tolerance_* checked: all three set (a radius in (0, 90) degrees, a positive number of poses, a
+  share of the steps in (0, 1)) or none (None)."""
+  deg, views, fraction = leakage.tolerance_deg, leakage.tolerance_views, leakage.tolerance_fraction
+  if not deg and not views and not fraction:
+    return None
+  if not (0 < deg < 90 and isinstance(views, int) and views > 0 and 0 < fraction < 1):
+    raise ValueError("conceal.leakage.tolerance_deg, tolerance_views and tolerance_fraction are set together: a "
+                     "radius in (0, 90) degrees, a positive number of poses and a share of the steps in (0, 1), got "
+                     f"{deg}, {views} and {fraction}")
+  return Tolerance(float(deg), views, float(fraction))
 
 
 def orbit_turns(camera: Camera, length: float, angles_deg: Sequence[float], seed: int = 0) -> list[Camera]:

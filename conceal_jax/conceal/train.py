@@ -198,7 +198,7 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
       data = regrouped(run, data, jax.device_get(state.student), iteration, regroup, mesh)
     rng = np.random.default_rng([config.seed, iteration])
     views = [views_lib.draw_normal_view(rng, num_views, len(run.decoys), s.decoy_fraction) for _ in range(2)]
-    distortion = augment.draw(rng, s.augmentation) if s.augmentation.draws else None
+    distortion = augment.draw(rng, plan.augmentation_at(iteration)) if s.augmentation.draws else None
     return steps(iteration <= plan.iterations, parallel.replicate(state, mesh), data, *views,
                  views_lib.draw_key(rng, iteration, num_keys, plan.tolerance), distortion)
 

@@ -210,7 +210,7 @@ def draw_normal_view(rng: np.random.Generator, num_views: int, num_decoys: int, 
 
 def draw_key(rng: np.random.Generator, iteration: int, num_keys: int, tolerance=None) -> int:
   """A step's check view among ConcealData.keys: the run's keys in turn (key (iteration - 1) % num_keys); with a key
-  tolerance radius (settings.Tolerance), one of that key's poses within it instead with probability
+  tolerance radius (tolerance.Tolerance), one of that key's poses within it instead with probability
   tolerance.fraction, each uniformly (index num_keys + key * tolerance.views + j)."""
   key = (iteration - 1) % num_keys
   if tolerance is not None and rng.random() < tolerance.fraction:

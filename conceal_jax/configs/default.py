@@ -231,7 +231,10 @@ def conceal_decoder_opt_section() -> ml_collections.ConfigDict:
   conv+ReLU U-Net late in a run; rollback_factor (0: off) a guard that returns the decoder to its snapshot of
   rollback_every to twice that many steps back at a step whose L_d^+ exceeds rollback_factor times its running mean
   (conceal/rollback.py); then polish_steps more steps that train the decoder alone on the finished student (the
-  same losses and guided update), fitting it to the scene that is shared."""
+  same losses and guided update), fitting it to the scene that is shared; polish_merge_fraction, where set, is the
+  share of those steps whose check render is merged as a decimation merges it (conceal.attacks.merge_fraction's
+  draw, the joint steps keeping theirs), so that the decoder learns to read the decimated copies of the finished
+  film."""
   c = ml_collections.ConfigDict()
   c.lr = 1e-4
   c.adam_eps = 1e-15  # the released code's (torch's default: 1e-8)
@@ -240,6 +243,7 @@ def conceal_decoder_opt_section() -> ml_collections.ConfigDict:
   c.rollback_factor = 0.0
   c.rollback_every = 100
   c.polish_steps = 0
+  c.polish_merge_fraction = ml_collections.config_dict.placeholder(float)  # None: conceal.attacks.merge_fraction
   return c
 
 
