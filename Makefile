@@ -177,8 +177,8 @@ LEGO_FILM_STEPS ?= 10000
 # untouched reading (bench_survive's thick_mf20_6k rows); another length wants its own folder (DEMO_RECOMMENDED):
 # the conceal job refuses a folder that holds a run of other settings
 DEMO_RECOMMENDED_STEPS ?= 10000
-DEMO_RECOMMENDED ?= demo_axes_polished_10k
-LEGO_RECOMMENDED := lego_axes_polished
+DEMO_RECOMMENDED ?= demo_axes_polished_mf50_10k
+LEGO_RECOMMENDED := lego_axes_polished_mf50
 SURVIVE_VARIANTS := film film_pub film_web film_watch film_long film_deep film_stack film_faint film_reset film_far drift pruned orbit
 $(WORKDIR)/teacher/point_cloud.ply: | $(STAMP)
 	$(MAIN) --workdir=$(WORKDIR)/teacher

@@ -61,7 +61,8 @@ RECOMMENDED_PAIRS = {"conceal.attacks.merge_groups": "nearest", "conceal.attacks
 SPARSE_FILM_SPACING = 18.75
 # The recommended recipe until 2026-12-01: its decoys in random directions about the key, the decoder not polished
 # (every row built on it before then ran so).
-RANDOM_DECOYS = {"conceal.leakage.decoy_key_axes": False, "conceal.decoder_opt.polish_steps": 0}
+RANDOM_DECOYS = {"conceal.leakage.decoy_key_axes": False, "conceal.decoder_opt.polish_steps": 0,
+                 "conceal.decoder_opt.polish_merge_fraction": None}
 ROWS = {
     "full": ("paper", {}),
     "no_decoder": ("paper", {"conceal.use_decoder": False}),

@@ -84,7 +84,7 @@ SCENES = {"demo": ("demo", "workdirs/demo/conceal", "in_scene"),
           "demo_drift": ("demo", "workdirs/survive_runs/demo_drift", "drift"),
           "demo_orbit": ("demo", "workdirs/survive_runs/demo_orbit", "orbit"),
           "demo_recommended_6k": ("demo", "workdirs/survive_runs/demo_recommended", "recommended_6k"),
-          "demo_recommended": ("demo", "workdirs/survive_runs/demo_axes_polished_10k", "recommended"),
+          "demo_recommended": ("demo", "workdirs/survive_runs/demo_axes_polished_mf50_10k", "recommended"),
           "demo_thick": ("demo", "workdirs/survive_runs/demo_thick_mf20", "thick_mf20_6k"),
           "demo_thick_mf35": ("demo", "workdirs/survive_runs/demo_thick_mf35", "thick_mf35_6k"),
           "demo_thick_k50": ("demo", "workdirs/survive_runs/demo_thick_k50", "thick_k50_6k"),
@@ -146,6 +146,10 @@ SCENE_NOTES = {
                           "(workdirs/survive_runs/demo_thick_mf20_10k_layer, 2026-11-30): the recommended film and "
                           "layer; the layer's mark, read at its own key with its own decoder",
     "demo_layered_layer_film": "demo_layered_layer's scene; the film's mark, read from it",
+    "demo_axes_polish4k": "demo_axes_polished's run polished 2000 steps more (its last checkpoint continued with "
+                          "--config.conceal.decoder_opt.polish_steps=4000, workdirs/trials/demo_polish4k, 2026-12-01)",
+    "demo_axes_polish_mf80": "demo_axes_unpolished's run (step 10000) polished with the check renders merged on 80% "
+                             "of the polish's steps (workdirs/trials/demo_polish_mf08, 2026-12-01)",
     "demo_axes_unpolished": "demo_recommended's command without the polish (conceal.py with "
                             "--config.conceal.decoder_opt.polish_steps=0, workdirs/survive_runs/demo_axes_10k, "
                             "2026-12-01): which part of the adopted recipe costs decimation"}
@@ -176,11 +180,19 @@ RECIPE_NOTES = {
     "in_scene": "the mark in the teacher's Gaussians, refined (recipes.in_scene; configs/demo.py; bench-conceal's "
                 "in_scene lego row)",
     "recommended": "recipes.recommended: the carrier film with its key watched along and about its own axes and "
-                   "its decoder polished alone 2000 steps (configs/conceal.py's default; the label of a run given by "
-                   "path); demo: make survive-runs' demo_recommended (workdirs/survive_runs/demo_axes_polished_10k, "
-                   "conceal.py with data.path=demo, 10000 steps); lego: bench-conceal's recommended row "
+                   "its decoder polished alone 2000 steps, half of them on decimated copies of the film "
+                   "(configs/conceal.py's default; the label of a run given by path); demo: make survive-runs' "
+                   "demo_recommended (workdirs/survive_runs/demo_axes_polished_mf50_10k, conceal.py with "
+                   "data.path=demo, 10000 steps); lego: bench-conceal's recommended row "
                    "(lego_conceal.py:recommended, workdirs/bench/lego/conceal_recommended_w16)",
     "axes_unpolished": "recipes.recommended without its decoder polish (decoys along and about the key's axes only)",
+    "axes_polished": "recipes.recommended as adopted on 2026-12-01 before its polish read decimated copies more "
+                     "often: the polish's check renders merged on a fifth of its steps, as the joint steps' "
+                     "(conceal.decoder_opt.polish_merge_fraction unset; demo: workdirs/survive_runs/"
+                     "demo_axes_polished_10k)",
+    "axes_polish4k": "axes_polished with a polish of 4000 steps (--config.conceal.decoder_opt.polish_steps=4000)",
+    "axes_polish_mf80": "recipes.recommended with the polish reading decimated copies on 80% of its steps "
+                        "(--config.conceal.decoder_opt.polish_merge_fraction=0.8)",
     "recommended_random_decoys": "recipes.recommended until 2026-12-01: its decoys turned and moved in random "
                                  "directions about the key, the decoder not polished (bench-conceal's "
                                  "recommended_random_decoys; lego: lego_conceal.py:recommended, thick_mf20_wm25's "

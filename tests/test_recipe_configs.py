@@ -51,11 +51,14 @@ def test_the_recipe_at_the_decoders_size_changes_only_the_keys_size_and_its_deco
 
 def test_the_recommended_recipe_is_the_random_decoy_one_with_its_key_axes_watched_and_its_decoder_polished():
   """recipes.recommended differs from the recipe before 2026-12-01 (bench-conceal's recommended_random_decoys row)
-  only in the decoys' directions and the decoder's polish."""
+  only in the decoys' directions and the decoder's polish (its length and its share of decimated copies)."""
   from experiments import bench_conceal
   now, before = (bench_conceal.run_config("lego", "TEACHER.ply", row, 16, 0, 0)
                  for row in ("recommended", "recommended_random_decoys"))
   assert now.conceal.leakage.decoy_key_axes and not before.conceal.leakage.decoy_key_axes
-  assert now.conceal.decoder_opt.polish_steps == recipes.POLISH_STEPS and before.conceal.decoder_opt.polish_steps == 0
-  now.conceal.leakage.decoy_key_axes, now.conceal.decoder_opt.polish_steps = False, 0
+  polish, unpolished = now.conceal.decoder_opt, before.conceal.decoder_opt
+  assert (polish.polish_steps, polish.polish_merge_fraction) == (recipes.POLISH_STEPS, recipes.POLISH_MERGE_FRACTION)
+  assert (unpolished.polish_steps, unpolished.polish_merge_fraction) == (0, None)
+  assert recipes.POLISH_MERGE_FRACTION > now.conceal.attacks.merge_fraction > 0  # the polish reads more merges
+  now.conceal.leakage.decoy_key_axes, polish.polish_steps, polish.polish_merge_fraction = False, 0, None
   assert now.to_dict() == before.to_dict()

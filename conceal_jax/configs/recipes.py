@@ -58,8 +58,9 @@ GRID_OPACITY, SPZ_DC_BOUND = 2.001 / 255, 0.5 / 0.15
 FILM_STACK = 2
 # The watched key: decoys near the key on most steps, many of them, and L_d^- weighted above L_d^+.
 WATCH_DECOY_VIEWS, WATCH_DECOY_FRACTION, WATCH_WEIGHT_MINUS = 768, 0.9, 1.5
-# The decoder polished alone on the finished student: this many decoder-only steps after the joint ones.
-POLISH_STEPS = 2000
+# The decoder polished alone on the finished student: this many decoder-only steps after the joint ones, on this
+# share of them reading the film merged as the converter's decimation merges it (the joint steps read a fifth so).
+POLISH_STEPS, POLISH_MERGE_FRACTION = 2000, 0.5
 # The rate of the film's base colours in the vivid film (the gentle student's is 6.25e-4).
 VIVID_DC_LR = 1e-2
 # The key tolerance radius: poses within TOLERANCE_DEG of the key (turned about what it looks at, as an orbit camera)
@@ -124,7 +125,8 @@ def recommended(config):
   the converter's own decimation at several sizes (through_quantization, through_converter_decimation) of splats as
   thick along the key's axis as across it (thick_film), read by the decoder from standardized renders only at the
   key (closely_watched_key) along and about its own axes too (key_axes_watched), with the decoder polished alone on
-  the finished student (polished_decoder), and not through image distortions (owner_rendered). The film's grid
+  the finished student and its decimated copies (polished_decoder), and not through image distortions
+  (owner_rendered). The film's grid
   follows the decoder's input (conceal.carrier.spacing 0: a position every other pixel of it, so the film's size does
   not grow with the key's resolution)."""
   config = owner_rendered(in_scene(config))
@@ -358,12 +360,15 @@ def key_axes_watched(config):
   return config
 
 
-def polished_decoder(config, steps: int = POLISH_STEPS):
+def polished_decoder(config, steps: int = POLISH_STEPS, merge_share: float = POLISH_MERGE_FRACTION):
   """`steps` more steps that train the decoder alone on the finished student (conceal.decoder_opt.polish_steps):
   the decoys about the key's axes hold the decoder to the identity at poses close to the key, which the joint steps
   pay for in hidden SSIM; a decoder fitted to the student as it is shared wins it back and leaves the student as
-  it was."""
+  it was. On `merge_share` of those steps it reads the finished film as the converter's decimation merges it
+  (conceal.decoder_opt.polish_merge_fraction): a decoder that refuses the key rolled a degree also refuses a
+  decimated copy, which moves the image about as little, unless it sees such copies often."""
   config.conceal.decoder_opt.polish_steps = steps
+  config.conceal.decoder_opt.polish_merge_fraction = merge_share
   return config
 
 
