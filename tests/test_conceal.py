@@ -224,11 +224,13 @@ def test_polish_draws_its_own_share_of_merged_check_renders(tiny):
   film = {"carrier.film": True, "attacks.merge_fraction": 0.2, "key_kind": "unseen"}
   config = tiny_config(tiny, iterations=10, decoder_polish_steps=5, **film)
   plan = settings_lib.plan(config)
-  assert plan.augmentation_at(15) is plan.settings.augmentation
+  assert plan.phase(15) == (False, plan.settings.augmentation) and plan.phase(15)[1] is plan.settings.augmentation
   config.conceal.decoder_opt.polish_merge_fraction = 0.6
   plan = settings_lib.plan(config)
-  assert plan.augmentation_at(10).merge_fraction == 0.2 and plan.augmentation_at(11).merge_fraction == 0.6
-  assert plan.augmentation_at(11) == dataclasses.replace(plan.settings.augmentation, merge_fraction=0.6)
+  assert plan.phase(10) == (True, plan.settings.augmentation) and plan.settings.augmentation.merge_fraction == 0.2
+  joint, polish = plan.phase(11)
+  assert not joint and polish.merge_fraction == 0.6
+  assert polish == dataclasses.replace(plan.settings.augmentation, merge_fraction=0.6)
   for changes in (dict(decoder_polish_steps=0), {"attacks.merge_fraction": 0.0}):
     bad = tiny_config(tiny, iterations=10, **{**film, "decoder_polish_steps": 5, **changes})
     bad.conceal.decoder_opt.polish_merge_fraction = 0.6

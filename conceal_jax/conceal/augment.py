@@ -168,12 +168,12 @@ def draw(rng: np.random.Generator, augmentation: Augmentation) -> dict:
   return drawn
 
 
-def polish_draws(augmentation: Augmentation, merge_share: float | None, polish_steps: int) -> Augmentation | None:
+def polish_draws(augmentation: Augmentation, merge_share: float | None, polish_steps: int) -> Augmentation:
   """What the decoder polish's steps draw from: `augmentation` (the joint steps') with merge_share of merged check
-  renders (conceal.decoder_opt.polish_merge_fraction; None: unset, the polish draws as the joint steps). The step
-  merges only where the joint steps do (the kind is left out at trace time otherwise), and only a polish draws it."""
+  renders (conceal.decoder_opt.polish_merge_fraction; None: unset, `augmentation` itself). The step merges only
+  where the joint steps do (the kind is left out at trace time otherwise), and only a polish draws it."""
   if merge_share is None:
-    return None
+    return augmentation
   if not (polish_steps > 0 and augmentation.merge_fraction > 0):
     raise ValueError("conceal.decoder_opt.polish_merge_fraction needs conceal.decoder_opt.polish_steps and "
                      f"conceal.attacks.merge_fraction above 0, got {polish_steps} and {augmentation.merge_fraction}")

@@ -115,8 +115,7 @@ class RunPlan:
   iterations then conceal.decoder_opt.polish_steps decoder-only steps), the sources of the hidden images
   (mark.hidden then mark.extra_hidden), the key's kind, the decoys' (count, ranges, key axes, orbit turns), the
   carrier film's (None: the student is the teacher's Gaussians), the key tolerance radius (None: the key alone),
-  the decoder's rollback guard (None: none) and the distortions the polish's steps draw from (None: the joint
-  steps', settings.augmentation)."""
+  the decoder's rollback guard (None: none) and the distortions the polish's steps draw from."""
   settings: ConcealSettings
   loop: loop.LoopSettings
   iterations: int
@@ -134,13 +133,13 @@ class RunPlan:
   tolerance: tolerance_lib.Tolerance | None = None
   decoy_orbit_turns: bool = False
   rollback: rollback_lib.Rollback | None = None
-  polish_augmentation: augment.Augmentation | None = None
+  polish_augmentation: augment.Augmentation = augment.Augmentation()
 
-  def augmentation_at(self, iteration: int) -> augment.Augmentation:
-    """The distortions step `iteration` (1-based) draws from: the joint steps', then the polish's."""
-    if iteration <= self.iterations or self.polish_augmentation is None:
-      return self.settings.augmentation
-    return self.polish_augmentation
+  def phase(self, iteration: int) -> tuple[bool, augment.Augmentation]:
+    """Whether step `iteration` (1-based) is a joint step (else the decoder polish's), and the distortions it draws
+    from (settings.augmentation, then polish_augmentation)."""
+    joint = iteration <= self.iterations
+    return joint, self.settings.augmentation if joint else self.polish_augmentation
 
 
 def key_offset(config: ml_collections.ConfigDict) -> float:

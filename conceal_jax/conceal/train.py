@@ -19,7 +19,7 @@ import jax.numpy as jnp
 import ml_collections
 import numpy as np
 
-from conceal_jax.conceal import augment, hidden as hidden_lib, key as key_lib, reveal, scoring, settings as settings_lib
+from conceal_jax.conceal import hidden as hidden_lib, key as key_lib, reveal, scoring, settings as settings_lib
 from conceal_jax.conceal import align, carrier, grouping, linear_check, merge_costs, message as message_lib, near, unet
 from conceal_jax.conceal import tolerance as tolerance_lib, views as views_lib
 from conceal_jax.conceal.step import create_state, make_step
@@ -196,11 +196,9 @@ def train_and_evaluate(config: ml_collections.ConfigDict, workdir: str, max_step
     nonlocal data
     if regroup is not None and regroup.due(iteration):
       data = regrouped(run, data, jax.device_get(state.student), iteration, regroup, mesh)
-    rng = np.random.default_rng([config.seed, iteration])
-    views = [views_lib.draw_normal_view(rng, num_views, len(run.decoys), s.decoy_fraction) for _ in range(2)]
-    distortion = augment.draw(rng, plan.augmentation_at(iteration)) if s.augmentation.draws else None
-    return steps(iteration <= plan.iterations, parallel.replicate(state, mesh), data, *views,
-                 views_lib.draw_key(rng, iteration, num_keys, plan.tolerance), distortion)
+    joint, views, distortion, key = views_lib.step_draws(plan, np.random.default_rng([config.seed, iteration]),
+                                                         iteration, num_views, len(run.decoys), num_keys)
+    return steps(joint, parallel.replicate(state, mesh), data, *views, key, distortion)
 
   eval_views = evaluate.held_out_views(run.scene, c.eval_views)[:2]
   def after_window(state, iteration):

@@ -13,10 +13,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from conceal_jax.conceal import key as key_lib, linear_check, reveal, subsets
+from conceal_jax.conceal import augment, key as key_lib, linear_check, reveal, subsets
 from conceal_jax.conceal.key import Key
 from conceal_jax.conceal.objective import View
-from conceal_jax.conceal.settings import ConcealSettings
+from conceal_jax.conceal.settings import ConcealSettings, RunPlan
 from conceal_jax.core import parallel
 from conceal_jax.gs import evaluate
 from conceal_jax.splat import camera as camera_lib
@@ -216,3 +216,15 @@ def draw_key(rng: np.random.Generator, iteration: int, num_keys: int, tolerance=
   if tolerance is not None and rng.random() < tolerance.fraction:
     return num_keys + key * tolerance.views + int(rng.integers(tolerance.views))
   return key
+
+
+def step_draws(plan: RunPlan, rng: np.random.Generator, iteration: int, num_views: int, num_decoys: int,
+               num_keys: int) -> tuple:
+  """What step `iteration` (1-based) draws from `rng`, in this order: (whether it is a joint step, its two normal
+  views (draw_normal_view), its check render's distortion (augment.draw from its phase's distortions; None
+  where the run draws none), its key (draw_key))."""
+  s = plan.settings
+  views = [draw_normal_view(rng, num_views, num_decoys, s.decoy_fraction) for _ in range(2)]
+  joint, augmentation = plan.phase(iteration)
+  distortion = augment.draw(rng, augmentation) if s.augmentation.draws else None
+  return joint, views, distortion, draw_key(rng, iteration, num_keys, plan.tolerance)
